@@ -1,0 +1,68 @@
+# Two-command set-up: `make demo` and `make test` each build what they need first.
+# .venv (ROS 2 Jazzy wheels + deps) -> art_guidance_msgs built into it -> this package editable.
+SHELL := /bin/bash
+.SHELLFLAGS := -eo pipefail -c
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip --disable-pip-version-check -q
+BUILD := build
+MSG_SRC := $(wildcard msg_schemas/msg/*.msg) msg_schemas/CMakeLists.txt msg_schemas/package.xml
+ROS_ENV := VIRTUAL_ENV=$(abspath $(VENV)) AMENT_PREFIX_PATH=$(abspath $(VENV)) \
+	PATH=$(abspath $(VENV))/bin:$$PATH
+PYTEST_ARGS ?=
+
+.PHONY: all setup test test-fast demo lint bench clean distclean
+
+all: setup
+
+$(VENV)/.stamp-venv:
+	$(PYTHON) -m venv $(VENV)
+	touch $@
+
+$(VENV)/.stamp-ros: $(VENV)/.stamp-venv .ci/requirements-ros.txt .ci/fix_ros_cmake_paths.py
+	$(PIP) install -r .ci/requirements-ros.txt 2>&1 | sed "/^WARNING: Location/d"
+	$(PY) -c "import rclpy, rosidl_adapter" >/dev/null
+	$(PY) .ci/fix_ros_cmake_paths.py
+	touch $@
+
+$(VENV)/.stamp-msgs: $(VENV)/.stamp-ros $(MSG_SRC)
+	rm -rf $(BUILD)/msgs && mkdir -p $(BUILD)
+	$(ROS_ENV) cmake -S msg_schemas -B $(BUILD)/msgs -G Ninja -DBUILD_TESTING=OFF \
+		-DCMAKE_INSTALL_PREFIX=$(abspath $(VENV)) -DPython3_EXECUTABLE=$(abspath $(PY)) \
+		> $(BUILD)/msgs.log 2>&1 || (tail -40 $(BUILD)/msgs.log; exit 1)
+	$(ROS_ENV) cmake --build $(BUILD)/msgs >> $(BUILD)/msgs.log 2>&1 \
+		|| (tail -40 $(BUILD)/msgs.log; exit 1)
+	$(ROS_ENV) cmake --install $(BUILD)/msgs >> $(BUILD)/msgs.log 2>&1 \
+		|| (tail -40 $(BUILD)/msgs.log; exit 1)
+	$(PY) -c "from art_guidance_msgs.msg import ManeuverPlan"
+	touch $@
+
+$(VENV)/.stamp-pkg: $(VENV)/.stamp-msgs setup.py setup.cfg
+	$(PIP) install -e ".[test]" 2>&1 | sed "/^WARNING: Location/d"
+	$(PY) -c "import art_guidance, torch, clarabel, osqp, cvxpy, rosbags, mcap_ros2" >/dev/null
+	touch $@
+
+setup: $(VENV)/.stamp-pkg
+
+test: setup
+	$(PY) -m flake8 art_guidance test benchmarks .ci setup.py
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+lint: setup
+	$(PY) -m flake8 art_guidance test benchmarks .ci setup.py
+
+demo: setup
+	$(VENV)/bin/art-guidance demo
+
+bench: setup
+	$(VENV)/bin/art-guidance bench all
+
+clean:
+	rm -rf $(BUILD) .pytest_cache out
+
+distclean: clean
+	rm -rf $(VENV) *.egg-info

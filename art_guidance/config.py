@@ -1,0 +1,217 @@
+"""Configuration as validated frozen dataclasses, loaded once from the YAML files in `config/`."""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import yaml
+
+from art_guidance.errors import ConfigError
+
+WAYPOINT_NAMES = ("plus_vbar", "minus_vbar", "plus_rbar", "minus_rbar")
+
+
+def default_config_dir() -> Path:
+    """Directory holding scenario.yaml etc.: $ART_GUIDANCE_CONFIG_DIR, the source tree, or share/."""
+    env = os.environ.get("ART_GUIDANCE_CONFIG_DIR")
+    candidates = [Path(env)] if env else []
+    candidates += [
+        Path(__file__).resolve().parent.parent / "config",
+        Path(sys.prefix) / "share" / "art_guidance" / "config",
+    ]
+    for cand in candidates:
+        if (cand / "scenario.yaml").is_file():
+            return cand
+    raise ConfigError(f"no config directory found among {[str(c) for c in candidates]}")
+
+
+def _positive(name: str, value: float) -> None:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise ConfigError(f"{name} must be a positive finite number, got {value!r}")
+
+
+def _vector(name: str, value: Any, size: int) -> tuple[float, ...]:
+    arr = np.asarray(value, dtype=float).reshape(-1)
+    if arr.size != size or not np.all(np.isfinite(arr)):
+        raise ConfigError(f"{name} must be {size} finite numbers, got {value!r}")
+    return tuple(float(v) for v in arr)
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    """Rendezvous scenario (paper Table I). Angles in radians, lengths in metres."""
+
+    chief_oe: tuple[float, ...] = (6738e3, 5.58e-4, math.radians(51.64), math.radians(301.04),
+                                   math.radians(26.18), math.radians(68.23))
+    n_orbits: float = 1.29
+    n_nodes: int = 100
+    t_safety_orbits: float = 1.0
+    n_safety: int = 20
+    ae_semi_axes_m: tuple[float, ...] = (1000.0, 1000.0, 1000.0)
+    koz_semi_axes_m: tuple[float, ...] = (200.0, 200.0, 200.0)
+    ae_to_koz_node: int = 55
+    rtn0_nominal: tuple[float, ...] = (-4000.0, -17500.0, 0.0, 0.0, 6.849, 0.0)
+    rtn0_half_width: tuple[float, ...] = (1400.0, 3000.0, 0.0, 0.0, 1.0, 0.0)
+    waypoints_rtn: Mapping[str, tuple[float, ...]] = field(default_factory=lambda: {
+        "plus_vbar": (0.0, 750.0, 0.0, 0.0, 0.0, 0.0),
+        "minus_vbar": (0.0, -750.0, 0.0, 0.0, 0.0, 0.0),
+        "plus_rbar": (750.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        "minus_rbar": (-750.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    })
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "chief_oe", _vector("chief_oe", self.chief_oe, 6))
+        _positive("chief a_m", self.chief_oe[0])
+        if not 0.0 <= self.chief_oe[1] < 1.0:
+            raise ConfigError(f"chief eccentricity must be in [0, 1), got {self.chief_oe[1]}")
+        _positive("n_orbits", self.n_orbits)
+        if not (math.isfinite(self.t_safety_orbits) and self.t_safety_orbits >= 0):
+            raise ConfigError(f"t_safety_orbits must be >= 0, got {self.t_safety_orbits}")
+        if int(self.n_nodes) != self.n_nodes or self.n_nodes < 3:
+            raise ConfigError(f"n_nodes must be an integer >= 3, got {self.n_nodes}")
+        if int(self.n_safety) != self.n_safety or self.n_safety < 1:
+            raise ConfigError(f"n_safety must be an integer >= 1, got {self.n_safety}")
+        if not 0 <= self.ae_to_koz_node <= self.n_nodes:
+            raise ConfigError(f"ae_to_koz_node must be in [0, n_nodes], got {self.ae_to_koz_node}")
+        for name in ("ae_semi_axes_m", "koz_semi_axes_m"):
+            vec = _vector(name, getattr(self, name), 3)
+            for v in vec:
+                _positive(name, v)
+            object.__setattr__(self, name, vec)
+        for name in ("rtn0_nominal", "rtn0_half_width"):
+            object.__setattr__(self, name, _vector(name, getattr(self, name), 6))
+        wps = {k: _vector(f"waypoint {k}", v, 6) for k, v in dict(self.waypoints_rtn).items()}
+        if not wps:
+            raise ConfigError("at least one waypoint is required")
+        object.__setattr__(self, "waypoints_rtn", wps)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path | None = None) -> "ScenarioConfig":
+        """Load `scenario.yaml` (default: the packaged one)."""
+        data = _load_yaml(path or default_config_dir() / "scenario.yaml")
+        try:
+            orb = data["chief_orbit"]
+            return cls(
+                chief_oe=(orb["a_m"], orb["e"], math.radians(orb["i_deg"]),
+                          math.radians(orb["raan_deg"]), math.radians(orb["argp_deg"]),
+                          math.radians(orb["mean_anomaly_deg"])),
+                n_orbits=data["horizon"]["n_orbits"], n_nodes=data["horizon"]["n_nodes"],
+                t_safety_orbits=data["safety"]["t_safety_orbits"],
+                n_safety=data["safety"]["n_safety"],
+                ae_semi_axes_m=data["safety"]["ae_semi_axes_m"],
+                koz_semi_axes_m=data["safety"]["koz_semi_axes_m"],
+                ae_to_koz_node=data["safety"]["ae_to_koz_node"],
+                rtn0_nominal=data["initial_state"]["rtn_nominal"],
+                rtn0_half_width=data["initial_state"]["rtn_half_width"],
+                waypoints_rtn=data["waypoints_rtn"],
+            )
+        except (KeyError, TypeError) as exc:
+            raise ConfigError(f"scenario config is missing or malformed: {exc!r}") from exc
+
+    def replace(self, **changes: Any) -> "ScenarioConfig":
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class UncertaintyConfig:
+    """Uncertainty model (paper Table II)."""
+
+    sigma_s: float = 2e-3
+    sigma_p: float = 3e-4
+    sigma_r: float = 3e-4
+    sigma_a: float = 3e-4
+    nav_s1: tuple[float, ...] = (4e-5, 4e-3, 4e-5, 2e-5, 2e-5, 4e-5)
+    nav_s2: tuple[float, ...] = (1e-4, 4e-3, 4e-5, 2e-3, 2e-3, 2e-3)
+    nav_rho1_m: float = 10000.0
+    nav_rho2_m: float = 1000.0
+    process_noise_m2: float = 1e-6
+    q_sigma: float = 3.09
+
+    def __post_init__(self) -> None:
+        for name in ("sigma_s", "sigma_p", "sigma_r", "sigma_a", "process_noise_m2", "q_sigma"):
+            val = getattr(self, name)
+            if not (math.isfinite(val) and val >= 0):
+                raise ConfigError(f"{name} must be finite and >= 0, got {val!r}")
+        for name in ("nav_s1", "nav_s2"):
+            vec = _vector(name, getattr(self, name), 6)
+            if min(vec) < 0:
+                raise ConfigError(f"{name} must be >= 0, got {vec}")
+            object.__setattr__(self, name, vec)
+        if not 0 < self.nav_rho2_m < self.nav_rho1_m:
+            raise ConfigError("navigation ranges need 0 < rho2_m < rho1_m")
+
+    @classmethod
+    def from_yaml(cls, path: str | Path | None = None) -> "UncertaintyConfig":
+        """Load `uncertainty.yaml` (default: the packaged one)."""
+        data = _load_yaml(path or default_config_dir() / "uncertainty.yaml")
+        try:
+            g, nav = data["gates"], data["navigation"]
+            return cls(sigma_s=g["sigma_s"], sigma_p=g["sigma_p"], sigma_r=g["sigma_r"],
+                       sigma_a=g["sigma_a"], nav_s1=nav["s1"], nav_s2=nav["s2"],
+                       nav_rho1_m=nav["rho1_m"], nav_rho2_m=nav["rho2_m"],
+                       process_noise_m2=data["process_noise_m2"], q_sigma=data["q_sigma"])
+        except (KeyError, TypeError) as exc:
+            raise ConfigError(f"uncertainty config is missing or malformed: {exc!r}") from exc
+
+
+@dataclass(frozen=True)
+class ScpConfig:
+    """SCVx* parameters (paper Table I; Oguri 2023)."""
+
+    eps_opt: float = 1e-3
+    eps_feas: float = 1e-3
+    alpha1: float = 2.0
+    alpha2: float = 3.0
+    beta: float = 2.0
+    gamma: float = 0.9
+    rho0: float = 0.0
+    rho1: float = 0.25
+    rho2: float = 0.7
+    trust_radius_min: float = 1e-6
+    trust_radius_max: float = 5e3
+    trust_radius0: float = 100.0
+    w0: float = 10.0
+    w_max: float = 1e8
+    max_iterations: int = 20
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            val = getattr(self, f.name)
+            if not (isinstance(val, (int, float)) and math.isfinite(val)):
+                raise ConfigError(f"scp.{f.name} must be a finite number, got {val!r}")
+        if not (self.alpha1 > 1 and self.alpha2 > 1 and self.beta > 1 and 0 < self.gamma < 1):
+            raise ConfigError("scp needs alpha1, alpha2, beta > 1 and 0 < gamma < 1")
+        if not 0 <= self.rho0 < self.rho1 < self.rho2 < 1:
+            raise ConfigError("scp needs 0 <= rho0 < rho1 < rho2 < 1")
+        if not 0 < self.trust_radius_min <= self.trust_radius0 <= self.trust_radius_max:
+            raise ConfigError("scp needs 0 < r_min <= r0 <= r_max")
+        if self.max_iterations < 1:
+            raise ConfigError("scp.max_iterations must be >= 1")
+
+    @classmethod
+    def from_yaml(cls, path: str | Path | None = None) -> "ScpConfig":
+        """Load `scp.yaml` (default: the packaged one)."""
+        data = _load_yaml(path or default_config_dir() / "scp.yaml")
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise ConfigError(f"unknown scp parameters: {sorted(unknown)}")
+        return cls(**data)
+
+
+def _load_yaml(path: str | Path) -> dict:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = yaml.safe_load(fh)
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"cannot read config {path}: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"config {path} must hold a mapping")
+    return data

@@ -1,0 +1,373 @@
+"""Relative orbital dynamics: orbit elements, ROE <-> RTN, J2 ROE STM, control matrix, time grid.
+
+State convention: quasi-nonsingular ROE scaled by the chief semi-major axis, metres:
+``roe_m = a * [da, dlambda, dex, dey, dix, diy]``. RTN states are ``[r_R, r_T, r_N]`` [m] and
+``[v_R, v_T, v_N]`` [m/s] of the deputy relative to the chief, expressed in the rotating chief
+RTN frame. Orbit elements are ``(a [m], e, i, raan, argp, M)`` with angles in radians.
+
+Mean/osculating: the STM and B propagate *mean* ROE (Koenig, Guffanti, D'Amico 2017); the exact
+conversions here treat the elements they are given as osculating Keplerian elements.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from art_guidance.checks import as_finite_array
+from art_guidance.errors import InputError
+
+MU_M3PS2 = 3.986004415e14
+R_EARTH_M = 6378136.3
+J2 = 1.082635819197e-3
+
+
+# --------------------------------------------------------------------------- orbit elements
+def check_oe(oe: object, field: str = "chief_oe") -> np.ndarray:
+    """Validate orbit elements (a [m], e, i, raan, argp, M [rad]); return a (6,) array."""
+    arr = as_finite_array(field, oe, (6,))
+    if arr[0] <= 0:
+        raise InputError(field, "semi-major axis must be positive [m]", arr[0])
+    if arr[0] < R_EARTH_M:
+        raise InputError(field, "semi-major axis is below the Earth's radius [m]", arr[0])
+    if not 0.0 <= arr[1] < 1.0:
+        raise InputError(field, "eccentricity must be in [0, 1)", arr[1])
+    return arr
+
+
+def mean_motion(a_m: float) -> float:
+    """Keplerian mean motion [rad/s] for semi-major axis `a_m` [m]."""
+    return float(np.sqrt(MU_M3PS2 / a_m**3))
+
+
+def orbital_period_s(a_m: float) -> float:
+    """Keplerian period [s]."""
+    return 2.0 * np.pi / mean_motion(a_m)
+
+
+def j2_secular_rates(oe: np.ndarray) -> tuple[float, float, float]:
+    """Mean J2 secular rates (raan_dot, argp_dot, M_dot) [rad/s] for mean elements `oe`."""
+    a, e, i = oe[0], oe[1], oe[2]
+    eta = np.sqrt(1.0 - e * e)
+    kappa = 0.75 * J2 * R_EARTH_M**2 * np.sqrt(MU_M3PS2) / (a**3.5 * eta**4)
+    cos_i = np.cos(i)
+    raan_dot = -2.0 * kappa * cos_i
+    argp_dot = kappa * (5.0 * cos_i**2 - 1.0)
+    m_dot = mean_motion(a) + kappa * eta * (3.0 * cos_i**2 - 1.0)
+    return float(raan_dot), float(argp_dot), float(m_dot)
+
+
+def propagate_mean_oe(oe: object, tau_s: float | np.ndarray) -> np.ndarray:
+    """Propagate mean elements by `tau_s` [s] with the J2 secular rates: (6,) or (K, 6)."""
+    oe = check_oe(oe)
+    raan_dot, argp_dot, m_dot = j2_secular_rates(oe)
+    tau = np.asarray(tau_s, dtype=float)
+    out = np.broadcast_to(oe, tau.shape + (6,)).copy()
+    out[..., 3] = oe[3] + raan_dot * tau
+    out[..., 4] = oe[4] + argp_dot * tau
+    out[..., 5] = oe[5] + m_dot * tau
+    return out
+
+
+def mean_arg_latitude(oe: np.ndarray) -> np.ndarray:
+    """Mean argument of latitude u = argp + M [rad] of (..., 6) elements."""
+    return oe[..., 4] + oe[..., 5]
+
+
+# --------------------------------------------------------------------------- ROE <-> OE
+def roe_from_oe(chief_oe: object, deputy_oe: object) -> np.ndarray:
+    """Exact a-scaled quasi-nonsingular ROE [m], shape (6,), from chief and deputy elements."""
+    c = check_oe(chief_oe)
+    d = check_oe(deputy_oe, "deputy_oe")
+    a, e, i, raan, w, m = c
+    ad, ed, idp, raand, wd, md = d
+    draan = _wrap(raand - raan)
+    dlam = _wrap((wd + md) - (w + m)) + draan * np.cos(i)
+    return a * np.array([
+        (ad - a) / a,
+        dlam,
+        ed * np.cos(wd) - e * np.cos(w),
+        ed * np.sin(wd) - e * np.sin(w),
+        idp - i,
+        draan * np.sin(i),
+    ])
+
+
+def oe_from_roe(chief_oe: object, roe_m: object) -> np.ndarray:
+    """Deputy elements (6,) from chief elements and a-scaled ROE [m] (exact inverse)."""
+    c = check_oe(chief_oe)
+    x = as_finite_array("roe_m", roe_m, (6,)) / c[0]
+    a, e, i, raan, w, m = c
+    if abs(np.sin(i)) < 1e-9:
+        raise InputError("chief_oe", "ROE inclination vector is singular for equatorial orbits")
+    ad = a * (1.0 + x[0])
+    exd = e * np.cos(w) + x[2]
+    eyd = e * np.sin(w) + x[3]
+    ed = float(np.hypot(exd, eyd))
+    wd = float(np.arctan2(eyd, exd)) if ed > 0 else 0.0
+    idp = i + x[4]
+    draan = x[5] / np.sin(i)
+    ud = (w + m) + x[1] - draan * np.cos(i)
+    deputy = np.array([ad, ed, idp, raan + draan, wd, ud - wd])
+    return check_oe(deputy, "deputy_oe")
+
+
+def _wrap(angle: float | np.ndarray) -> float | np.ndarray:
+    """Wrap to [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+# --------------------------------------------------------------------------- inertial states
+def solve_kepler(m_rad: float, e: float, tol: float = 1e-14) -> float:
+    """Eccentric anomaly [rad] from mean anomaly by Newton iteration."""
+    ecc = m_rad if e < 0.8 else np.pi
+    for _ in range(50):
+        step = (ecc - e * np.sin(ecc) - m_rad) / (1.0 - e * np.cos(ecc))
+        ecc -= step
+        if abs(step) < tol:
+            break
+    return float(ecc)
+
+
+def eci_from_oe(oe: object) -> np.ndarray:
+    """Inertial position [m] and velocity [m/s], shape (6,), from Keplerian elements."""
+    a, e, i, raan, w, m = check_oe(oe, "oe")
+    ecc = solve_kepler(float(_wrap(m)), e)
+    nu = 2.0 * np.arctan2(np.sqrt(1 + e) * np.sin(ecc / 2), np.sqrt(1 - e) * np.cos(ecc / 2))
+    p = a * (1 - e * e)
+    r = p / (1 + e * np.cos(nu))
+    r_pf = np.array([r * np.cos(nu), r * np.sin(nu), 0.0])
+    v_pf = np.sqrt(MU_M3PS2 / p) * np.array([-np.sin(nu), e + np.cos(nu), 0.0])
+    rot = _rot3(-raan) @ _rot1(-i) @ _rot3(-w)
+    return np.concatenate([rot @ r_pf, rot @ v_pf])
+
+
+def oe_from_eci(state: object) -> np.ndarray:
+    """Keplerian elements (6,) from an inertial state [m, m/s] (non-equatorial, elliptic)."""
+    s = as_finite_array("eci_state", state, (6,))
+    r, v = s[:3], s[3:]
+    rn = np.linalg.norm(r)
+    h = np.cross(r, v)
+    hn = np.linalg.norm(h)
+    node = np.cross([0.0, 0.0, 1.0], h)
+    e_vec = np.cross(v, h) / MU_M3PS2 - r / rn
+    e = float(np.linalg.norm(e_vec))
+    energy = 0.5 * v @ v - MU_M3PS2 / rn
+    if energy >= 0 or hn == 0:
+        raise InputError("eci_state", "state is not on a closed orbit")
+    a = -MU_M3PS2 / (2.0 * energy)
+    i = float(np.arccos(np.clip(h[2] / hn, -1, 1)))
+    raan = float(np.arctan2(node[1], node[0]))
+    node_hat = node / np.linalg.norm(node)
+    # argument of latitude of the position (true), robust for small e
+    u_true = float(np.arctan2(r @ np.cross(h / hn, node_hat), r @ node_hat))
+    w = float(np.arctan2(e_vec @ np.cross(h / hn, node_hat), e_vec @ node_hat))
+    nu = u_true - w
+    ecc = 2.0 * np.arctan2(np.sqrt(1 - e) * np.sin(nu / 2), np.sqrt(1 + e) * np.cos(nu / 2))
+    m = ecc - e * np.sin(ecc)
+    return np.array([a, e, i, raan % (2 * np.pi), w % (2 * np.pi), m % (2 * np.pi)])
+
+
+def _rot1(ang: float) -> np.ndarray:
+    c, s = np.cos(ang), np.sin(ang)
+    return np.array([[1, 0, 0], [0, c, s], [0, -s, c]])
+
+
+def _rot3(ang: float) -> np.ndarray:
+    c, s = np.cos(ang), np.sin(ang)
+    return np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
+
+
+def rtn_frame(chief_eci: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RTN basis as columns of a (3, 3) matrix and its angular velocity in RTN [rad/s]."""
+    r, v = chief_eci[:3], chief_eci[3:]
+    r_hat = r / np.linalg.norm(r)
+    h = np.cross(r, v)
+    n_hat = h / np.linalg.norm(h)
+    t_hat = np.cross(n_hat, r_hat)
+    omega_rtn = np.array([0.0, 0.0, np.linalg.norm(h) / (r @ r)])
+    return np.column_stack([r_hat, t_hat, n_hat]), omega_rtn
+
+
+def rtn_from_eci(chief_eci: object, deputy_eci: object) -> np.ndarray:
+    """Exact relative RTN state [m, m/s] of the deputy in the rotating chief frame, (6,)."""
+    c = as_finite_array("chief_eci", chief_eci, (6,))
+    d = as_finite_array("deputy_eci", deputy_eci, (6,))
+    basis, omega = rtn_frame(c)
+    dr = basis.T @ (d[:3] - c[:3])
+    dv = basis.T @ (d[3:] - c[3:]) - np.cross(omega, dr)
+    return np.concatenate([dr, dv])
+
+
+def eci_from_rtn(chief_eci: object, rtn: object) -> np.ndarray:
+    """Deputy inertial state (6,) from the chief's inertial state and a relative RTN state."""
+    c = as_finite_array("chief_eci", chief_eci, (6,))
+    x = as_finite_array("rtn", rtn, (6,))
+    basis, omega = rtn_frame(c)
+    r = c[:3] + basis @ x[:3]
+    v = c[3:] + basis @ (x[3:] + np.cross(omega, x[:3]))
+    return np.concatenate([r, v])
+
+
+# --------------------------------------------------------------------------- ROE <-> RTN
+def psi_matrix(chief_oe: object) -> np.ndarray:
+    """First-order ROE -> RTN map Psi(u), (6, 6): rtn [m, m/s] = Psi @ roe_m (near-circular)."""
+    c = check_oe(chief_oe)
+    return _psi(float(mean_arg_latitude(c)), mean_motion(c[0]))
+
+
+def _psi(u: float, n: float) -> np.ndarray:
+    su, cu = np.sin(u), np.cos(u)
+    return np.array([
+        [1.0, 0.0, -cu, -su, 0.0, 0.0],
+        [0.0, 1.0, 2 * su, -2 * cu, 0.0, 0.0],
+        [0.0, 0.0, 0.0, 0.0, su, -cu],
+        [0.0, 0.0, n * su, -n * cu, 0.0, 0.0],
+        [-1.5 * n, 0.0, 2 * n * cu, 2 * n * su, 0.0, 0.0],
+        [0.0, 0.0, 0.0, 0.0, n * cu, n * su],
+    ])
+
+
+def rtn_from_roe_linear(chief_oe: object, roe_m: object) -> np.ndarray:
+    """Relative RTN state (6,) [m, m/s] from a-scaled ROE [m] by the first-order map."""
+    return psi_matrix(chief_oe) @ as_finite_array("roe_m", roe_m, (6,))
+
+
+def roe_from_rtn_linear(chief_oe: object, rtn: object) -> np.ndarray:
+    """A-scaled ROE [m] (6,) from a relative RTN state by inverting the first-order map."""
+    return np.linalg.solve(psi_matrix(chief_oe), as_finite_array("rtn", rtn, (6,)))
+
+
+def rtn_from_roe_exact(chief_oe: object, roe_m: object) -> np.ndarray:
+    """Relative RTN state (6,) from ROE through inertial states (exact, osculating Kepler)."""
+    deputy = oe_from_roe(chief_oe, roe_m)
+    return rtn_from_eci(eci_from_oe(chief_oe), eci_from_oe(deputy))
+
+
+def roe_from_rtn_exact(chief_oe: object, rtn: object) -> np.ndarray:
+    """A-scaled ROE (6,) from a relative RTN state through inertial states (exact)."""
+    chief_eci = eci_from_oe(chief_oe)
+    deputy = oe_from_eci(eci_from_rtn(chief_eci, rtn))
+    return roe_from_oe(chief_oe, deputy)
+
+
+# --------------------------------------------------------------------------- STM and B
+def stm_j2(chief_oe: object, tau_s: float) -> np.ndarray:
+    """J2 ROE state transition matrix Phi(t0 + tau, t0), (6, 6), for mean chief elements at t0."""
+    c = check_oe(chief_oe)
+    tau = float(tau_s)
+    a, e, i, _, w, _ = c
+    n = mean_motion(a)
+    eta = np.sqrt(1.0 - e * e)
+    kappa = 0.75 * J2 * R_EARTH_M**2 * np.sqrt(MU_M3PS2) / (a**3.5 * eta**4)
+    big_e, big_f, big_g = 1.0 + eta, 4.0 + 3.0 * eta, 1.0 / eta**2
+    cos_i = np.cos(i)
+    big_p, big_q = 3 * cos_i**2 - 1, 5 * cos_i**2 - 1
+    big_s, big_t = np.sin(2 * i), np.sin(i) ** 2
+    wdot = kappa * big_q
+    wf = w + wdot * tau
+    exi, eyi = e * np.cos(w), e * np.sin(w)
+    exf, eyf = e * np.cos(wf), e * np.sin(wf)
+    ct, st = np.cos(wdot * tau), np.sin(wdot * tau)
+    kt = kappa * tau
+    phi = np.eye(6)
+    phi[1, 0] = -(3.5 * kappa * big_e * big_p + 1.5 * n) * tau
+    phi[1, 2] = kt * exi * big_f * big_g * big_p
+    phi[1, 3] = kt * eyi * big_f * big_g * big_p
+    phi[1, 4] = -kt * big_f * big_s
+    phi[2, 0] = 3.5 * kt * eyf * big_q
+    phi[2, 2] = ct - 4 * kt * exi * eyf * big_g * big_q
+    phi[2, 3] = -st - 4 * kt * eyi * eyf * big_g * big_q
+    phi[2, 4] = 5 * kt * eyf * big_s
+    phi[3, 0] = -3.5 * kt * exf * big_q
+    phi[3, 2] = st + 4 * kt * exi * exf * big_g * big_q
+    phi[3, 3] = ct + 4 * kt * eyi * exf * big_g * big_q
+    phi[3, 4] = -5 * kt * exf * big_s
+    phi[5, 0] = 3.5 * kt * big_s
+    phi[5, 2] = -4 * kt * exi * big_g * big_s
+    phi[5, 3] = -4 * kt * eyi * big_g * big_s
+    phi[5, 4] = 2 * kt * big_t
+    return phi
+
+
+def control_matrix(chief_oe: object) -> np.ndarray:
+    """Impulsive control matrix B(u), (6, 3) [s]: d(roe_m) = B @ dv_rtn_mps (near-circular)."""
+    c = check_oe(chief_oe)
+    return _control(float(mean_arg_latitude(c)), mean_motion(c[0]))
+
+
+def _control(u: float, n: float) -> np.ndarray:
+    su, cu = np.sin(u), np.cos(u)
+    return np.array([
+        [0.0, 2.0, 0.0],
+        [-2.0, 0.0, 0.0],
+        [su, 2 * cu, 0.0],
+        [-cu, 2 * su, 0.0],
+        [0.0, 0.0, cu],
+        [0.0, 0.0, su],
+    ]) / n
+
+
+# --------------------------------------------------------------------------- horizon
+def time_grid_s(chief_a_m: float, n_orbits: float, n_nodes: int) -> np.ndarray:
+    """Node epochs [s] from t0 = 0: `n_nodes` evenly spaced over `n_orbits` chief periods."""
+    if n_nodes < 2 or not n_orbits > 0:
+        raise InputError("time_grid", "need n_nodes >= 2 and n_orbits > 0", (n_orbits, n_nodes))
+    return np.linspace(0.0, n_orbits * orbital_period_s(chief_a_m), int(n_nodes))
+
+
+@dataclass(frozen=True)
+class Horizon:
+    """Linear time-varying dynamics over a planning horizon.
+
+    Attributes:
+        epochs_s: (N,) node epochs from the chief epoch of `chief_oe0` [s].
+        chief_oe: (N, 6) mean chief elements at each node.
+        stm: (N-1, 6, 6) Phi(t_{k+1}, t_k).
+        b: (N, 6, 3) control matrices [s].
+        psi: (N, 6, 6) ROE -> RTN maps.
+    """
+
+    epochs_s: np.ndarray
+    chief_oe: np.ndarray
+    stm: np.ndarray
+    b: np.ndarray
+    psi: np.ndarray
+
+    @classmethod
+    def build(cls, chief_oe0: object, epochs_s: object) -> "Horizon":
+        """Precompute the STMs, B and Psi at `epochs_s` [s] (strictly increasing)."""
+        c0 = check_oe(chief_oe0)
+        t = as_finite_array("epochs_s", epochs_s, (None,))
+        if t.size < 2 or np.any(np.diff(t) <= 0):
+            raise InputError("epochs_s", "need >= 2 strictly increasing epochs")
+        oes = propagate_mean_oe(c0, t)
+        n = mean_motion(c0[0])
+        u = mean_arg_latitude(oes)
+        stm = np.stack([stm_j2(oes[k], t[k + 1] - t[k]) for k in range(t.size - 1)])
+        b = np.stack([_control(uk, n) for uk in u])
+        psi = np.stack([_psi(uk, n) for uk in u])
+        return cls(t, oes, stm, b, psi)
+
+    @property
+    def n_nodes(self) -> int:
+        """Number of nodes N."""
+        return int(self.epochs_s.size)
+
+    def propagate(self, roe0_m: object, dv_rtn_mps: object) -> np.ndarray:
+        """Roll out x_{k+1} = Phi_k (x_k + B_k u_k); returns (N, 6) pre-burn ROE [m]."""
+        x0 = as_finite_array("roe0_m", roe0_m, (6,))
+        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (self.n_nodes, 3))
+        out = np.empty((self.n_nodes, 6))
+        out[0] = x0
+        for k in range(self.n_nodes - 1):
+            out[k + 1] = self.stm[k] @ (out[k] + self.b[k] @ u[k])
+        return out
+
+    def final_post_burn(self, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
+        """Post-burn ROE at the last node: x_N + B_N u_N, (6,)."""
+        return roe_m[-1] + self.b[-1] @ dv_rtn_mps[-1]
+
+    def to_rtn(self, roe_m: np.ndarray) -> np.ndarray:
+        """(N, 6) ROE [m] -> (N, 6) RTN [m, m/s] by the first-order map at each node."""
+        return np.einsum("kij,kj->ki", self.psi, roe_m)

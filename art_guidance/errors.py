@@ -1,0 +1,41 @@
+"""Exception hierarchy: one root, a few typed children that carry the offending values."""
+from __future__ import annotations
+
+from typing import Any
+
+
+class GuidanceError(Exception):
+    """Root of every error this package raises on purpose."""
+
+
+class InputError(GuidanceError, ValueError):
+    """Bad input: NaN, wrong shape, out-of-domain value.
+
+    Attributes:
+        field: name of the offending input.
+        value: the offending value (or a short summary of it).
+    """
+
+    def __init__(self, field: str, reason: str, value: Any = None) -> None:
+        self.field = field
+        self.reason = reason
+        self.value = value
+        shown = "" if value is None else f" (got {_short(value)})"
+        super().__init__(f"{field}: {reason}{shown}")
+
+
+class ConfigError(GuidanceError, ValueError):
+    """A configuration value or file is invalid."""
+
+
+class SolverError(GuidanceError, RuntimeError):
+    """A numerical solver failed in a way the caller cannot recover from."""
+
+
+class ModelError(GuidanceError, RuntimeError):
+    """A model checkpoint is missing, corrupt or incompatible."""
+
+
+def _short(value: Any, limit: int = 120) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."

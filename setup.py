@@ -1,0 +1,46 @@
+"""ament_python set-up of art_guidance (also installable with plain pip)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "art_guidance"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
+    package_data={PACKAGE: ["models/*.pt", "models/*.json"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml") + glob("config/*.xml"))),
+    ],
+    python_requires=">=3.11",
+    install_requires=[
+        "numpy>=1.26",
+        "scipy>=1.11",
+        "pyyaml>=6",
+        "clarabel>=0.9",
+        "osqp>=1.0",
+        "torch==2.13.0",
+        "mcap>=1.2",
+        "mcap-ros2-support>=0.5",
+        "tqdm>=4.66",
+        "matplotlib>=3.8",
+    ],
+    extras_require={
+        "test": ["pytest>=8", "cvxpy>=1.5", "rosbags>=0.10", "flake8>=7"],
+        "distributed": ["ray[default]>=2.9"],
+    },
+    zip_safe=True,
+    maintainer="art_guidance maintainers",
+    maintainer_email="art-guidance@example.com",
+    description="Onboard rendezvous guidance with a transformer warm start and robust SCP.",
+    license="MIT",
+    entry_points={
+        "console_scripts": [
+            f"guidance_node = {PACKAGE}.node:main",
+            f"art-guidance = {PACKAGE}.cli:main",
+        ],
+    },
+)
