@@ -21,8 +21,10 @@ def default_config_dir() -> Path:
     """Directory holding scenario.yaml etc.: $ART_GUIDANCE_CONFIG_DIR, the source tree, or share/."""
     env = os.environ.get("ART_GUIDANCE_CONFIG_DIR")
     candidates = [Path(env)] if env else []
+    here = Path(__file__).resolve()
     candidates += [
-        Path(__file__).resolve().parent.parent / "config",
+        here.parent.parent / "config",  # source tree / editable install
+        here.parents[4] / "share" / "art_guidance" / "config",  # <prefix>/lib/pythonX/site-packages
         Path(sys.prefix) / "share" / "art_guidance" / "config",
     ]
     for cand in candidates:

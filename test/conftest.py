@@ -1,0 +1,45 @@
+"""Shared fixtures: an isolated ROS 2 environment per test session (own domain, logs, discovery)."""
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+HELPERS = Path(__file__).resolve().parent / "helpers"
+
+
+def _ros_env() -> dict[str, str]:
+    home = Path(tempfile.mkdtemp(prefix="art_guidance_ros_"))
+    return {
+        # Own domain per session so concurrent runs on one machine do not cross-talk.
+        "ROS_DOMAIN_ID": str(100 + os.getpid() % 100),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_HOME": str(home),
+        "ROS_LOG_DIR": str(home / "log"),
+        "FASTRTPS_DEFAULT_PROFILES_FILE": str(REPO / "config" / "fastdds_localhost.xml"),
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+    }
+
+
+ROS_ENV = _ros_env()
+os.environ.update(ROS_ENV)
+
+
+@pytest.fixture(scope="session")
+def ros_env() -> dict[str, str]:
+    """Environment for child processes that must share this session's DDS domain."""
+    env = dict(os.environ)
+    env.update(ROS_ENV)
+    env["PYTHONUNBUFFERED"] = "1"
+    env["PYTHONPATH"] = os.pathsep.join([str(HELPERS), env.get("PYTHONPATH", "")])
+    return env
+
+
+@pytest.fixture(scope="session")
+def python_exe() -> str:
+    """The interpreter running the tests (the project venv)."""
+    return sys.executable

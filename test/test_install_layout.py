@@ -1,0 +1,68 @@
+"""The package installs the way `ros2 run art_guidance guidance_node` expects (colcon-style)."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def prefix(tmp_path_factory) -> Path:
+    """Install into a temporary prefix the way colcon's ament_python build does."""
+    work = tmp_path_factory.mktemp("install")
+    src = work / "src"
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(
+        ".venv", "build", ".git", "*.egg-info", "__pycache__", ".pytest_cache", "out"))
+    cmd = [sys.executable, "setup.py", "-q", "egg_info", "--egg-base", str(work),
+           "build", "--build-base", str(work / "build"),
+           "install", "--prefix", str(work / "prefix"), "--record", str(work / "record.txt"),
+           "--single-version-externally-managed"]
+    proc = subprocess.run(cmd, cwd=src, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return work / "prefix"
+
+
+def test_console_scripts_under_lib_package(prefix):
+    for script in ("guidance_node", "art-guidance"):
+        path = prefix / "lib" / "art_guidance" / script
+        assert path.is_file(), f"missing {path}"
+        assert os.access(path, os.X_OK)
+
+
+def test_ament_index_marker_and_share(prefix):
+    assert (prefix / "share/ament_index/resource_index/packages/art_guidance").is_file()
+    assert (prefix / "share/art_guidance/package.xml").is_file()
+    for name in ("scenario.yaml", "uncertainty.yaml", "scp.yaml", "fastdds_localhost.xml"):
+        assert (prefix / "share/art_guidance/config" / name).is_file(), name
+
+
+def test_installed_cli_runs_from_prefix(prefix):
+    site = next(prefix.glob("lib/python3*/site-packages"))
+    assert (site / "art_guidance" / "dynamics.py").is_file()
+    env = dict(os.environ, PYTHONPATH=str(site), ART_GUIDANCE_CONFIG_DIR="")
+    out = subprocess.run([sys.executable, str(prefix / "lib/art_guidance/art-guidance"), "--help"],
+                         env=env, capture_output=True, text=True, timeout=60, cwd=prefix)
+    assert out.returncode == 0, out.stderr
+    assert "art-guidance" in out.stdout
+    demo = subprocess.run([sys.executable, str(prefix / "lib/art_guidance/art-guidance"), "demo"],
+                          env=env, capture_output=True, text=True, timeout=60, cwd=prefix)
+    assert demo.returncode == 0, demo.stderr
+    assert "free drift" in demo.stdout
+
+
+def test_package_xml_declares_runtime_dependencies():
+    root = ET.parse(REPO / "package.xml").getroot()
+    assert root.get("format") == "3"
+    assert root.findtext("name") == "art_guidance"
+    deps = {e.text for e in root if e.tag in ("depend", "exec_depend")}
+    assert {"rclpy", "art_guidance_msgs", "std_msgs", "diagnostic_msgs"} <= deps
+    assert root.find("export/build_type").text == "ament_python"
+    msgs = ET.parse(REPO / "msg_schemas/package.xml").getroot()
+    assert msgs.findtext("member_of_group") == "rosidl_interface_packages"
