@@ -35,5 +35,6 @@ def check_psd(field: str, cov: np.ndarray, rel_tol: float = 1e-9) -> np.ndarray:
     sym = 0.5 * (cov + cov.T)
     min_eig = float(np.linalg.eigvalsh(sym)[0])
     if min_eig < -rel_tol * scale:
-        raise InputError(field, f"covariance is not positive semi-definite (min eig {min_eig:.3g})")
+        raise InputError(field, f"covariance is not positive semi-definite "
+                                f"(min eig {min_eig:.3g})")
     return sym

@@ -18,15 +18,14 @@ WAYPOINT_NAMES = ("plus_vbar", "minus_vbar", "plus_rbar", "minus_rbar")
 
 
 def default_config_dir() -> Path:
-    """Directory holding scenario.yaml etc.: $ART_GUIDANCE_CONFIG_DIR, the source tree, or share/."""
+    """Directory of scenario.yaml etc.: $ART_GUIDANCE_CONFIG_DIR, the source tree, or share/."""
     env = os.environ.get("ART_GUIDANCE_CONFIG_DIR")
     candidates = [Path(env)] if env else []
     here = Path(__file__).resolve()
-    candidates += [
-        here.parent.parent / "config",  # source tree / editable install
-        here.parents[4] / "share" / "art_guidance" / "config",  # <prefix>/lib/pythonX/site-packages
-        Path(sys.prefix) / "share" / "art_guidance" / "config",
-    ]
+    candidates.append(here.parent.parent / "config")  # source tree / editable install
+    if len(here.parents) > 4:  # <prefix>/lib/pythonX.Y/site-packages/art_guidance/config.py
+        candidates.append(here.parents[4] / "share" / "art_guidance" / "config")
+    candidates.append(Path(sys.prefix) / "share" / "art_guidance" / "config")
     for cand in candidates:
         if (cand / "scenario.yaml").is_file():
             return cand

@@ -1,4 +1,4 @@
-"""Shared fixtures: an isolated ROS 2 environment per test session (own domain, logs, discovery)."""
+"""Shared fixtures: an isolated ROS 2 environment per session (own domain, logs, discovery)."""
 from __future__ import annotations
 
 import os

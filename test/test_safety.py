@@ -1,0 +1,286 @@
+"""Passive safety: ellipsoids, drift maps, linearisation (conservative), violation metric."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from art_guidance.config import ScenarioConfig, UncertaintyConfig
+from art_guidance.dynamics import (
+    Horizon,
+    eci_from_oe,
+    mean_motion,
+    oe_from_roe,
+    orbital_period_s,
+    propagate_mean_oe,
+    rtn_from_eci,
+    time_grid_s,
+)
+from art_guidance.errors import InputError
+from art_guidance.safety import PassiveSafety
+
+SC = ScenarioConfig()
+UNC = UncertaintyConfig()
+N = SC.n_nodes
+
+
+@pytest.fixture(scope="module")
+def horizon() -> Horizon:
+    chief = np.array(SC.chief_oe)
+    return Horizon.build(chief, time_grid_s(chief[0], SC.n_orbits, SC.n_nodes))
+
+
+@pytest.fixture(scope="module")
+def ps_det(horizon: Horizon) -> PassiveSafety:
+    return PassiveSafety(horizon, SC, None)
+
+
+@pytest.fixture(scope="module")
+def ps_cc(horizon: Horizon) -> PassiveSafety:
+    return PassiveSafety(horizon, SC, UNC)
+
+
+@pytest.fixture(scope="module")
+def approach(horizon: Horizon) -> tuple[np.ndarray, np.ndarray]:
+    """Paper nominal initial state with small random burns (a realistic reference)."""
+    x0 = np.linalg.solve(horizon.psi[0], np.array(SC.rtn0_nominal))
+    dv = np.random.default_rng(10).normal(0.0, 0.05, (N, 3))
+    return horizon.propagate(x0, dv), dv
+
+
+def _dist(ps: PassiveSafety, z: np.ndarray, i: int, j: int) -> np.ndarray:
+    """Ellipsoidal distance at node i, sample j of post-burn states z (K, 6)."""
+    p = z @ ps.drift_pos_maps[i, j].T
+    return np.sqrt(np.einsum("ki,ij,kj->k", p, ps.ellipsoid_p[i], p))
+
+
+# ---------------------------------------------------------------------------- set-up
+def test_ellipsoid_switch_at_node_55(ps_det: PassiveSafety) -> None:
+    assert ps_det.ellipsoid_p.shape == (N, 3, 3)
+    np.testing.assert_allclose(ps_det.ellipsoid_p[:55],
+                               np.broadcast_to(np.eye(3) / 1000.0**2, (55, 3, 3)))
+    np.testing.assert_allclose(ps_det.ellipsoid_p[55:],
+                               np.broadcast_to(np.eye(3) / 200.0**2, (N - 55, 3, 3)))
+    assert np.all(ps_det.semi_axes_m[54] == 1000.0) and np.all(ps_det.semi_axes_m[55] == 200.0)
+
+
+def test_drift_samples_and_maps(ps_det: PassiveSafety, horizon: Horizon) -> None:
+    period = orbital_period_s(SC.chief_oe[0])
+    assert ps_det.n_samples == 20 and ps_det.n_nodes == N
+    np.testing.assert_allclose(ps_det.tau_s, np.linspace(0.0, period, 20))
+    assert ps_det.drift_stms.shape == (N, 20, 6, 6)
+    assert ps_det.drift_pos_maps.shape == (N, 20, 3, 6)
+    np.testing.assert_allclose(ps_det.drift_stms[:, 0], np.broadcast_to(np.eye(6), (N, 6, 6)))
+    np.testing.assert_allclose(ps_det.drift_pos_maps[:, 0], horizon.psi[:, :3], atol=1e-12)
+
+
+@pytest.mark.parametrize("node", [0, 37, 80])
+def test_drift_maps_match_absolute_j2_propagation(ps_det: PassiveSafety, horizon: Horizon,
+                                                  node: int) -> None:
+    """Independent truth: propagate chief and deputy mean elements, exact RTN at each sample."""
+    for z in (np.array([0.0, 0.0, 0.0, 1500.0, 0.0, 1500.0]),
+              np.array([100.0, 2500.0, 300.0, -800.0, 500.0, -900.0])):
+        chief = horizon.chief_oe[node]
+        dep = oe_from_roe(chief, z)
+        truth = np.array([
+            rtn_from_eci(eci_from_oe(c), eci_from_oe(d))[:3]
+            for c, d in zip(propagate_mean_oe(chief, ps_det.tau_s),
+                            propagate_mean_oe(dep, ps_det.tau_s))
+        ])
+        # first-order (in separation and in e) maps: 5 m at 1-3 km separation
+        np.testing.assert_allclose(ps_det.drift_pos_maps[node] @ z, truth, atol=5.0)
+
+
+def test_post_burn(ps_det: PassiveSafety, horizon: Horizon,
+                   approach: tuple[np.ndarray, np.ndarray]) -> None:
+    x, dv = approach
+    z = ps_det.post_burn(x, dv)
+    np.testing.assert_allclose(z[7], x[7] + horizon.b[7] @ dv[7], rtol=1e-14)
+    np.testing.assert_allclose(horizon.stm[7] @ z[7], x[8], rtol=1e-12)
+
+
+def test_zero_safety_time_is_plain_collision_avoidance(horizon: Horizon,
+                                                       approach: tuple) -> None:
+    x, dv = approach
+    for unc in (None, UNC):
+        ps0 = PassiveSafety(horizon, SC, unc, t_safety_s=0.0, n_safety=20)
+        assert ps0.n_samples == 1
+        np.testing.assert_array_equal(ps0.tau_s, [0.0])
+        z = ps0.post_burn(x, dv)
+        r = horizon.to_rtn(z)[:, :3]
+        p_diag = np.einsum("kii->ki", ps0.ellipsoid_p)
+        d = np.sqrt(np.sum(r * r * p_diag, axis=1))
+        g = np.einsum("kij,ki->kj", horizon.psi[:, :3], r * p_diag) / d[:, None]
+        x_cov = ps0.covariance(x, dv)
+        sigma = np.sqrt(np.einsum("ki,kij,kj->k", g, x_cov, g))
+        q = 0.0 if unc is None else unc.q_sigma
+        ev = ps0.evaluate(x, dv)
+        np.testing.assert_allclose(ev.margin, d - 1.0 - q * sigma, rtol=1e-12)
+        np.testing.assert_array_equal(ev.t_star_idx, 0)
+        lin = ps0.linearize(x, dv)
+        np.testing.assert_allclose(lin.a, g, rtol=1e-12, atol=1e-18)
+        np.testing.assert_allclose(lin.rhs, 1.0 + q * sigma, rtol=1e-12)
+
+
+def test_default_safety_time_from_scenario(horizon: Horizon) -> None:
+    ps = PassiveSafety(horizon, SC.replace(t_safety_orbits=0.5, n_safety=7), None)
+    assert ps.n_samples == 7
+    assert ps.tau_s[-1] == pytest.approx(0.5 * orbital_period_s(SC.chief_oe[0]), rel=1e-12)
+
+
+# ---------------------------------------------------------------------------- linearisation
+def test_linearisation_exact_at_reference(ps_det: PassiveSafety, ps_cc: PassiveSafety,
+                                          approach: tuple) -> None:
+    x, dv = approach
+    z = ps_det.post_burn(x, dv)
+    for ps in (ps_det, ps_cc):
+        lin = ps.linearize(x, dv)
+        # d is homogeneous of degree one, so a @ z_ref = d(z_ref): tangent at the reference
+        np.testing.assert_allclose(np.einsum("ki,ki->k", lin.a, z), lin.dist, rtol=1e-12)
+        np.testing.assert_allclose(lin.rhs, 1.0 + lin.beta, rtol=0, atol=0)
+    lin = ps_det.linearize(x, dv)
+    np.testing.assert_array_equal(lin.beta, 0.0)
+    all_d = np.stack([[_dist(ps_det, z[i:i + 1], i, j)[0] for j in range(20)] for i in range(N)])
+    np.testing.assert_array_equal(lin.t_star_idx, np.argmin(all_d, axis=1))  # paper's t*
+    assert np.all(ps_cc.linearize(x, dv).beta > 0)
+
+
+def test_gradient_matches_finite_differences(ps_det: PassiveSafety, approach: tuple) -> None:
+    x, dv = approach
+    z = ps_det.post_burn(x, dv)
+    lin = ps_det.linearize(x, dv)
+    h = 1e-3  # [m]; z is O(1e3-1e4) m
+    for i in (3, 50, 90):
+        j = lin.t_star_idx[i]
+        zp = z[i] + h * np.eye(6)
+        zm = z[i] - h * np.eye(6)
+        fd = (_dist(ps_det, zp, i, j) - _dist(ps_det, zm, i, j)) / (2 * h)
+        np.testing.assert_allclose(lin.a[i], fd, rtol=1e-6, atol=1e-12)
+
+
+@pytest.mark.parametrize("chance", [False, True])
+def test_linearisation_is_conservative(ps_det: PassiveSafety, ps_cc: PassiveSafety,
+                                       approach: tuple, chance: bool) -> None:
+    """Random z with a_i @ z >= rhs_i are outside the ellipsoid at t* by at least beta."""
+    ps = ps_cc if chance else ps_det
+    x, dv = approach
+    z_ref = ps.post_burn(x, dv)
+    lin = ps.linearize(x, dv)
+    rng = np.random.default_rng(11)
+    checked = 0
+    for i in range(0, N, 3):
+        a, rhs, j = lin.a[i], lin.rhs[i], lin.t_star_idx[i]
+        scale = np.linalg.norm(z_ref[i])
+        z = z_ref[i] + rng.normal(0.0, 1.0, (4000, 6)) * scale * rng.uniform(0.01, 3, (4000, 1))
+        lhs = z @ a
+        short = np.maximum(rhs - lhs, 0.0)  # project infeasible samples onto the half-space
+        z = z + (short / (a @ a))[:, None] * a + rng.uniform(0, 0.2, (4000, 1)) * a / (a @ a)
+        lhs = z @ a
+        assert np.all(lhs >= rhs - 1e-12)
+        d = _dist(ps, z, i, j)
+        assert np.all(d >= lhs * (1 - 1e-12))  # Cauchy-Schwarz: d(z) >= a @ z
+        assert np.all(d >= rhs * (1 - 1e-12))  # hence d >= 1 + beta: outside with the margin
+        checked += z.shape[0]
+    assert checked == 34 * 4000
+
+
+# ---------------------------------------------------------------------------- evaluation
+def _analytic_flags(horizon: Horizon, da_m: float, dlam0_m: float, tau_s: np.ndarray,
+                    semi_axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Keplerian along-track drift r = da, t = dlam0 - 1.5 n da t (no J2): flags and margins."""
+    n = mean_motion(SC.chief_oe[0])
+    t = horizon.epochs_s[:, None] + tau_s[None, :]
+    along = dlam0_m - 1.5 * n * da_m * t
+    d = np.sqrt(da_m**2 + along**2) / semi_axis[:, None]
+    margin = d.min(axis=1) - 1.0
+    return (margin < 0).astype(int), margin
+
+
+def test_safe_ei_separated_formation(ps_det: PassiveSafety, ps_cc: PassiveSafety,
+                                     horizon: Horizon) -> None:
+    """Parallel de and di of 1.5 km: radial and normal never vanish together."""
+    x = horizon.propagate(np.array([0.0, 0.0, 0.0, 1500.0, 0.0, 1500.0]), np.zeros((N, 3)))
+    for ps in (ps_det, ps_cc):
+        ev = ps.evaluate(x, np.zeros((N, 3)))
+        np.testing.assert_array_equal(ev.violation, 0)
+        np.testing.assert_array_equal(ev.constraint_to_go, 0)
+        assert ev.margin[:55].min() > 0.45 and ev.margin[55:].min() > 6.3
+        np.testing.assert_allclose(ev.margin_m, ev.margin * np.where(np.arange(N) < 55,
+                                                                     1000.0, 200.0))
+    assert np.all(ps_cc.evaluate(x, np.zeros((N, 3))).margin
+                  < ps_det.evaluate(x, np.zeros((N, 3))).margin)
+
+
+def test_along_track_drift_through_target(ps_det: PassiveSafety, ps_cc: PassiveSafety,
+                                          horizon: Horizon) -> None:
+    """da = 100 m, dlambda = 2.5 km: the free drift crosses the AE from node ~46 on."""
+    x = horizon.propagate(np.array([100.0, 2500.0, 0.0, 0.0, 0.0, 0.0]), np.zeros((N, 3)))
+    ev = ps_det.evaluate(x, np.zeros((N, 3)))
+    axis = np.where(np.arange(N) < 55, 1000.0, 200.0)
+    flags, margin = _analytic_flags(horizon, 100.0, 2500.0, ps_det.tau_s, axis)
+    clear = np.abs(margin) > 0.01  # away from the boundary, J2 cannot flip a flag
+    np.testing.assert_array_equal(ev.violation[clear], flags[clear])
+    np.testing.assert_allclose(ev.margin, margin, atol=0.01)
+    np.testing.assert_array_equal(np.nonzero(ev.violation)[0], np.arange(46, 55))
+    np.testing.assert_array_equal(ev.constraint_to_go,
+                                  np.cumsum(ev.violation[::-1])[::-1])
+    assert ev.constraint_to_go[0] == 9 and ev.constraint_to_go[55] == 0
+    # the q-sigma margin can only add violations
+    ev_cc = ps_cc.evaluate(x, np.zeros((N, 3)))
+    assert np.all(ev_cc.violation >= ev.violation) and ev_cc.constraint_to_go[0] > 9
+
+
+def test_collision_avoidance_through_origin(horizon: Horizon) -> None:
+    """T_safety = 0: the nodal trajectory itself passes 100 m below the target."""
+    ps0 = PassiveSafety(horizon, SC, None, t_safety_s=0.0)
+    x = horizon.propagate(np.array([100.0, 600.0, 0.0, 0.0, 0.0, 0.0]), np.zeros((N, 3)))
+    ev = ps0.evaluate(x, np.zeros((N, 3)))
+    axis = np.where(np.arange(N) < 55, 1000.0, 200.0)
+    flags, margin = _analytic_flags(horizon, 100.0, 600.0, ps0.tau_s, axis)
+    np.testing.assert_array_equal(ev.violation, flags)
+    np.testing.assert_array_equal(np.nonzero(ev.violation)[0], np.arange(0, 63))
+    np.testing.assert_allclose(ev.margin, margin, atol=0.01)
+
+
+# ---------------------------------------------------------------------------- bad input
+def test_bad_inputs(ps_cc: PassiveSafety, horizon: Horizon) -> None:
+    x = np.ones((N, 6))
+    dv = np.zeros((N, 3))
+    x_nan = x.copy()
+    x_nan[4, 1] = np.nan
+    for call in (ps_cc.evaluate, ps_cc.linearize, ps_cc.post_burn, ps_cc.covariance):
+        with pytest.raises(InputError):
+            call(x_nan, dv)
+        with pytest.raises(InputError):
+            call(x[:-1], dv)
+        with pytest.raises(InputError):
+            call(x, np.zeros((N, 2)))
+    with pytest.raises(InputError):
+        PassiveSafety(horizon, SC, None, t_safety_s=-1.0)
+    with pytest.raises(InputError):
+        PassiveSafety(horizon, SC, None, t_safety_s=float("nan"))
+    with pytest.raises(InputError):
+        PassiveSafety(horizon, SC, None, n_safety=0)
+
+
+def test_reference_through_target_centre_is_finite(ps_cc: PassiveSafety) -> None:
+    """d = 0 has no gradient: a = 0 (infeasible, left to the optimiser's slack), no NaN."""
+    lin = ps_cc.linearize(np.zeros((N, 6)), np.zeros((N, 3)))
+    assert np.all(np.isfinite(lin.a)) and np.all(lin.a == 0.0)
+    ev = ps_cc.evaluate(np.zeros((N, 6)), np.zeros((N, 3)))
+    np.testing.assert_array_equal(ev.violation, 1)
+    np.testing.assert_array_equal(ev.constraint_to_go, np.arange(N, 0, -1))
+
+
+def test_evaluate_and_linearize_are_fast(ps_cc: PassiveSafety, approach: tuple) -> None:
+    """Budget: 2 ms per call for N = 100 nodes x S = 20 samples (median of 50 calls)."""
+    x, dv = approach
+    for fn in (ps_cc.evaluate, ps_cc.linearize):
+        fn(x, dv)
+        times = []
+        for _ in range(50):
+            t0 = time.perf_counter()
+            fn(x, dv)
+            times.append(time.perf_counter() - t0)
+        assert np.median(times) < 2e-3, (fn.__name__, np.median(times))
