@@ -201,6 +201,28 @@ class PassiveSafety:
         return SafetyLinearization(a=g[rows, t_star], rhs=1.0 + beta, beta=beta,
                                    t_star_idx=t_star, dist=d[rows, t_star])
 
+    def linearize_samples(self, roe_m: object, dv_rtn_mps: object, k: int
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Linearise at the `k` most violated drift samples of every node (k = 1: `linearize`).
+
+        Constraining several samples per node keeps the convex model valid when t* moves to a
+        neighbouring sample between SCP iterations; each row is conservative on its own.
+
+        Args:
+            roe_m: (N, 6) reference pre-burn a-scaled ROE [m].
+            dv_rtn_mps: (N, 3) reference impulsive delta-v in RTN [m/s].
+            k: samples per node, 1 <= k <= n_samples.
+
+        Returns:
+            a (N, k, 6), rhs (N, k) with ``a[i, m] @ z_i >= rhs[i, m]``, and the sample
+            indices (N, k), most violated first.
+        """
+        k = int(min(max(k, 1), self.n_samples))
+        d, g, sigma, margin = self._samples(roe_m, dv_rtn_mps)
+        idx = np.argsort(margin, axis=1, kind="stable")[:, :k]  # (N, k)
+        rows = np.arange(self.n_nodes)[:, None]
+        return g[rows, idx], 1.0 + self.q_sigma * sigma[rows, idx], idx
+
     def evaluate(self, roe_m: object, dv_rtn_mps: object) -> SafetyEvaluation:
         """Evaluate the nonlinear passive-safety chance constraint along a trajectory.
 

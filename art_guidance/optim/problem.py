@@ -1,0 +1,187 @@
+"""Sparse assembly of the SCP convex subproblem (paper eq. for the convex subproblem).
+
+Variables, in order: scaled states x~ (N x 6), controls u (N x 3) [m/s], cost auxiliaries
+(t_i >= ||u_i||_2, or s >= |u| for the 1-norm variant) and the passive-safety virtual buffers
+zeta (N). States are scaled by s_x = 1/n [s] (x = s_x x~) so that every block is O(1).
+
+    minimise  sum_i cost_i + mu' zeta + w/2 ||zeta||^2
+    s.t.      x_1 = x0,  x_{k+1} = Phi_k (x_k + B_k u_k),  x_N + B_N u_N = x_f
+              -a_i' (x_i + B_i u_i) + rhs_i <= zeta_i,  zeta >= 0
+              ||x - xbar||_inf <= r,  ||u - ubar||_inf <= r
+
+The sparsity pattern is built once per horizon; per iteration only the safety coefficients,
+the right-hand sides, the penalty multipliers and the weight change (updated in place).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from art_guidance.dynamics import Horizon, mean_motion
+from art_guidance.errors import InputError
+from art_guidance.optim.solvers import Cones, CscPattern, SolverOutput, make_solver
+
+
+@dataclass(frozen=True)
+class SubproblemSolution:
+    """Unscaled primal solution of one subproblem."""
+
+    output: SolverOutput
+    roe_m: np.ndarray       # (N, 6) [m]
+    dv_rtn_mps: np.ndarray  # (N, 3) [m/s]
+    zeta: np.ndarray        # (N,) virtual buffers (normalised safety units)
+    cost_mps: float         # sum of the cost auxiliaries [m/s]
+
+
+class _Triplets:
+    """Collects (row, col, value) entries and hands out slot indices for later updates."""
+
+    def __init__(self) -> None:
+        self.rows: list[np.ndarray] = []
+        self.cols: list[np.ndarray] = []
+        self.vals: list[np.ndarray] = []
+        self.count = 0
+
+    def add(self, rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> np.ndarray:
+        rows, cols = np.broadcast_arrays(np.asarray(rows), np.asarray(cols))
+        vals = np.broadcast_to(np.asarray(vals, float), rows.shape)
+        self.rows.append(rows.ravel())
+        self.cols.append(cols.ravel())
+        self.vals.append(vals.ravel().copy())
+        slots = np.arange(self.count, self.count + rows.size).reshape(rows.shape)
+        self.count += rows.size
+        return slots
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return (np.concatenate(self.rows), np.concatenate(self.cols),
+                np.concatenate(self.vals))
+
+
+class ScpSubproblem:
+    """The convex subproblem with a fixed pattern; numbers are updated between solves."""
+
+    def __init__(self, horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
+                 norm: str = "l2", solver: str = "clarabel", samples_per_node: int = 1) -> None:
+        if norm not in ("l2", "l1"):
+            raise InputError("norm", "must be 'l2' or 'l1'", norm)
+        if norm == "l2" and solver == "osqp":
+            raise InputError("solver", "OSQP cannot solve the 2-norm problem; use clarabel")
+        self.horizon, self.norm, self.solver_name = horizon, norm, solver
+        self.k = int(samples_per_node)
+        n = self.n = horizon.n_nodes
+        self.sx = 1.0 / mean_motion(float(horizon.chief_oe[0, 0]))
+        self.ix = np.arange(6 * n).reshape(n, 6)
+        self.iu = 6 * n + np.arange(3 * n).reshape(n, 3)
+        n_aux = n if norm == "l2" else 3 * n
+        self.ic = 9 * n + np.arange(n_aux)
+        self.iz = 9 * n + n_aux + np.arange(n)
+        self.n_var = 10 * n + n_aux
+        self._assemble(np.asarray(roe0_m, float), np.asarray(roe_f_m, float))
+        self._solver = None
+
+    # ------------------------------------------------------------------ assembly
+    def _assemble(self, roe0_m: np.ndarray, roe_f_m: np.ndarray) -> None:
+        h, n, sx, trip = self.horizon, self.n, self.sx, _Triplets()
+        eye6 = np.eye(6)
+        b_zero = [roe0_m / sx]
+        trip.add(np.arange(6)[:, None], self.ix[0][None, :], eye6)
+        row = 6
+        for k in range(n - 1):
+            r = row + np.arange(6)[:, None]
+            trip.add(r, self.ix[k + 1][None, :], eye6)
+            trip.add(r, self.ix[k][None, :], -h.stm[k])
+            trip.add(r, self.iu[k][None, :], -(h.stm[k] @ h.b[k]) / sx)
+            b_zero.append(np.zeros(6))
+            row += 6
+        r = row + np.arange(6)[:, None]
+        trip.add(r, self.ix[n - 1][None, :], eye6)
+        trip.add(r, self.iu[n - 1][None, :], h.b[n - 1] / sx)
+        b_zero.append(roe_f_m / sx)
+        row += 6
+        n_zero = row
+        # safety rows (k per node): -a_im' (sx x~_i + B_i u_i) - zeta_i <= -rhs_im
+        r_safe = row + np.arange(n * self.k).reshape(n, self.k)
+        self._slot_ax = trip.add(r_safe[:, :, None], self.ix[:, None, :], 0.0)
+        self._slot_au = trip.add(r_safe[:, :, None], self.iu[:, None, :], 0.0)
+        trip.add(r_safe, self.iz[:, None], -1.0)
+        self._row_safe = r_safe
+        row += n * self.k
+        trip.add(row + np.arange(n), self.iz, -1.0)  # zeta >= 0
+        row += n
+        self._row_trust = row
+        for idx in (self.ix.ravel(), self.iu.ravel()):
+            m = idx.size
+            trip.add(row + np.arange(m), idx, 1.0)
+            trip.add(row + m + np.arange(m), idx, -1.0)
+            row += 2 * m
+        if self.norm == "l1":
+            m = 3 * n
+            trip.add(row + np.arange(m), self.iu.ravel(), 1.0)
+            trip.add(row + np.arange(m), self.ic, -1.0)
+            trip.add(row + m + np.arange(m), self.iu.ravel(), -1.0)
+            trip.add(row + m + np.arange(m), self.ic, -1.0)
+            row += 2 * m
+            soc = ()
+        else:
+            for i in range(n):
+                trip.add(row, self.ic[i], -1.0)
+                trip.add(row + 1 + np.arange(3), self.iu[i], -1.0)
+                row += 4
+            soc = (4,) * n
+        self.cones = Cones(n_zero, row - n_zero - 4 * len(soc), soc)
+        rows, cols, vals = trip.arrays()
+        self._pattern = CscPattern(rows, cols, (row, self.n_var))
+        self._a_vals = vals
+        self._b = np.zeros(row)
+        self._b[:n_zero] = np.concatenate(b_zero)
+        self._q = np.zeros(self.n_var)
+        self._q[self.ic] = 1.0
+        self._p_diag = np.zeros(self.n_var)
+
+    # ------------------------------------------------------------------ updates
+    def set_reference(self, roe_m: np.ndarray, dv_rtn_mps: np.ndarray, radius: float) -> None:
+        """Trust region ||x - xbar||_inf <= r [m], ||u - ubar||_inf <= r [m/s]."""
+        xs = roe_m.ravel() / self.sx
+        rs = radius / self.sx
+        u = dv_rtn_mps.ravel()
+        row = self._row_trust
+        for ref, rad in ((xs, rs), (u, radius)):
+            m = ref.size
+            self._b[row:row + m] = ref + rad
+            self._b[row + m:row + 2 * m] = rad - ref
+            row += 2 * m
+
+    def set_safety(self, a: np.ndarray, rhs: np.ndarray) -> None:
+        """Linearised rows a_im' z_i >= rhs_im, a (N, k, 6), rhs (N, k), z_i = x_i + B_i u_i."""
+        a = np.asarray(a, float).reshape(self.n, self.k, 6)
+        self._a_vals[self._slot_ax] = -a * self.sx
+        self._a_vals[self._slot_au] = -np.einsum("kmi,kij->kmj", a, self.horizon.b)
+        self._b[self._row_safe] = -np.asarray(rhs, float).reshape(self.n, self.k)
+
+    def set_penalty(self, mu: np.ndarray, weight: float) -> None:
+        """Penalty mu' zeta + w/2 ||zeta||^2 on the virtual buffers."""
+        self._q[self.iz] = mu
+        self._p_diag[self.iz] = weight
+
+    # ------------------------------------------------------------------ solve
+    def solve(self) -> SubproblemSolution:
+        """Solve with the current numbers (solver built on the first call, updated after)."""
+        a_data = self._pattern.csc_data(self._a_vals)
+        p_data = self._p_diag[self.iz]
+        if self._solver is None:
+            p = sp.csc_matrix((p_data, (self.iz, self.iz)), shape=(self.n_var, self.n_var))
+            a = sp.csc_matrix((a_data, self._pattern.indices, self._pattern.indptr),
+                              shape=self._pattern.shape)
+            self._solver = make_solver(self.solver_name, p, self._q, a, self._b, self.cones)
+        else:
+            self._solver.update(q=self._q, b=self._b, a_data=a_data, p_data=p_data)
+        out = self._solver.solve()
+        if not out.ok or out.x.size != self.n_var:
+            nan = np.full(self.n, np.nan)
+            return SubproblemSolution(out, np.full((self.n, 6), np.nan),
+                                      np.full((self.n, 3), np.nan), nan, float("nan"))
+        x = out.x
+        return SubproblemSolution(out, x[self.ix] * self.sx, x[self.iu].copy(),
+                                  np.maximum(x[self.iz], 0.0), float(x[self.ic].sum()))

@@ -1,0 +1,89 @@
+"""Typed results of the convex and sequential convex solves."""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class ScpStatus(enum.Enum):
+    """Outcome of a solve. Values match `ManeuverPlan.STATUS_*`."""
+
+    CONVERGED = 0
+    MAX_ITERATIONS = 1
+    INFEASIBLE = 2
+    SOLVER_ERROR = 3
+    TIMEOUT = 4
+
+
+@dataclass(frozen=True)
+class ConvexSolution:
+    """One convex solve.
+
+    Attributes:
+        status: CONVERGED on success, INFEASIBLE or SOLVER_ERROR otherwise.
+        roe_m: (N, 6) pre-burn a-scaled ROE [m] (propagated from the controls).
+        dv_rtn_mps: (N, 3) impulsive delta-v in RTN [m/s].
+        cost_mps: sum over nodes of the delta-v norm used by the problem [m/s].
+        solve_time_ms: wall time of assembly plus solve [ms].
+        solver: name of the solver that produced it.
+        solver_status: the solver's own status text.
+    """
+
+    status: ScpStatus
+    roe_m: np.ndarray
+    dv_rtn_mps: np.ndarray
+    cost_mps: float
+    solve_time_ms: float
+    solver: str
+    solver_status: str
+
+
+@dataclass(frozen=True)
+class ScpIteration:
+    """Bookkeeping of one SCVx* iteration (for logs and replay)."""
+
+    iteration: int
+    cost_mps: float
+    predicted_decrease: float
+    actual_decrease: float
+    ratio: float
+    trust_radius: float
+    penalty_weight: float
+    max_violation: float
+    accepted: bool
+    solve_time_ms: float
+
+
+@dataclass(frozen=True)
+class ScpResult:
+    """Outcome of a sequential convex programming run.
+
+    Attributes:
+        status: see `ScpStatus`.
+        roe_m: (N, 6) pre-burn a-scaled ROE [m] of the returned iterate.
+        dv_rtn_mps: (N, 3) delta-v in RTN [m/s].
+        cost_mps: sum of delta-v 2-norms (or 1-norms for the l1 variant) [m/s].
+        iterations: number of convex subproblems solved.
+        max_violation: largest nonlinear constraint violation of the returned iterate
+            (normalised passive-safety units, and metres for the terminal state).
+        history: per-iteration records.
+        multipliers: final SCVx* multipliers and weight, usable to warm start a re-solve.
+        solve_time_ms: wall time [ms].
+    """
+
+    status: ScpStatus
+    roe_m: np.ndarray
+    dv_rtn_mps: np.ndarray
+    cost_mps: float
+    iterations: int
+    max_violation: float
+    history: tuple[ScpIteration, ...] = ()
+    multipliers: dict = field(default_factory=dict)
+    solve_time_ms: float = 0.0
+
+    @property
+    def feasible(self) -> bool:
+        """True when the returned iterate satisfies the constraints (to eps_feas)."""
+        return self.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS)

@@ -1,0 +1,157 @@
+"""SCVx* sequential convex programming (Oguri 2023) for the passively safe rendezvous OCP.
+
+Each iteration linearises the (chance-constrained) passive-safety constraint around the
+reference (`safety.PassiveSafety.linearize`), solves the convex subproblem
+(`problem.ScpSubproblem`), and compares the actual decrease of the augmented-Lagrangian merit
+
+    J(x, u) = sum ||u_i|| + mu' g+(x, u) + w/2 ||g+(x, u)||^2,   g = -(nonlinear margin)
+
+with the decrease predicted by the subproblem. The ratio drives acceptance and the trust region
+(alpha1, alpha2, rho0 < rho1 < rho2); accepted steps whose merit change is below the
+stationarity tolerance delta update the multipliers (mu <- max(0, mu + w g)), the weight
+(w <- min(beta w, w_max)) and delta (delta <- gamma delta). It stops when the predicted decrease
+is below eps_opt and the largest violation below eps_feas.
+
+All equality constraints are linear, so they are kept hard: the warm start is first projected
+onto them (minimum-norm control correction), which keeps every subproblem feasible.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from art_guidance.config import ScpConfig
+from art_guidance.dynamics import Horizon
+from art_guidance.optim.cvx import control_cost, terminal_maps
+from art_guidance.optim.problem import ScpSubproblem
+from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus
+from art_guidance.safety import PassiveSafety
+
+
+@dataclass
+class _Iterate:
+    roe_m: np.ndarray
+    dv_rtn_mps: np.ndarray
+    cost: float
+    g: np.ndarray  # (N,) nonlinear constraint values, <= 0 satisfied
+
+    @property
+    def violation(self) -> float:
+        return float(max(0.0, self.g.max()))
+
+
+def project_to_boundary_conditions(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
+                                   dv_rtn_mps: np.ndarray) -> np.ndarray:
+    """Smallest (2-norm) change of the controls that meets the terminal condition exactly."""
+    maps = terminal_maps(horizon)
+    g = np.einsum("kij,kjl->ikl", maps, horizon.b).reshape(6, -1)  # (6, 3N)
+    err = roe_f_m - (maps[0] @ roe0_m + g @ dv_rtn_mps.ravel())
+    corr = g.T @ np.linalg.solve(g @ g.T, err)
+    return dv_rtn_mps + corr.reshape(-1, 3)
+
+
+class Scvx:
+    """SCVx* solver bound to one problem instance (horizon, boundary conditions, safety)."""
+
+    def __init__(self, safety: PassiveSafety, roe0_m: np.ndarray, roe_f_m: np.ndarray,
+                 config: ScpConfig | None = None, norm: str = "l2",
+                 solver: str = "clarabel", samples_per_node: int = 1) -> None:
+        self.safety = safety
+        self.horizon = safety.horizon
+        self.roe0_m = np.asarray(roe0_m, float)
+        self.roe_f_m = np.asarray(roe_f_m, float)
+        self.cfg = config or ScpConfig()
+        self.norm = norm
+        self.k = int(samples_per_node)
+        # The convex model is tightened by eps_feas so converged plans keep a margin >= 0.
+        self.tighten = self.cfg.eps_feas
+        self.sub = ScpSubproblem(self.horizon, self.roe0_m, self.roe_f_m, norm, solver, self.k)
+
+    def _iterate(self, dv_rtn_mps: np.ndarray) -> _Iterate:
+        roe = self.horizon.propagate(self.roe0_m, dv_rtn_mps)
+        ev = self.safety.evaluate(roe, dv_rtn_mps)
+        return _Iterate(roe, dv_rtn_mps, control_cost(dv_rtn_mps, self.norm), -ev.margin)
+
+    def _linearize(self, it: _Iterate) -> tuple[np.ndarray, np.ndarray]:
+        a, rhs, _ = self.safety.linearize_samples(it.roe_m, it.dv_rtn_mps, self.k)
+        return a, rhs + self.tighten
+
+    @staticmethod
+    def _merit(it: _Iterate, mu: np.ndarray, w: float) -> float:
+        gp = np.maximum(it.g, 0.0)
+        return it.cost + float(mu @ gp) + 0.5 * w * float(gp @ gp)
+
+    def solve(self, dv_warm_rtn_mps: np.ndarray, multipliers: dict | None = None,
+              deadline_s: float | None = None) -> ScpResult:
+        """Run SCVx* from a warm-start control sequence (N, 3) [m/s].
+
+        Args:
+            dv_warm_rtn_mps: warm-start controls; states are recomputed from them.
+            multipliers: optional {"mu", "w", "trust_radius"} from an earlier solve.
+            deadline_s: wall-clock budget [s]; on expiry the best feasible iterate is returned
+                with status TIMEOUT.
+        """
+        t_start = time.perf_counter()
+        cfg, n = self.cfg, self.horizon.n_nodes
+        dv0 = project_to_boundary_conditions(self.horizon, self.roe0_m, self.roe_f_m,
+                                             np.asarray(dv_warm_rtn_mps, float).reshape(n, 3))
+        ref = self._iterate(dv0)
+        m = multipliers or {}
+        mu = np.asarray(m.get("mu", np.zeros(n)), float).copy()
+        w = float(m.get("w", cfg.w0))
+        radius = float(m.get("trust_radius", cfg.trust_radius0))
+        delta = math.inf
+        best = ref if ref.violation <= cfg.eps_feas else None
+        history: list[ScpIteration] = []
+        status = None
+        lin = self._linearize(ref)
+        for it_no in range(1, cfg.max_iterations + 1):
+            if deadline_s is not None and time.perf_counter() - t_start > deadline_s:
+                status = ScpStatus.TIMEOUT
+                break
+            self.sub.set_reference(ref.roe_m, ref.dv_rtn_mps, radius)
+            self.sub.set_safety(*lin)
+            self.sub.set_penalty(mu, w)
+            sol = self.sub.solve()
+            if not sol.output.ok:
+                status = ScpStatus.SOLVER_ERROR
+                break
+            cand = self._iterate(sol.dv_rtn_mps)
+            j_ref = self._merit(ref, mu, w)
+            l_cand = sol.cost_mps + float(mu @ sol.zeta) + 0.5 * w * float(sol.zeta @ sol.zeta)
+            d_pred = j_ref - l_cand
+            d_act = j_ref - self._merit(cand, mu, w)
+            ratio = d_act / d_pred if abs(d_pred) > 1e-12 else 1.0
+            converged = abs(d_pred) <= cfg.eps_opt and cand.violation <= cfg.eps_feas
+            accepted = converged or ratio >= cfg.rho0
+            history.append(ScpIteration(it_no, cand.cost, d_pred, d_act, ratio, radius, w,
+                                        cand.violation, accepted, sol.output.solve_time_ms))
+            if accepted:
+                ref = cand
+                if ref.violation <= cfg.eps_feas and (best is None or ref.cost < best.cost):
+                    best = ref
+                if converged:
+                    status = ScpStatus.CONVERGED
+                    break
+                lin = self._linearize(ref)
+                if abs(d_act) <= delta:
+                    mu = np.maximum(0.0, mu + w * ref.g)
+                    w = min(cfg.beta * w, cfg.w_max)
+                    delta = cfg.gamma * (abs(d_act) if math.isinf(delta) else delta)
+            if ratio < cfg.rho1:
+                radius = max(radius / cfg.alpha1, cfg.trust_radius_min)
+            elif ratio >= cfg.rho2:
+                radius = min(radius * cfg.alpha2, cfg.trust_radius_max)
+        if status is None:
+            status = (ScpStatus.MAX_ITERATIONS if ref.violation <= cfg.eps_feas
+                      else ScpStatus.INFEASIBLE)
+        out = ref
+        if status in (ScpStatus.TIMEOUT, ScpStatus.SOLVER_ERROR) and best is not None:
+            out = best
+        return ScpResult(status, out.roe_m, out.dv_rtn_mps, out.cost, len(history),
+                         out.violation, tuple(history),
+                         {"mu": mu.tolist(), "w": w, "trust_radius": radius},
+                         1e3 * (time.perf_counter() - t_start))

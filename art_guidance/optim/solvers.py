@@ -1,0 +1,185 @@
+"""Solver facade: Clarabel (SOCP/QP) and OSQP (QP) called directly on sparse matrices.
+
+Each wrapper follows the solver's lifecycle: the sparsity pattern is fixed at construction,
+numbers are updated in place between solves, and every solve returns a `SolverOutput`.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import clarabel
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from art_guidance.errors import SolverError
+
+
+@dataclass(frozen=True)
+class Cones:
+    """Row blocks of A, in order: equalities, inequalities (A v <= b), then 2-norm cones."""
+
+    n_zero: int
+    n_nonneg: int
+    soc_sizes: tuple[int, ...] = ()
+
+    @property
+    def n_rows(self) -> int:
+        """Total number of constraint rows."""
+        return self.n_zero + self.n_nonneg + int(sum(self.soc_sizes))
+
+
+@dataclass(frozen=True)
+class SolverOutput:
+    """Primal solution and status of one solve."""
+
+    ok: bool
+    x: np.ndarray
+    status: str
+    iterations: int
+    solve_time_ms: float
+
+
+class CscPattern:
+    """A sparse matrix assembled from (row, col, value) triplets with a fixed pattern.
+
+    Values can be replaced later through the same triplet order (`csc_data(values)`), so a
+    solver built once can be updated in place. Structural zeros are kept.
+    """
+
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> None:
+        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        self.shape = shape
+        self.order = np.lexsort((rows, cols))
+        key = cols[self.order] * shape[0] + rows[self.order]
+        if np.any(np.diff(key) == 0):
+            raise SolverError("duplicate entries in a sparse pattern")
+        self.indices = rows[self.order].astype(np.int64)
+        self.indptr = np.searchsorted(cols[self.order], np.arange(shape[1] + 1)).astype(np.int64)
+
+    def csc_data(self, values: np.ndarray) -> np.ndarray:
+        """Values in triplet order -> CSC data order."""
+        return np.asarray(values, dtype=float)[self.order]
+
+    def matrix(self, values: np.ndarray) -> sp.csc_matrix:
+        """The CSC matrix with these triplet values (structural zeros kept)."""
+        return sp.csc_matrix((self.csc_data(values), self.indices.copy(), self.indptr.copy()),
+                             shape=self.shape)
+
+
+def _clarabel_cones(cones: Cones) -> list:
+    out = []
+    if cones.n_zero:
+        out.append(clarabel.ZeroConeT(cones.n_zero))
+    if cones.n_nonneg:
+        out.append(clarabel.NonnegativeConeT(cones.n_nonneg))
+    out.extend(clarabel.SecondOrderConeT(int(k)) for k in cones.soc_sizes)
+    return out
+
+
+class ClarabelSolver:
+    """Clarabel interior-point solver: min 1/2 v'Pv + q'v s.t. b - A v in cones."""
+
+    name = "clarabel"
+
+    def __init__(self, p: sp.csc_matrix, q: np.ndarray, a: sp.csc_matrix, b: np.ndarray,
+                 cones: Cones, tol: float = 1e-8, max_iter: int = 100) -> None:
+        if a.shape[0] != cones.n_rows:
+            raise SolverError(f"A has {a.shape[0]} rows, cones describe {cones.n_rows}")
+        settings = clarabel.DefaultSettings()
+        settings.verbose = False
+        settings.presolve_enable = False
+        settings.input_sparse_dropzeros = False
+        settings.tol_gap_abs = settings.tol_gap_rel = tol
+        settings.tol_feas = tol
+        settings.max_iter = max_iter
+        self._solver = clarabel.DefaultSolver(sp.triu(p, format="csc"), np.asarray(q, float),
+                                              a, np.asarray(b, float),
+                                              _clarabel_cones(cones), settings)
+
+    def update(self, q: np.ndarray | None = None, b: np.ndarray | None = None,
+               a_data: np.ndarray | None = None, p_data: np.ndarray | None = None) -> None:
+        """Replace numbers (same pattern): q, b, CSC data of A, CSC data of triu(P)."""
+        kwargs = {}
+        if q is not None:
+            kwargs["q"] = np.asarray(q, float)
+        if b is not None:
+            kwargs["b"] = np.asarray(b, float)
+        if a_data is not None:
+            kwargs["A"] = np.asarray(a_data, float)
+        if p_data is not None:
+            kwargs["P"] = np.asarray(p_data, float)
+        if kwargs:
+            self._solver.update(**kwargs)
+
+    def solve(self) -> SolverOutput:
+        """Solve; `ok` is True for Solved and AlmostSolved."""
+        t0 = time.perf_counter()
+        sol = self._solver.solve()
+        status = str(sol.status)
+        ok = status in ("Solved", "AlmostSolved")
+        return SolverOutput(ok, np.asarray(sol.x), status, int(sol.iterations),
+                            1e3 * (time.perf_counter() - t0))
+
+
+class OsqpSolver:
+    """OSQP operator-splitting solver for QPs/LPs: the same rows, SOC blocks not allowed."""
+
+    name = "osqp"
+
+    def __init__(self, p: sp.csc_matrix, q: np.ndarray, a: sp.csc_matrix, b: np.ndarray,
+                 cones: Cones, eps: float = 1e-6, max_iter: int = 50000) -> None:
+        if cones.soc_sizes:
+            raise SolverError("OSQP cannot handle second-order cones; use Clarabel")
+        self._n_zero = cones.n_zero
+        lower = np.full(cones.n_rows, -np.inf)
+        self._solver = osqp.OSQP()
+        self._solver.setup(P=sp.triu(p, format="csc"), q=np.asarray(q, float), A=a,
+                           l=self._lower(lower, b), u=np.asarray(b, float), verbose=False,
+                           eps_abs=eps, eps_rel=eps, max_iter=max_iter, polishing=True,
+                           polish_refine_iter=10, rho=1e-3, adaptive_rho=True)
+
+    def _lower(self, lower: np.ndarray, b: np.ndarray) -> np.ndarray:
+        lower = lower.copy()
+        lower[: self._n_zero] = np.asarray(b, float)[: self._n_zero]
+        return lower
+
+    def update(self, q: np.ndarray | None = None, b: np.ndarray | None = None,
+               a_data: np.ndarray | None = None, p_data: np.ndarray | None = None) -> None:
+        """Replace numbers (same pattern)."""
+        kwargs = {}
+        if q is not None:
+            kwargs["q"] = np.asarray(q, float)
+        if b is not None:
+            b = np.asarray(b, float)
+            kwargs["u"] = b
+            kwargs["l"] = self._lower(np.full(b.size, -np.inf), b)
+        if a_data is not None:
+            kwargs["Ax"] = np.asarray(a_data, float)
+        if p_data is not None:
+            kwargs["Px"] = np.asarray(p_data, float)
+        if kwargs:
+            self._solver.update(**kwargs)
+
+    def solve(self) -> SolverOutput:
+        """Solve; `ok` is True for a solved (possibly inaccurate) status."""
+        t0 = time.perf_counter()
+        res = self._solver.solve()
+        status = str(res.info.status)
+        ok = status.lower().startswith("solved")
+        x = np.asarray(res.x) if res.x is not None else np.full(0, np.nan)
+        return SolverOutput(ok, x, status, int(res.info.iter), 1e3 * (time.perf_counter() - t0))
+
+
+SOLVERS = {"clarabel": ClarabelSolver, "osqp": OsqpSolver}
+
+
+def make_solver(name: str, p: sp.csc_matrix, q: np.ndarray, a: sp.csc_matrix, b: np.ndarray,
+                cones: Cones) -> ClarabelSolver | OsqpSolver:
+    """Construct a solver by name ('clarabel' or 'osqp')."""
+    try:
+        cls = SOLVERS[name]
+    except KeyError:
+        raise SolverError(f"unknown solver {name!r}; choose from {sorted(SOLVERS)}") from None
+    return cls(p, q, a, b, cones)
