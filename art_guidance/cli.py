@@ -9,7 +9,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from art_guidance import __version__
-from art_guidance.errors import GuidanceError
+from art_guidance.errors import GuidanceError, InputError
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -41,6 +41,101 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_demo)
 
 
+def _cmd_plan(args: argparse.Namespace) -> int:
+    """Plan one randomised transfer of the paper scenario and write it as JSON."""
+    from art_guidance.config import ScenarioConfig
+    from art_guidance.dataset import sample_scenario
+    from art_guidance.dynamics import roe_from_rtn_linear
+    from art_guidance.pipeline import GuidancePipeline, PlanRequest
+
+    scenario = ScenarioConfig.from_yaml(args.scenario)
+    sample = sample_scenario(scenario, args.seed)
+    target = sample.target_rtn
+    if args.waypoint:
+        if args.waypoint not in scenario.waypoints_rtn:
+            raise InputError("waypoint", f"unknown; choose from {sorted(scenario.waypoints_rtn)}",
+                             args.waypoint)
+        target = np.asarray(scenario.waypoints_rtn[args.waypoint])
+    chief = np.array(scenario.chief_oe)
+    request = PlanRequest(chief, roe_from_rtn_linear(chief, sample.rtn0), target,
+                          chance_constrained=not args.deterministic, warm_start=args.warm_start)
+    result = GuidancePipeline(scenario).plan(request)
+    data = result.to_json()
+    data.update(seed=args.seed, waypoint=args.waypoint or sample.waypoint,
+                mode="deterministic" if args.deterministic else "chance")
+    _write_json(args.json, data)
+    print(f"{result.status.name}: cost {result.cost_mps:.4f} m/s (CVX {result.cvx.cost_mps:.4f}),"
+          f" {result.scp.iterations} SCP iterations, margin {result.constraint_margin_m:.2f} m, "
+          f"{result.timings_ms['total']:.0f} ms -> {args.json}")
+    return 0 if result.scp.feasible else 1
+
+
+def _write_json(path: str, data: dict) -> None:
+    """Write atomically (temp file + rename) so a reader never sees half a file."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=target.name, suffix=".tmp")
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=1)
+    os.replace(tmp, target)
+
+
+def _add_plan(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("plan", help="plan one transfer and write JSON",
+                       description=_cmd_plan.__doc__ + " Exit 0 feasible, 1 infeasible, "
+                       "2 bad input.")
+    p.add_argument("--seed", type=int, required=True, help="scenario seed (initial state and "
+                   "waypoint drawn from the paper's Table I ranges)")
+    p.add_argument("--deterministic", action="store_true",
+                   help="deterministic passive safety (default: chance-constrained)")
+    p.add_argument("--warm-start", choices=["auto", "cvx", "art"], default="auto",
+                   help="warm start for SCP (auto: ART if a model is loaded and accepted)")
+    p.add_argument("--waypoint", default=None, help="override the sampled waypoint")
+    p.add_argument("--scenario", default=None, help="scenario YAML (default: packaged)")
+    p.add_argument("--json", required=True, help="output path of the plan JSON")
+    p.set_defaults(func=_cmd_plan)
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    """Run benchmarks from benchmarks/ and print medians and ratios against references."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent / "benchmarks"
+    names = sorted(p.stem[len("bench_"):] for p in root.glob("bench_*.py"))
+    if not names:
+        raise InputError("bench", "benchmarks/ not found (run from a source checkout)")
+    chosen = names if args.name == "all" else [args.name]
+    report = {}
+    for name in chosen:
+        path = root / f"bench_{name}.py"
+        if not path.is_file():
+            raise InputError("bench", f"unknown benchmark; choose from {names + ['all']}", name)
+        spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        kwargs = {"repeats": args.repeats} if args.repeats else {}
+        print(f"== {name}")
+        report[name] = module.run(**kwargs)
+        for key, value in report[name].items():
+            print(f"  {key}: {value:.4g}" if isinstance(value, float) else f"  {key}: {value}")
+    if args.json:
+        _write_json(args.json, report)
+    return 0
+
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="run benchmarks", description=_cmd_bench.__doc__)
+    p.add_argument("name", nargs="?", default="all", help="benchmark name or 'all'")
+    p.add_argument("--repeats", type=int, default=None, help="samples per benchmark")
+    p.add_argument("--json", default=None, help="also write the numbers as JSON")
+    p.set_defaults(func=_cmd_bench)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argparse tree of every subcommand."""
     parser = argparse.ArgumentParser(
@@ -54,7 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_demo]
+_SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
+    _add_demo, _add_plan, _add_bench]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

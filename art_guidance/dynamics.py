@@ -155,6 +155,8 @@ def oe_from_eci(state: object) -> np.ndarray:
     energy = 0.5 * v @ v - MU_M3PS2 / rn
     if energy >= 0 or hn == 0:
         raise InputError("eci_state", "state is not on a closed orbit")
+    if not np.linalg.norm(node) > 1e-12 * hn:
+        raise InputError("eci_state", "equatorial orbit: node and RAAN are undefined")
     a = -MU_M3PS2 / (2.0 * energy)
     i = float(np.arccos(np.clip(h[2] / hn, -1, 1)))
     raan = float(np.arctan2(node[1], node[0]))

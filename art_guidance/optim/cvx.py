@@ -1,11 +1,14 @@
 """The convex two-point boundary value problem (paper: "CVX", the lower bound of the OCP).
 
-minimise sum_i ||u_i||  s.t.  x_{k+1} = Phi_k (x_k + B_k u_k),  x_1 = x0,  x_N + B_N u_N = x_f.
+minimise sum_i ||u_i||   (+ reg/2 ||u||^2 for the 1-norm variant)
+s.t.     x_{k+1} = Phi_k (x_k + B_k u_k),  x_1 = x0,  x_N + B_N u_N = x_f.
 
 The states are eliminated (condensed form): the only equality is the 6-row terminal condition
 sum_k M_k B_k u_k = x_f - M_0 x0 with M_k = Phi_{N-1} ... Phi_k, so the problem has 3N + N
 variables (2-norm) and is solved by Clarabel in a few milliseconds. The 1-norm variant (fuel
-for axis-aligned thrusters) is an LP solved by Clarabel or OSQP.
+for axis-aligned thrusters) is a QP solved by Clarabel or OSQP: the pure LP is degenerate (many
+optimal control sequences) and first-order OSQP stalls on it, so a small quadratic term
+L1_REG_S_PER_M/2 ||u||^2 (about 0.1 % of the cost) makes the optimum unique for both solvers.
 """
 from __future__ import annotations
 
@@ -21,6 +24,7 @@ from art_guidance.optim.results import ConvexSolution, ScpStatus
 from art_guidance.optim.solvers import Cones, make_solver
 
 NORMS = ("l2", "l1")
+L1_REG_S_PER_M = 1e-3
 
 
 def terminal_maps(horizon: Horizon) -> np.ndarray:
@@ -71,6 +75,8 @@ def condensed_tpbvp(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
         b = np.concatenate([rhs, np.zeros(6 * n)])
         cones = Cones(6, 6 * n)
         q = np.concatenate([np.zeros(3 * n), np.ones(3 * n)])
+        reg = np.concatenate([np.full(3 * n, L1_REG_S_PER_M), np.zeros(3 * n)])
+        return sp.diags(reg, format="csc"), q, sp.csc_matrix(a), b, cones
     return sp.csc_matrix((n_var, n_var)), q, sp.csc_matrix(a), b, cones
 
 

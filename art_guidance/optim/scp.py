@@ -65,7 +65,7 @@ class Scvx:
         self.roe_f_m = np.asarray(roe_f_m, float)
         self.cfg = config or ScpConfig()
         self.norm = norm
-        self.k = int(samples_per_node)
+        self.k = int(min(max(samples_per_node, 1), safety.n_samples))
         # The convex model is tightened by eps_feas so converged plans keep a margin >= 0.
         self.tighten = self.cfg.eps_feas
         self.sub = ScpSubproblem(self.horizon, self.roe0_m, self.roe_f_m, norm, solver, self.k)

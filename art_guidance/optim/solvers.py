@@ -138,7 +138,7 @@ class OsqpSolver:
         self._solver.setup(P=sp.triu(p, format="csc"), q=np.asarray(q, float), A=a,
                            l=self._lower(lower, b), u=np.asarray(b, float), verbose=False,
                            eps_abs=eps, eps_rel=eps, max_iter=max_iter, polishing=True,
-                           polish_refine_iter=10, rho=1e-3, adaptive_rho=True)
+                           polish_refine_iter=10, adaptive_rho=True)
 
     def _lower(self, lower: np.ndarray, b: np.ndarray) -> np.ndarray:
         lower = lower.copy()

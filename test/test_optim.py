@@ -1,0 +1,127 @@
+"""Convex TPBVP and SCVx*: against a cvxpy reference, nonlinear constraints, warm starts."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
+from art_guidance.dataset import sample_scenario
+from art_guidance.dynamics import Horizon, time_grid_s
+from art_guidance.errors import GuidanceError, InputError
+from art_guidance.optim import ScpStatus, Scvx, control_cost, solve_cvx
+from art_guidance.optim.cvx import L1_REG_S_PER_M
+from art_guidance.optim.reference import cvxpy_tpbvp
+from art_guidance.safety import PassiveSafety
+
+SEEDS = (0, 1, 2, 3)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    scenario = ScenarioConfig.from_yaml()
+    chief = np.array(scenario.chief_oe)
+    horizon = Horizon.build(chief, time_grid_s(chief[0], scenario.n_orbits, scenario.n_nodes))
+    safety = {
+        "det": PassiveSafety(horizon, scenario, None),
+        "cc": PassiveSafety(horizon, scenario, UncertaintyConfig.from_yaml()),
+        "ca": PassiveSafety(horizon, scenario, None, t_safety_s=0.0),
+    }
+    return scenario, horizon, safety
+
+
+def _boundary(scenario, horizon, seed):
+    s = sample_scenario(scenario, seed)
+    return (np.linalg.solve(horizon.psi[0], s.rtn0),
+            np.linalg.solve(horizon.psi[-1], s.target_rtn))
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("norm", ["l2", "l1"])
+def test_cvx_matches_cvxpy(setup, seed, norm):
+    scenario, horizon, _ = setup
+    x0, xf = _boundary(scenario, horizon, seed)
+    sol = solve_cvx(horizon, x0, xf, norm=norm)
+    ref_cost, ref_dv = cvxpy_tpbvp(horizon, x0, xf, norm)
+    assert sol.status is ScpStatus.CONVERGED
+    reg = 0.5 * L1_REG_S_PER_M * float(np.sum(sol.dv_rtn_mps**2)) if norm == "l1" else 0.0
+    assert sol.cost_mps + reg == pytest.approx(ref_cost, rel=1e-6)
+    # the plan meets the terminal condition (post-burn) to 1 mm
+    assert np.abs(horizon.final_post_burn(sol.roe_m, sol.dv_rtn_mps) - xf).max() < 1e-3
+    reg = 0.5 * L1_REG_S_PER_M * float(np.sum(ref_dv**2)) if norm == "l1" else 0.0
+    assert control_cost(ref_dv, norm) + reg == pytest.approx(ref_cost, rel=1e-6)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_osqp_and_clarabel_agree_on_l1(setup, seed):
+    scenario, horizon, _ = setup
+    x0, xf = _boundary(scenario, horizon, seed)
+    a = solve_cvx(horizon, x0, xf, norm="l1", solver="clarabel")
+    b = solve_cvx(horizon, x0, xf, norm="l1", solver="osqp")
+    assert b.status is ScpStatus.CONVERGED
+    # OSQP (first order, eps 1e-6: each |u| may exceed its bound by ~eps) versus an interior
+    # point: fuel to 1e-3 relative, terminal state to 1 cm
+    assert b.cost_mps == pytest.approx(a.cost_mps, rel=1e-3)
+    assert np.abs(horizon.final_post_burn(b.roe_m, b.dv_rtn_mps) - xf).max() < 1e-2
+
+
+def test_osqp_rejects_second_order_cone(setup):
+    scenario, horizon, _ = setup
+    x0, xf = _boundary(scenario, horizon, 0)
+    with pytest.raises(GuidanceError):
+        solve_cvx(horizon, x0, xf, norm="l2", solver="osqp")
+
+
+@pytest.mark.parametrize("mode", ["ca", "det", "cc"])
+@pytest.mark.parametrize("seed", SEEDS[:3])
+def test_scp_satisfies_nonlinear_passive_safety(setup, mode, seed):
+    scenario, horizon, safety = setup
+    x0, xf = _boundary(scenario, horizon, seed)
+    cvx = solve_cvx(horizon, x0, xf)
+    cfg = ScpConfig()
+    res = Scvx(safety[mode], x0, xf, cfg, samples_per_node=3).solve(cvx.dv_rtn_mps)
+    assert res.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS), res.status
+    ev = safety[mode].evaluate(res.roe_m, res.dv_rtn_mps)
+    # nonlinear margin (min over every drift sample, q-sigma included for "cc"), to eps_feas
+    assert ev.margin.min() >= -cfg.eps_feas
+    # dynamics and boundary conditions hold exactly
+    assert np.allclose(horizon.propagate(x0, res.dv_rtn_mps), res.roe_m)
+    assert np.abs(horizon.final_post_burn(res.roe_m, res.dv_rtn_mps) - xf).max() < 1e-6
+    # the safe plan costs at least the convex lower bound
+    assert res.cost_mps >= cvx.cost_mps - 1e-6
+    # the CVX warm start itself violates the constraint in most of these cases
+    assert len(res.history) == res.iterations
+
+
+@pytest.mark.parametrize("seed", SEEDS[:2])
+def test_converged_plan_as_warm_start_converges_in_two(setup, seed):
+    scenario, horizon, safety = setup
+    x0, xf = _boundary(scenario, horizon, seed)
+    cvx = solve_cvx(horizon, x0, xf)
+    scvx = Scvx(safety["cc"], x0, xf, samples_per_node=3)
+    first = scvx.solve(cvx.dv_rtn_mps)
+    assert first.status is ScpStatus.CONVERGED
+    again = scvx.solve(first.dv_rtn_mps, multipliers=first.multipliers)
+    assert again.status is ScpStatus.CONVERGED
+    assert again.iterations <= 2
+    assert again.cost_mps == pytest.approx(first.cost_mps, abs=1e-3)
+
+
+def test_deadline_returns_timeout(setup):
+    scenario, horizon, safety = setup
+    x0, xf = _boundary(scenario, horizon, 2)
+    cvx = solve_cvx(horizon, x0, xf)
+    res = Scvx(safety["cc"], x0, xf).solve(cvx.dv_rtn_mps, deadline_s=0.0)
+    assert res.status is ScpStatus.TIMEOUT
+    assert res.iterations == 0
+    assert np.all(np.isfinite(res.dv_rtn_mps))
+
+
+def test_bad_input_raises(setup):
+    scenario, horizon, _ = setup
+    x0, xf = _boundary(scenario, horizon, 0)
+    with pytest.raises(InputError):
+        solve_cvx(horizon, np.full(6, np.nan), xf)
+    with pytest.raises(InputError):
+        solve_cvx(horizon, x0[:5], xf)
+    with pytest.raises(InputError):
+        solve_cvx(horizon, x0, xf, norm="linf")
