@@ -1,0 +1,69 @@
+"""The `art-guidance` command line: help, plan JSON, clear errors."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from art_guidance.cli import build_parser, main
+
+SUBCOMMANDS = ("demo", "plan", "bench")
+REQUIRED_KEYS = {"chief_oe", "epochs_s", "dv_rtn_mps", "roe_m", "rtn", "cost_mps", "status",
+                 "scp_iterations", "warm_start", "posthoc", "timings_ms",
+                 "constraint_margin_m"}
+
+
+@pytest.mark.parametrize("sub", SUBCOMMANDS)
+def test_help_for_every_subcommand(sub, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([sub, "--help"])
+    assert exc.value.code == 0
+    assert sub in capsys.readouterr().out
+
+
+def test_parser_lists_subcommands():
+    text = build_parser().format_help()
+    for sub in SUBCOMMANDS:
+        assert sub in text
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_plan_writes_json(tmp_path, deterministic):
+    out = tmp_path / "plan.json"
+    args = ["plan", "--seed", "4", "--warm-start", "cvx", "--json", str(out)]
+    assert main(args + (["--deterministic"] if deterministic else [])) == 0
+    data = json.loads(out.read_text())
+    assert REQUIRED_KEYS <= set(data)
+    n = len(data["epochs_s"])
+    assert np.asarray(data["dv_rtn_mps"]).shape == (n, 3)
+    assert np.asarray(data["roe_m"]).shape == (n, 6)
+    assert np.asarray(data["rtn"]).shape == (n, 6)
+    assert data["warm_start"] == "cvx"
+    assert data["status"] in ("CONVERGED", "MAX_ITERATIONS")
+    assert data["cost_mps"] >= data["cvx_cost_mps"] - 1e-9
+    assert set(data["timings_ms"]) >= {"art", "cvx", "scp", "total"}
+    dv = np.asarray(data["dv_rtn_mps"])
+    assert data["cost_mps"] == pytest.approx(np.linalg.norm(dv, axis=1).sum(), rel=1e-9)
+
+
+def test_plan_bad_waypoint_is_a_clear_error(tmp_path, capsys):
+    code = main(["plan", "--seed", "0", "--waypoint", "nowhere", "--json",
+                 str(tmp_path / "x.json")])
+    assert code == 2
+    err = json.loads(capsys.readouterr().err.strip().splitlines()[-1])
+    assert err["error"] == "InputError" and "waypoint" in err["message"]
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_art_warm_start_without_model_is_refused(tmp_path):
+    assert main(["plan", "--seed", "0", "--warm-start", "art", "--json",
+                 str(tmp_path / "x.json")]) == 2
+
+
+def test_console_script_runs():
+    out = subprocess.run([sys.executable, "-m", "art_guidance.cli", "--version"],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and "art-guidance" in out.stdout
