@@ -39,6 +39,19 @@ def ros_env() -> dict[str, str]:
     return env
 
 
+@pytest.fixture(scope="module")
+def horizon():
+    """The paper scenario's horizon (Table I chief orbit, 1.29 orbits, 100 nodes)."""
+    import numpy as np
+
+    from art_guidance.config import ScenarioConfig
+    from art_guidance.dynamics import Horizon, time_grid_s
+
+    sc = ScenarioConfig()
+    chief = np.array(sc.chief_oe)
+    return Horizon.build(chief, time_grid_s(chief[0], sc.n_orbits, sc.n_nodes))
+
+
 @pytest.fixture(scope="session")
 def python_exe() -> str:
     """The interpreter running the tests (the project venv)."""

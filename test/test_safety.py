@@ -15,7 +15,6 @@ from art_guidance.dynamics import (
     orbital_period_s,
     propagate_mean_oe,
     rtn_from_eci,
-    time_grid_s,
 )
 from art_guidance.errors import InputError
 from art_guidance.safety import PassiveSafety
@@ -23,12 +22,6 @@ from art_guidance.safety import PassiveSafety
 SC = ScenarioConfig()
 UNC = UncertaintyConfig()
 N = SC.n_nodes
-
-
-@pytest.fixture(scope="module")
-def horizon() -> Horizon:
-    chief = np.array(SC.chief_oe)
-    return Horizon.build(chief, time_grid_s(chief[0], SC.n_orbits, SC.n_nodes))
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ import pytest
 from scipy import stats
 
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
-from art_guidance.dynamics import Horizon, time_grid_s
+from art_guidance.dynamics import Horizon
 from art_guidance.safety import PassiveSafety
 
 SC = ScenarioConfig()
@@ -40,12 +40,6 @@ def clopper_pearson(k: int, n: int, conf: float, side: str) -> float:
     if side == "upper":
         return 1.0 if k == n else float(stats.beta.ppf(conf, k + 1, n - k))
     return 0.0 if k == 0 else float(stats.beta.ppf(1.0 - conf, k, n - k + 1))
-
-
-@pytest.fixture(scope="module")
-def horizon() -> Horizon:
-    chief = np.array(SC.chief_oe)
-    return Horizon.build(chief, time_grid_s(chief[0], SC.n_orbits, SC.n_nodes))
 
 
 @pytest.fixture(scope="module")

@@ -78,7 +78,27 @@ def _clarabel_cones(cones: Cones) -> list:
     return out
 
 
-class ClarabelSolver:
+class _UpdatableSolver:
+    """In-place numeric updates shared by the wrappers (same sparsity pattern)."""
+
+    _names = {"q": "q", "a_data": "A", "p_data": "P"}
+    _solver: object
+
+    def _b_update(self, b: np.ndarray) -> dict:
+        return {"b": b}
+
+    def update(self, q: np.ndarray | None = None, b: np.ndarray | None = None,
+               a_data: np.ndarray | None = None, p_data: np.ndarray | None = None) -> None:
+        """Replace numbers: q, b, CSC data of A, CSC data of triu(P) (None = unchanged)."""
+        given = {"q": q, "a_data": a_data, "p_data": p_data}
+        kwargs = {self._names[k]: np.asarray(v, float) for k, v in given.items() if v is not None}
+        if b is not None:
+            kwargs.update(self._b_update(np.asarray(b, float)))
+        if kwargs:
+            self._solver.update(**kwargs)
+
+
+class ClarabelSolver(_UpdatableSolver):
     """Clarabel interior-point solver: min 1/2 v'Pv + q'v s.t. b - A v in cones."""
 
     name = "clarabel"
@@ -102,21 +122,6 @@ class ClarabelSolver:
                                               a, np.asarray(b, float),
                                               _clarabel_cones(cones), settings)
 
-    def update(self, q: np.ndarray | None = None, b: np.ndarray | None = None,
-               a_data: np.ndarray | None = None, p_data: np.ndarray | None = None) -> None:
-        """Replace numbers (same pattern): q, b, CSC data of A, CSC data of triu(P)."""
-        kwargs = {}
-        if q is not None:
-            kwargs["q"] = np.asarray(q, float)
-        if b is not None:
-            kwargs["b"] = np.asarray(b, float)
-        if a_data is not None:
-            kwargs["A"] = np.asarray(a_data, float)
-        if p_data is not None:
-            kwargs["P"] = np.asarray(p_data, float)
-        if kwargs:
-            self._solver.update(**kwargs)
-
     def solve(self) -> SolverOutput:
         """Solve; `ok` is True for Solved and AlmostSolved."""
         t0 = time.perf_counter()
@@ -127,10 +132,11 @@ class ClarabelSolver:
                             1e3 * (time.perf_counter() - t0))
 
 
-class OsqpSolver:
+class OsqpSolver(_UpdatableSolver):
     """OSQP operator-splitting solver for QPs/LPs: the same rows, SOC blocks not allowed."""
 
     name = "osqp"
+    _names = {"q": "q", "a_data": "Ax", "p_data": "Px"}
 
     def __init__(self, p: sp.csc_matrix, q: np.ndarray, a: sp.csc_matrix, b: np.ndarray,
                  cones: Cones, eps: float = 1e-6, max_iter: int = 50000) -> None:
@@ -149,22 +155,8 @@ class OsqpSolver:
         lower[: self._n_zero] = np.asarray(b, float)[: self._n_zero]
         return lower
 
-    def update(self, q: np.ndarray | None = None, b: np.ndarray | None = None,
-               a_data: np.ndarray | None = None, p_data: np.ndarray | None = None) -> None:
-        """Replace numbers (same pattern)."""
-        kwargs = {}
-        if q is not None:
-            kwargs["q"] = np.asarray(q, float)
-        if b is not None:
-            b = np.asarray(b, float)
-            kwargs["u"] = b
-            kwargs["l"] = self._lower(np.full(b.size, -np.inf), b)
-        if a_data is not None:
-            kwargs["Ax"] = np.asarray(a_data, float)
-        if p_data is not None:
-            kwargs["Px"] = np.asarray(p_data, float)
-        if kwargs:
-            self._solver.update(**kwargs)
+    def _b_update(self, b: np.ndarray) -> dict:
+        return {"u": b, "l": self._lower(np.full(b.size, -np.inf), b)}
 
     def solve(self) -> SolverOutput:
         """Solve; `ok` is True for a solved (possibly inaccurate) status."""
