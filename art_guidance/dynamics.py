@@ -215,19 +215,22 @@ def eci_from_rtn(chief_eci: object, rtn: object) -> np.ndarray:
 def psi_matrix(chief_oe: object) -> np.ndarray:
     """First-order ROE -> RTN map Psi(u), (6, 6): rtn [m, m/s] = Psi @ roe_m (near-circular)."""
     c = check_oe(chief_oe)
-    return _psi(float(mean_arg_latitude(c)), mean_motion(c[0]))
+    return psi_from_latitude(float(mean_arg_latitude(c)), mean_motion(c[0]))
 
 
-def _psi(u: float, n: float) -> np.ndarray:
+def psi_from_latitude(u: float | np.ndarray, n: float) -> np.ndarray:
+    """Psi at mean argument(s) of latitude `u`: (6, 6), or (..., 6, 6) for an array."""
     su, cu = np.sin(u), np.cos(u)
-    return np.array([
-        [1.0, 0.0, -cu, -su, 0.0, 0.0],
-        [0.0, 1.0, 2 * su, -2 * cu, 0.0, 0.0],
-        [0.0, 0.0, 0.0, 0.0, su, -cu],
-        [0.0, 0.0, n * su, -n * cu, 0.0, 0.0],
-        [-1.5 * n, 0.0, 2 * n * cu, 2 * n * su, 0.0, 0.0],
-        [0.0, 0.0, 0.0, 0.0, n * cu, n * su],
-    ])
+    out = np.zeros(np.shape(u) + (6, 6))
+    out[..., 0, 0] = out[..., 1, 1] = 1.0
+    out[..., 0, 2], out[..., 0, 3] = -cu, -su
+    out[..., 1, 2], out[..., 1, 3] = 2 * su, -2 * cu
+    out[..., 2, 4], out[..., 2, 5] = su, -cu
+    out[..., 3, 2], out[..., 3, 3] = n * su, -n * cu
+    out[..., 4, 0] = -1.5 * n
+    out[..., 4, 2], out[..., 4, 3] = 2 * n * cu, 2 * n * su
+    out[..., 5, 4], out[..., 5, 5] = n * cu, n * su
+    return out
 
 
 def rtn_from_roe_linear(chief_oe: object, roe_m: object) -> np.ndarray:
@@ -254,10 +257,18 @@ def roe_from_rtn_exact(chief_oe: object, rtn: object) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- STM and B
-def stm_j2(chief_oe: object, tau_s: float) -> np.ndarray:
-    """J2 ROE state transition matrix Phi(t0 + tau, t0), (6, 6), for mean chief elements at t0."""
+def stm_j2(chief_oe: object, tau_s: float | np.ndarray) -> np.ndarray:
+    """J2 ROE state transition matrix Phi(t0 + tau, t0) for mean chief elements at t0.
+
+    Args:
+        chief_oe: (6,) mean chief elements at t0.
+        tau_s: elapsed time [s], a scalar or an array of shape (...).
+
+    Returns:
+        (6, 6) for a scalar `tau_s`, else (..., 6, 6).
+    """
     c = check_oe(chief_oe)
-    tau = float(tau_s)
+    tau = np.asarray(tau_s, dtype=float)
     a, e, i, _, w, _ = c
     n = mean_motion(a)
     eta = np.sqrt(1.0 - e * e)
@@ -272,23 +283,24 @@ def stm_j2(chief_oe: object, tau_s: float) -> np.ndarray:
     exf, eyf = e * np.cos(wf), e * np.sin(wf)
     ct, st = np.cos(wdot * tau), np.sin(wdot * tau)
     kt = kappa * tau
-    phi = np.eye(6)
-    phi[1, 0] = -(3.5 * kappa * big_e * big_p + 1.5 * n) * tau
-    phi[1, 2] = kt * exi * big_f * big_g * big_p
-    phi[1, 3] = kt * eyi * big_f * big_g * big_p
-    phi[1, 4] = -kt * big_f * big_s
-    phi[2, 0] = 3.5 * kt * eyf * big_q
-    phi[2, 2] = ct - 4 * kt * exi * eyf * big_g * big_q
-    phi[2, 3] = -st - 4 * kt * eyi * eyf * big_g * big_q
-    phi[2, 4] = 5 * kt * eyf * big_s
-    phi[3, 0] = -3.5 * kt * exf * big_q
-    phi[3, 2] = st + 4 * kt * exi * exf * big_g * big_q
-    phi[3, 3] = ct + 4 * kt * eyi * exf * big_g * big_q
-    phi[3, 4] = -5 * kt * exf * big_s
-    phi[5, 0] = 3.5 * kt * big_s
-    phi[5, 2] = -4 * kt * exi * big_g * big_s
-    phi[5, 3] = -4 * kt * eyi * big_g * big_s
-    phi[5, 4] = 2 * kt * big_t
+    phi = np.zeros(tau.shape + (6, 6))
+    phi[..., 0, 0] = phi[..., 1, 1] = phi[..., 4, 4] = phi[..., 5, 5] = 1.0
+    phi[..., 1, 0] = -(3.5 * kappa * big_e * big_p + 1.5 * n) * tau
+    phi[..., 1, 2] = kt * exi * big_f * big_g * big_p
+    phi[..., 1, 3] = kt * eyi * big_f * big_g * big_p
+    phi[..., 1, 4] = -kt * big_f * big_s
+    phi[..., 2, 0] = 3.5 * kt * eyf * big_q
+    phi[..., 2, 2] = ct - 4 * kt * exi * eyf * big_g * big_q
+    phi[..., 2, 3] = -st - 4 * kt * eyi * eyf * big_g * big_q
+    phi[..., 2, 4] = 5 * kt * eyf * big_s
+    phi[..., 3, 0] = -3.5 * kt * exf * big_q
+    phi[..., 3, 2] = st + 4 * kt * exi * exf * big_g * big_q
+    phi[..., 3, 3] = ct + 4 * kt * eyi * exf * big_g * big_q
+    phi[..., 3, 4] = -5 * kt * exf * big_s
+    phi[..., 5, 0] = 3.5 * kt * big_s
+    phi[..., 5, 2] = -4 * kt * exi * big_g * big_s
+    phi[..., 5, 3] = -4 * kt * eyi * big_g * big_s
+    phi[..., 5, 4] = 2 * kt * big_t
     return phi
 
 
@@ -348,7 +360,7 @@ class Horizon:
         u = mean_arg_latitude(oes)
         stm = np.stack([stm_j2(oes[k], t[k + 1] - t[k]) for k in range(t.size - 1)])
         b = np.stack([_control(uk, n) for uk in u])
-        psi = np.stack([_psi(uk, n) for uk in u])
+        psi = psi_from_latitude(u, n)
         return cls(t, oes, stm, b, psi)
 
     @property

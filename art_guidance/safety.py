@@ -32,7 +32,10 @@ import numpy as np
 
 from art_guidance.checks import as_finite_array
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
-from art_guidance.dynamics import Horizon, orbital_period_s, propagate_mean_oe, psi_matrix, stm_j2
+from art_guidance.dynamics import (
+    Horizon, mean_arg_latitude, mean_motion, orbital_period_s, propagate_mean_oe,
+    psi_from_latitude, stm_j2,
+)
 from art_guidance.errors import InputError
 from art_guidance.uncertainty import propagate_covariance, state_covariance_history
 
@@ -146,12 +149,13 @@ class PassiveSafety:
         n, s = self.n_nodes, self.n_samples
         stms = np.empty((n, s, 6, 6))
         pos = np.empty((n, s, 3, 6))
+        n_mot = mean_motion(float(self.horizon.chief_oe[0, 0]))
         for i in range(n):
             oe_i = self.horizon.chief_oe[i]
             drifted = propagate_mean_oe(oe_i, self.tau_s)  # (S, 6)
-            for j in range(s):
-                stms[i, j] = stm_j2(oe_i, self.tau_s[j])
-                pos[i, j] = psi_matrix(drifted[j])[:3] @ stms[i, j]
+            stms[i] = stm_j2(oe_i, self.tau_s)  # (S, 6, 6)
+            psi_pos = psi_from_latitude(mean_arg_latitude(drifted), n_mot)[:, :3]  # (S, 3, 6)
+            pos[i] = psi_pos @ stms[i]
         self.drift_stms = stms
         self.drift_pos_maps = pos
         self._pos_flat = pos.reshape(n, s * 3, 6)  # (N, 3S, 6) for one batched matmul

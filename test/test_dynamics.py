@@ -464,3 +464,18 @@ def test_domain_errors_raise_input_error(chief: np.ndarray) -> None:
         dyn.oe_from_roe(chief, [-chief[0], 0, 0, 0, 0, 0])
     with pytest.raises(InputError):
         dyn.oe_from_roe(chief, [0, 0, chief[0], 0, 0, 0])  # deputy e >= 1
+
+
+def test_stm_and_psi_vectorised_match_scalar_calls():
+    """Array inputs give exactly the stacked scalar results (used by the drift precompute)."""
+    chief = np.array(ScenarioConfig().chief_oe)
+    tau = np.linspace(0.0, 5400.0, 7)
+    batch = dyn.stm_j2(chief, tau)
+    assert batch.shape == (7, 6, 6)
+    for k, t in enumerate(tau):
+        np.testing.assert_array_equal(batch[k], dyn.stm_j2(chief, float(t)))
+    u = np.linspace(0.0, 6.0, 5)
+    n = dyn.mean_motion(chief[0])
+    psis = dyn.psi_from_latitude(u, n)
+    for k, uk in enumerate(u):
+        np.testing.assert_array_equal(psis[k], dyn.psi_from_latitude(float(uk), n))
