@@ -66,3 +66,13 @@ def test_package_xml_declares_runtime_dependencies():
     assert root.find("export/build_type").text == "ament_python"
     msgs = ET.parse(REPO / "msg_schemas/package.xml").getroot()
     assert msgs.findtext("member_of_group") == "rosidl_interface_packages"
+
+
+def test_guidance_node_entry_point_fails_loudly_until_implemented(prefix):
+    """The installed script resolves (no ImportError) and exits 2 with a reason."""
+    site = next(prefix.glob("lib/python3*/site-packages"))
+    env = dict(os.environ, PYTHONPATH=str(site))
+    out = subprocess.run([sys.executable, str(prefix / "lib/art_guidance/guidance_node")],
+                         env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2
+    assert "not implemented" in out.stderr
