@@ -197,35 +197,31 @@ def test_linear_rtn_roe_maps_are_inverse(chief: np.ndarray) -> None:
         assert dyn.roe_from_rtn_linear(chief, rtn) == pytest.approx(roe, abs=1e-8)
 
 
+def _exact_map_jacobian(chief_oe: np.ndarray, h: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """Central-difference Jacobian of the exact ROE -> RTN map at 0, and the (1, 1/n) scaling."""
+    jac = np.zeros((6, 6))
+    for k in range(6):
+        step = np.zeros(6)
+        step[k] = h
+        jac[:, k] = (dyn.rtn_from_roe_exact(chief_oe, step)
+                     - dyn.rtn_from_roe_exact(chief_oe, -step)) / (2 * h)
+    n = dyn.mean_motion(chief_oe[0])
+    return jac, np.diag([1, 1, 1, 1 / n, 1 / n, 1 / n])
+
+
 def test_psi_is_jacobian_of_exact_map_for_circular_chief(circular_chief: np.ndarray) -> None:
     """For e = 0 the first-order map is exactly the Jacobian of the exact ROE -> RTN map at 0.
 
     Central differences with h = 10 m (truncation O(h^2/a^2) ~ 1e-12, rounding ~ 1e-9).
     Tolerance 1e-8 on entries of size 1 (positions) and n (velocities, compared after / n).
     """
-    h = 10.0
-    jac = np.zeros((6, 6))
-    for k in range(6):
-        step = np.zeros(6)
-        step[k] = h
-        jac[:, k] = (dyn.rtn_from_roe_exact(circular_chief, step)
-                     - dyn.rtn_from_roe_exact(circular_chief, -step)) / (2 * h)
-    n = dyn.mean_motion(circular_chief[0])
-    scale = np.diag([1, 1, 1, 1 / n, 1 / n, 1 / n])
+    jac, scale = _exact_map_jacobian(circular_chief)
     assert scale @ jac == pytest.approx(scale @ dyn.psi_matrix(circular_chief), abs=1e-8)
 
 
 def test_psi_near_circular_error_is_first_order_in_e(chief: np.ndarray) -> None:
     """For the paper's e = 5.58e-4, Psi differs from the exact Jacobian by O(e): <= 4 e."""
-    h = 10.0
-    jac = np.zeros((6, 6))
-    for k in range(6):
-        step = np.zeros(6)
-        step[k] = h
-        jac[:, k] = (dyn.rtn_from_roe_exact(chief, step)
-                     - dyn.rtn_from_roe_exact(chief, -step)) / (2 * h)
-    n = dyn.mean_motion(chief[0])
-    scale = np.diag([1, 1, 1, 1 / n, 1 / n, 1 / n])
+    jac, scale = _exact_map_jacobian(chief)
     err = np.max(np.abs(scale @ (jac - dyn.psi_matrix(chief))))
     assert 1e-2 * chief[1] < err <= 4 * chief[1]
 
