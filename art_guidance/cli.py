@@ -150,6 +150,31 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_bench)
 
 
+def _cmd_node(args: argparse.Namespace) -> int:
+    """Run the ROS 2 guidance node (same as `ros2 run art_guidance guidance_node`)."""
+    import os
+
+    from art_guidance.config import default_config_dir
+    from art_guidance.node import main as node_main
+
+    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE",
+                          str(default_config_dir() / "fastdds_localhost.xml"))
+    return node_main(["guidance_node", *args.ros_args])
+
+
+def _add_node(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "node", help="run the ROS 2 guidance node",
+        description=_cmd_node.__doc__ + " Parameters: config_dir, default_waypoint, "
+        "chance_constrained, warm_start, replan_sigma_threshold, replan_period_s, stamp_check "
+        "(wallclock|order|off), max_nav_age_s, max_nav_future_s, solve_deadline_s, "
+        "min_remaining_nodes, samples_per_node. Example: art-guidance node --ros-args "
+        "-p stamp_check:=order")
+    p.add_argument("ros_args", nargs=argparse.REMAINDER,
+                   help="passed to rclpy, e.g. --ros-args -p name:=value")
+    p.set_defaults(func=_cmd_node)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argparse tree of every subcommand."""
     parser = argparse.ArgumentParser(
@@ -164,7 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
-    _add_demo, _add_plan, _add_bench]
+    _add_demo, _add_plan, _add_bench, _add_node]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -33,6 +33,8 @@ class PlanRequest:
         chance_constrained: False plans deterministic passive safety (covariance zero).
         warm_start: "auto" (ART if available and accepted, else CVX), "cvx" or "art".
         n_nodes, n_orbits: horizon; None uses the scenario's.
+        koz_switch_node: node index where the approach ellipsoid switches to the keep-out zone;
+            None uses the scenario's (a replan over the remaining horizon shifts it).
     """
 
     chief_oe: np.ndarray
@@ -42,6 +44,7 @@ class PlanRequest:
     warm_start: str = "auto"
     n_nodes: int | None = None
     n_orbits: float | None = None
+    koz_switch_node: int | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "chief_oe", check_oe(self.chief_oe))
@@ -52,8 +55,10 @@ class PlanRequest:
             raise InputError("warm_start", f"must be one of {WARM_STARTS}", self.warm_start)
         if self.n_nodes is not None and not 3 <= int(self.n_nodes) <= 1000:
             raise InputError("n_nodes", "must be in [3, 1000]", self.n_nodes)
-        if self.n_orbits is not None and not 0.05 <= float(self.n_orbits) <= 20:
-            raise InputError("n_orbits", "must be in [0.05, 20] orbits", self.n_orbits)
+        if self.n_orbits is not None and not 0.01 <= float(self.n_orbits) <= 20:
+            raise InputError("n_orbits", "must be in [0.01, 20] orbits", self.n_orbits)
+        if self.koz_switch_node is not None and int(self.koz_switch_node) < 0:
+            raise InputError("koz_switch_node", "must be >= 0", self.koz_switch_node)
 
 
 @dataclass(frozen=True)
@@ -130,14 +135,20 @@ class GuidancePipeline:
     def _setup(self, request: PlanRequest) -> tuple[Horizon, PassiveSafety]:
         n_nodes = int(request.n_nodes or self.scenario.n_nodes)
         n_orbits = float(request.n_orbits or self.scenario.n_orbits)
-        key = (tuple(request.chief_oe.round(12)), n_nodes, n_orbits, request.chance_constrained)
+        switch = self.scenario.ae_to_koz_node
+        if request.koz_switch_node is not None:
+            switch = int(min(request.koz_switch_node, n_nodes))
+        key = (tuple(request.chief_oe.round(12)), n_nodes, n_orbits, switch,
+               request.chance_constrained)
         if key not in self._cache:
             if len(self._cache) > 8:
                 self._cache.clear()
             horizon = Horizon.build(request.chief_oe,
                                     time_grid_s(request.chief_oe[0], n_orbits, n_nodes))
             unc = self.uncertainty if request.chance_constrained else None
-            self._cache[key] = (horizon, PassiveSafety(horizon, self.scenario, unc))
+            scenario = self.scenario.replace(n_nodes=max(n_nodes, self.scenario.n_nodes),
+                                             ae_to_koz_node=switch)
+            self._cache[key] = (horizon, PassiveSafety(horizon, scenario, unc))
         return self._cache[key]
 
     def plan(self, request: PlanRequest) -> PlanResult:

@@ -27,6 +27,7 @@ def _ros_env() -> dict[str, str]:
 
 ROS_ENV = _ros_env()
 os.environ.update(ROS_ENV)
+sys.path.insert(0, str(HELPERS))  # test-side helpers (ros_client, ...) importable by tests
 
 
 @pytest.fixture(scope="session")

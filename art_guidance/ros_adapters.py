@@ -1,0 +1,153 @@
+"""Conversions between art_guidance_msgs messages and numpy, with validation.
+
+Only this module and `node`/`sim_node` import ROS message types. Every check raises an
+`InputError` naming the offending field, which the node turns into a published status.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+from art_guidance.checks import as_finite_array, check_psd
+from art_guidance.dynamics import check_oe, psi_matrix
+from art_guidance.errors import InputError
+from art_guidance.pipeline import PlanResult
+
+FRAMES = {RelativeNavState.REPRESENTATION_ROE: ("chief_roe", ""),
+          RelativeNavState.REPRESENTATION_RTN: ("chief_rtn", "")}
+MAX_RANGE_M = 500e3     # beyond this the linear relative models are meaningless
+MAX_SPEED_MPS = 500.0   # relative speed bound for an RTN state
+WARM_STARTS = ("", "auto", "cvx", "art")
+
+
+@dataclass(frozen=True)
+class NavState:
+    """A validated navigation estimate in a-scaled ROE.
+
+    Attributes:
+        stamp_ns: epoch of the estimate [ns].
+        chief_oe: (6,) chief mean elements at the stamp.
+        roe_m: (6,) mean a-scaled ROE [m].
+        cov_m2: (6, 6) covariance of roe_m [m^2].
+    """
+
+    stamp_ns: int
+    chief_oe: np.ndarray
+    roe_m: np.ndarray
+    cov_m2: np.ndarray
+
+
+def stamp_to_ns(stamp: object) -> int:
+    """builtin_interfaces/Time -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(stamp: object, ns: int) -> None:
+    """Write integer nanoseconds into a builtin_interfaces/Time."""
+    stamp.sec, stamp.nanosec = divmod(int(ns), 1_000_000_000)
+
+
+def nav_from_msg(msg: RelativeNavState) -> NavState:
+    """Validate a RelativeNavState and convert it to ROE (RTN goes through Psi^-1)."""
+    if msg.representation not in FRAMES:
+        raise InputError("representation", "unknown representation", int(msg.representation))
+    if msg.header.frame_id not in FRAMES[msg.representation]:
+        raise InputError("header.frame_id", f"unknown frame for this representation; expected "
+                         f"{FRAMES[msg.representation][0]!r}", msg.header.frame_id)
+    chief = check_oe(np.asarray(msg.chief_oe, float), "chief_oe")
+    mean = as_finite_array("mean", np.asarray(msg.mean, float), (6,))
+    cov = check_psd("covariance", as_finite_array(
+        "covariance", np.asarray(msg.covariance, float), (36,)).reshape(6, 6))
+    psi = psi_matrix(chief)
+    if msg.representation == RelativeNavState.REPRESENTATION_RTN:
+        if np.linalg.norm(mean[3:]) > MAX_SPEED_MPS:
+            raise InputError("mean", f"relative speed above {MAX_SPEED_MPS} m/s", mean.tolist())
+        psi_inv = np.linalg.inv(psi)
+        roe, cov = psi_inv @ mean, psi_inv @ cov @ psi_inv.T
+    else:
+        roe = mean
+    if np.linalg.norm((psi @ roe)[:3]) > MAX_RANGE_M:
+        raise InputError("mean", f"relative range above {MAX_RANGE_M:.0f} m", mean.tolist())
+    return NavState(stamp_to_ns(msg.header.stamp), chief, roe, 0.5 * (cov + cov.T))
+
+
+@dataclass(frozen=True)
+class Target:
+    """A validated replanning target."""
+
+    waypoint: str
+    target_rtn: np.ndarray
+    chance_constrained: bool
+    warm_start: str
+    n_orbits: float | None
+
+
+def target_from_msg(msg: ReplanRequest, waypoints: dict) -> Target:
+    """Validate a ReplanRequest against the configured waypoints."""
+    if msg.waypoint == "custom":
+        target = as_finite_array("target_rtn", np.asarray(msg.target_rtn, float), (6,))
+        if np.linalg.norm(target[:3]) > MAX_RANGE_M:
+            raise InputError("target_rtn", "target too far", target.tolist())
+    elif msg.waypoint in waypoints:
+        target = np.asarray(waypoints[msg.waypoint], float)
+    else:
+        raise InputError("waypoint", f"unknown; choose from {sorted(waypoints) + ['custom']}",
+                         msg.waypoint)
+    if msg.warm_start not in WARM_STARTS:
+        raise InputError("warm_start", f"must be one of {WARM_STARTS}", msg.warm_start)
+    horizon = float(msg.horizon_orbits)
+    if not np.isfinite(horizon) or horizon > 20:
+        raise InputError("horizon_orbits", "must be finite and <= 20", horizon)
+    return Target(msg.waypoint, target, bool(msg.chance_constrained),
+                  msg.warm_start or "auto", horizon if horizon > 0 else None)
+
+
+def plan_to_msg(result: PlanResult, stamp_ns: int, plan_id: str) -> ManeuverPlan:
+    """PlanResult -> ManeuverPlan (arrays flattened row-major)."""
+    msg = ManeuverPlan()
+    ns_to_stamp(msg.header.stamp, stamp_ns)
+    msg.header.frame_id = "chief_rtn"
+    msg.plan_id = plan_id
+    msg.status = int(result.status.value)
+    msg.status_text = result.status.name
+    msg.epochs_s = result.epochs_s.astype(float).tolist()
+    msg.dv_rtn_mps = result.dv_rtn_mps.reshape(-1).tolist()
+    msg.roe_m = result.roe_m.reshape(-1).tolist()
+    msg.rtn = result.rtn.reshape(-1).tolist()
+    msg.cost_mps = float(result.cost_mps)
+    msg.warm_start = result.warm_start
+    if result.posthoc is not None:
+        msg.posthoc_e_r = float(result.posthoc.e_r)
+        msg.posthoc_e_c = float(result.posthoc.e_c)
+        msg.posthoc_accepted = bool(result.posthoc.accepted)
+    msg.scp_iterations = int(result.scp.iterations)
+    msg.solve_time_ms = float(result.timings_ms.get("total", 0.0))
+    msg.constraint_margin_m = float(result.constraint_margin_m)
+    return msg
+
+
+def status_plan_msg(stamp_ns: int, plan_id: str, status: int, text: str) -> ManeuverPlan:
+    """A ManeuverPlan carrying only a status (no maneuvers), e.g. for rejected input."""
+    msg = ManeuverPlan()
+    ns_to_stamp(msg.header.stamp, stamp_ns)
+    msg.header.frame_id = "chief_rtn"
+    msg.plan_id, msg.status, msg.status_text = plan_id, int(status), text[:500]
+    return msg
+
+
+def diagnostics_msg(now_ns: int, name: str, level: int, message: str,
+                    values: dict) -> DiagnosticArray:
+    """One DiagnosticStatus (hardware_id art_guidance) with string key-values."""
+    arr = DiagnosticArray()
+    ns_to_stamp(arr.header.stamp, now_ns)
+    status = DiagnosticStatus()
+    status.level = bytes([level])
+    status.name, status.hardware_id, status.message = name, "art_guidance", message[:500]
+    status.values = [KeyValue(key=str(k), value=v if isinstance(v, str) else json.dumps(v))
+                     for k, v in values.items()]
+    arr.status = [status]
+    return arr

@@ -1,0 +1,106 @@
+"""Test-side rclpy client of the guidance node: publishes nav/requests, collects replies."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import rclpy
+from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from art_guidance.config import ScenarioConfig
+
+
+def nav_msg(stamp_ns: int, rtn: np.ndarray, chief_oe=None, cov=None,
+            representation: int = RelativeNavState.REPRESENTATION_RTN,
+            frame_id: str = "chief_rtn") -> RelativeNavState:
+    """A RelativeNavState; covariance defaults to a plausible diagonal in RTN units."""
+    msg = RelativeNavState()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    msg.header.frame_id = frame_id
+    msg.chief_oe = list(chief_oe if chief_oe is not None else ScenarioConfig().chief_oe)
+    msg.representation = representation
+    msg.mean = [float(v) for v in rtn]
+    if cov is None:
+        cov = np.diag([25.0, 400.0, 25.0, 1e-4, 1e-4, 1e-4])
+    msg.covariance = [float(v) for v in np.asarray(cov).reshape(-1)]
+    return msg
+
+
+class Client:
+    """Spins its own executor thread; thread-safe accessors for what arrived."""
+
+    def __init__(self, name: str = "art_guidance_test_client") -> None:
+        if not rclpy.ok():
+            rclpy.init()
+        self.node = rclpy.create_node(name)
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.nav_pub = self.node.create_publisher(RelativeNavState, "nav/relative_state", qos)
+        self.req_pub = self.node.create_publisher(ReplanRequest, "guidance/replan_request", qos)
+        self.plans: list[tuple[float, ManeuverPlan]] = []
+        self.diags: list[tuple[float, dict, str]] = []
+        self._cv = threading.Condition()
+        self.node.create_subscription(ManeuverPlan, "guidance/maneuver_plan", self._on_plan, qos)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, qos)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._thread.start()
+
+    def _on_plan(self, msg: ManeuverPlan) -> None:
+        with self._cv:
+            self.plans.append((time.monotonic(), msg))
+            self._cv.notify_all()
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        with self._cv:
+            for st in msg.status:
+                self.diags.append((time.monotonic(), {kv.key: kv.value for kv in st.values},
+                                   st.name))
+            self._cv.notify_all()
+
+    def wait_matched(self, timeout_s: float = 15.0) -> bool:
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if (self.nav_pub.get_subscription_count() > 0
+                    and self.req_pub.get_subscription_count() > 0
+                    and self.node.count_publishers("guidance/maneuver_plan") > 0
+                    and self.node.count_publishers("/diagnostics") > 0):
+                return True
+            time.sleep(0.05)
+        return False
+
+    def wait_for(self, predicate, timeout_s: float):
+        """Wait until predicate(plans, diags) returns a truthy value; return it (or None)."""
+        end = time.monotonic() + timeout_s
+        with self._cv:
+            while True:
+                value = predicate(self.plans, self.diags)
+                if value or time.monotonic() >= end:
+                    return value
+                self._cv.wait(timeout=max(0.0, min(0.2, end - time.monotonic())))
+
+    def plan_for(self, stamp_ns: int, timeout_s: float = 30.0) -> ManeuverPlan | None:
+        def find(plans, _):
+            for _, p in reversed(plans):
+                if p.header.stamp.sec * 1_000_000_000 + p.header.stamp.nanosec == stamp_ns:
+                    return p
+            return None
+        return self.wait_for(find, timeout_s)
+
+    def decision_for(self, stamp_ns: int, timeout_s: float = 15.0) -> str | None:
+        def find(_, diags):
+            for _, values, name in reversed(diags):
+                if name == "art_guidance/nav" and values.get("nav_stamp_ns") == str(stamp_ns):
+                    return values.get("decision")
+            return None
+        return self.wait_for(find, timeout_s)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self._thread.join(timeout=5)
+        self.node.destroy_node()
+        rclpy.try_shutdown()

@@ -1,0 +1,130 @@
+"""The guidance node over real DDS, in its own process: plans, bad input, bursts."""
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState  # noqa: E402
+from ros_client import Client, nav_msg  # noqa: E402
+
+from art_guidance.config import ScenarioConfig  # noqa: E402
+
+pytestmark = pytest.mark.ros
+NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
+
+
+def _rss_kb(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    return 0
+
+
+@pytest.fixture(scope="module")
+def node_proc(ros_env, python_exe):
+    proc = subprocess.Popen([python_exe, "-m", "art_guidance.node", "--ros-args",
+                             "-p", "solve_deadline_s:=10.0"],
+                            env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    yield proc
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+@pytest.fixture(scope="module")
+def client(node_proc):
+    c = Client()
+    assert c.wait_matched(20.0), "guidance node did not match within 20 s"
+    yield c
+    c.close()
+
+
+def test_plan_arrives_for_nav_state(client, node_proc):
+    stamp = time.time_ns()
+    client.nav_pub.publish(nav_msg(stamp, NOMINAL_RTN))
+    assert client.decision_for(stamp) == "replanning"
+    plan = client.plan_for(stamp, timeout_s=30.0)
+    assert plan is not None, "no plan within 30 s"
+    assert plan.status in (ManeuverPlan.STATUS_CONVERGED, ManeuverPlan.STATUS_MAX_ITERATIONS)
+    n = len(plan.epochs_s)
+    assert n == 100 and len(plan.dv_rtn_mps) == 3 * n and len(plan.rtn) == 6 * n
+    rtn = np.asarray(plan.rtn).reshape(n, 6)
+    assert np.allclose(rtn[0], NOMINAL_RTN, atol=1e-6)
+    assert np.allclose(rtn[-1, :3], [0.0, 750.0, 0.0], atol=50.0)  # pre-burn, near +V-bar
+    assert plan.cost_mps == pytest.approx(
+        np.linalg.norm(np.asarray(plan.dv_rtn_mps).reshape(n, 3), axis=1).sum(), rel=1e-9)
+    assert node_proc.poll() is None
+
+
+def _bad_messages(now: int) -> dict[str, RelativeNavState]:
+    nan = NOMINAL_RTN.copy()
+    nan[1] = np.nan
+    non_psd = np.diag([25.0, 400.0, 25.0, 1e-4, 1e-4, 1e-4])
+    non_psd[0, 0] = -5.0
+    bad_repr = nav_msg(now + 3, NOMINAL_RTN)
+    bad_repr.representation = 7
+    chief = np.array(ScenarioConfig().chief_oe)
+    chief[1] = 1.2
+    return {
+        "nan": nav_msg(now + 1, nan),
+        "non_psd": nav_msg(now + 2, NOMINAL_RTN, cov=non_psd),
+        "representation": bad_repr,
+        "frame": nav_msg(now + 4, NOMINAL_RTN, frame_id="map"),
+        "stale": nav_msg(now - 60_000_000_000, NOMINAL_RTN),
+        "future": nav_msg(now + 60_000_000_000, NOMINAL_RTN),
+        "absurd": nav_msg(now + 5, np.array([1e9, 0, 0, 0, 0, 0])),
+        "hyperbolic_chief": nav_msg(now + 6, NOMINAL_RTN, chief_oe=chief),
+    }
+
+
+def test_bad_messages_are_rejected_and_node_keeps_serving(client, node_proc):
+    now = time.time_ns()
+    bad = _bad_messages(now)
+    for msg in bad.values():
+        client.nav_pub.publish(msg)
+    for name, msg in bad.items():
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        assert client.decision_for(stamp) == "rejected", name
+        status = client.plan_for(stamp, timeout_s=5.0)
+        assert status is not None and status.status == ManeuverPlan.STATUS_REJECTED_INPUT, name
+        assert status.status_text, name
+    good = time.time_ns()
+    client.nav_pub.publish(nav_msg(good, NOMINAL_RTN + [50.0, 0, 0, 0, 0, 0]))
+    assert client.decision_for(good) in ("replanning", "on_plan")
+    assert node_proc.poll() is None
+
+
+@pytest.mark.slow
+def test_burst_keeps_node_responsive_and_plans_newest(client, node_proc):
+    rss_before = _rss_kb(node_proc.pid)
+    rng = np.random.default_rng(3)
+    stamps = []
+    for _ in range(200):
+        stamp = time.time_ns()
+        state = NOMINAL_RTN + rng.normal(0.0, 200.0, 6) * [1, 1, 0, 0, 0, 0]
+        client.nav_pub.publish(nav_msg(stamp, state))
+        stamps.append(stamp)
+        time.sleep(0.01)
+    answered = client.wait_for(lambda _, diags: sum(
+        1 for _, v, n in diags if n == "art_guidance/nav"
+        and v.get("nav_stamp_ns") in {str(s) for s in stamps}) == len(stamps), 30.0)
+    assert answered, "not every nav message got a decision"
+    last_plan = client.plan_for(stamps[-1], timeout_s=30.0)
+    assert last_plan is not None, "no plan for the newest state"
+    assert last_plan.status in (ManeuverPlan.STATUS_CONVERGED,
+                                ManeuverPlan.STATUS_MAX_ITERATIONS)
+    plans_in_burst = [p for _, p in client.plans
+                      if p.header.stamp.sec * 1_000_000_000 + p.header.stamp.nanosec
+                      in set(stamps)]
+    assert len(plans_in_burst) < 100, "queued requests were not superseded"
+    assert _rss_kb(node_proc.pid) - rss_before < 200_000  # < 200 MB growth
+    assert node_proc.poll() is None
