@@ -10,6 +10,7 @@ import numpy as np
 
 from art_guidance import __version__
 from art_guidance.errors import GuidanceError, InputError
+from art_guidance.generate import add_generate_parser as _add_generate
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -175,6 +176,32 @@ def _add_node(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_node)
 
 
+def _cmd_replay(args: argparse.Namespace) -> int:
+    """Re-solve every request recorded in an MCAP log (file or bag folder) and compare plans."""
+    from art_guidance.replay import replay
+
+    report = replay(args.log)
+    if args.json:
+        _write_json(args.json, report)
+    for row in report["per_solve"]:
+        verdict = {True: "match", False: "MISMATCH", None: "skipped"}[row["match"]]
+        extra = (f"cost diff {row['cost_rel_diff']:.1e}, dv diff {row['dv_max_abs_diff_mps']:.1e}"
+                 if row["match"] is not None else row.get("reason", ""))
+        print(f"{row['plan_id']:>12} {row['status']:<15} {verdict:<8} {extra}")
+    print(f"{report['matched']}/{report['compared']} matched "
+          f"({report['solves']} solves, {len(report['truncated'])} truncated file(s))")
+    return 0 if report["mismatched"] == 0 else 1
+
+
+def _add_replay(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("replay", help="re-solve a recorded MCAP log and compare",
+                       description=_cmd_replay.__doc__ + " Exit 0 when every compared solve "
+                       "matches (cost to 1e-6 relative, delta-v to 1e-5 m/s), 1 otherwise.")
+    p.add_argument("log", help="an .mcap file or a bag folder of them")
+    p.add_argument("--json", default=None, help="also write the report as JSON")
+    p.set_defaults(func=_cmd_replay)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argparse tree of every subcommand."""
     parser = argparse.ArgumentParser(
@@ -189,7 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
-    _add_demo, _add_plan, _add_bench, _add_node]
+    _add_demo, _add_plan, _add_bench, _add_node, _add_replay, _add_generate]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -29,9 +29,10 @@ from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.dynamics import control_matrix, orbital_period_s, propagate_mean_oe, stm_j2
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.pipeline import GuidancePipeline, PlanRequest, PlanResult
+from art_guidance.recorder import McapRecorder, default_log_dir
 from art_guidance.ros_adapters import (
-    NavState, Target, diagnostics_msg, nav_from_msg, plan_to_msg, status_plan_msg,
-    target_from_msg,
+    NavState, Target, diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg,
+    status_plan_msg, target_from_msg,
 )
 
 OK, WARN, ERROR = 0, 1, 2
@@ -49,6 +50,9 @@ PARAMETERS = {
     "solve_deadline_s": 5.0,
     "min_remaining_nodes": 3,         # below this the active plan is flown out, not replanned
     "samples_per_node": 3,
+    "record": True,                   # write every solve to MCAP
+    "record_dir": "",                 # "" = <ROS_HOME or ~/.ros>/art_guidance_logs/<run>
+    "record_max_bytes": 268435456,    # rotate MCAP files at this size [bytes]
 }
 
 
@@ -59,6 +63,8 @@ class Job:
     nav: NavState
     target: Target
     trigger: str
+    nav_msg: RelativeNavState
+    request_msg: ReplanRequest | None
     n_nodes: int | None
     n_orbits: float | None
     koz_switch_node: int | None
@@ -104,14 +110,26 @@ class GuidanceNode(Node):
         self._busy = False
         self._stop = False
         self._latest_nav: NavState | None = None
+        self._latest_nav_msg: RelativeNavState | None = None
         self._active: ActivePlan | None = None
         self._last_plan_ns: int | None = None
         self._ids = itertools.count(1)
+        self._request_msg: ReplanRequest | None = None
+        self.recorder = self._make_recorder()
         self.stats = {"nav": 0, "rejected": 0, "plans": 0, "superseded": 0}
         self._worker = threading.Thread(target=self._work, name="guidance_worker", daemon=True)
         self._worker.start()
         self.get_logger().info(f"guidance_node ready (target {self.target.waypoint}, "
                                f"stamp_check {self.p['stamp_check']})")
+
+    def _make_recorder(self) -> McapRecorder | None:
+        if not self.p["record"]:
+            return None
+        directory = self.p["record_dir"] or str(default_log_dir())
+        meta = {"config": self.pipeline.config_json(), "versions": _versions(),
+                "model_checksum": "none", "parameters": self.p}
+        self.get_logger().info(f"recording every solve to {directory}")
+        return McapRecorder(directory, meta, max_bytes=int(self.p["record_max_bytes"]))
 
     def _validate_parameters(self) -> None:
         if self.p["stamp_check"] not in STAMP_CHECKS:
@@ -137,10 +155,10 @@ class GuidanceNode(Node):
             self._reject(stamp_ns, f"unexpected {type(exc).__name__}: {exc}")
             return
         with self._lock:
-            self._latest_nav = nav
+            self._latest_nav, self._latest_nav_msg = nav, msg
             decision, deviation = self._decide(nav)
             if decision == "replanning":
-                self._submit(self._job_for(nav, "nav"))
+                self._submit(self._job_for(nav, msg, "nav"))
         self._diag(nav.stamp_ns, OK, decision, {"deviation_sigma": round(deviation, 3)})
 
     def _on_request(self, msg: ReplanRequest) -> None:
@@ -151,10 +169,10 @@ class GuidanceNode(Node):
             self._publish_diag("art_guidance/replan_request", WARN, str(exc), {})
             return
         with self._lock:
-            self.target = target
+            self.target, self._request_msg = target, msg
             self._active = None  # a new target restarts the horizon
             if self._latest_nav is not None:
-                self._submit(self._job_for(self._latest_nav, "request"))
+                self._submit(self._job_for(self._latest_nav, self._latest_nav_msg, "request"))
         self._publish_diag("art_guidance/replan_request", OK, f"target {target.waypoint}",
                            {"waypoint": target.waypoint})
 
@@ -205,15 +223,16 @@ class GuidanceNode(Node):
         sigma = np.sqrt(np.maximum(np.diag(nav.cov_m2), 1e-12))
         return float(np.max(np.abs(nav.roe_m - predicted) / sigma))
 
-    def _job_for(self, nav: NavState, trigger: str) -> Job:
+    def _job_for(self, nav: NavState, msg: RelativeNavState, trigger: str) -> Job:
         active = self._active
         if active is None:
-            return Job(nav, self.target, trigger, None, self.target.n_orbits, None)
+            return Job(nav, self.target, trigger, msg, self._request_msg, None,
+                       self.target.n_orbits, None)
         remaining_s = (active.end_ns - nav.stamp_ns) * 1e-9
         n_nodes = int(round(remaining_s / active.dt_s)) + 1
         period = orbital_period_s(nav.chief_oe[0])
         switch = max(0, math.ceil((active.switch_ns - nav.stamp_ns) * 1e-9 / active.dt_s))
-        return Job(nav, self.target, trigger, max(n_nodes, 3),
+        return Job(nav, self.target, trigger, msg, self._request_msg, max(n_nodes, 3),
                    max(remaining_s, 2 * active.dt_s) / period, switch)
 
     def _submit(self, job: Job) -> None:
@@ -250,7 +269,10 @@ class GuidanceNode(Node):
                               n_orbits=job.n_orbits, koz_switch_node=job.koz_switch_node)
         result = self.pipeline.plan(request)
         plan_id = self._next_id()
-        self.plan_pub.publish(plan_to_msg(result, job.nav.stamp_ns, plan_id))
+        plan_msg = plan_to_msg(result, job.nav.stamp_ns, plan_id)
+        # recorded (and fsync'ed) before it is published: a crash never loses a published plan
+        self._record(job, result, plan_id, plan_msg)
+        self.plan_pub.publish(plan_msg)
         self.stats["plans"] += 1
         if result.scp.feasible:
             with self._lock:
@@ -264,6 +286,21 @@ class GuidanceNode(Node):
                            {"plan_id": plan_id, "nav_stamp_ns": str(job.nav.stamp_ns),
                             "cost_mps": result.cost_mps,
                             "solve_time_ms": result.timings_ms["total"]})
+
+    def _record(self, job: Job, result: PlanResult, plan_id: str, plan_msg: ManeuverPlan) -> None:
+        if self.recorder is None:
+            return
+        msgs = [("/nav/relative_state", job.nav_msg)]
+        if job.request_msg is not None:
+            msgs.append(("/guidance/replan_request", job.request_msg))
+        msgs += [("/guidance/solve_record",
+                  solve_record_msg(result, job.nav.stamp_ns, plan_id, job.trigger)),
+                 ("/guidance/maneuver_plan", plan_msg)]
+        if not self.recorder.record_solve(msgs, time.time_ns()):
+            self.get_logger().error(f"recording failed, guidance continues: "
+                                    f"{self.recorder.last_error}")
+            self._publish_diag("art_guidance/recorder", ERROR, self.recorder.last_error,
+                               {"errors": self.recorder.errors})
 
     def _activate(self, job: Job, result: PlanResult) -> None:
         dt_s = float(result.epochs_s[1] - result.epochs_s[0])
@@ -300,6 +337,22 @@ class GuidanceNode(Node):
             self._stop = True
             self._lock.notify()
         self._worker.join(timeout=30.0)
+        if self.recorder is not None:
+            self.recorder.finish()
+            self.get_logger().info(f"recorded {self.recorder.solves} solves to "
+                                   f"{self.recorder.directory}")
+
+
+def _versions() -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for pkg in ("art_guidance", "clarabel", "osqp", "numpy", "scipy", "mcap", "torch"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = "absent"
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:

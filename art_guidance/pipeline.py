@@ -60,6 +60,25 @@ class PlanRequest:
         if self.koz_switch_node is not None and int(self.koz_switch_node) < 0:
             raise InputError("koz_switch_node", "must be >= 0", self.koz_switch_node)
 
+    def to_json(self) -> dict:
+        """Everything needed to solve this request again (see `from_json`)."""
+        return {"chief_oe": self.chief_oe.tolist(), "roe0_m": self.roe0_m.tolist(),
+                "target_rtn": self.target_rtn.tolist(),
+                "chance_constrained": bool(self.chance_constrained),
+                "warm_start": self.warm_start, "n_nodes": self.n_nodes,
+                "n_orbits": self.n_orbits, "koz_switch_node": self.koz_switch_node}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "PlanRequest":
+        """Inverse of `to_json` (validated again)."""
+        try:
+            return cls(np.asarray(data["chief_oe"]), np.asarray(data["roe0_m"]),
+                       np.asarray(data["target_rtn"]), bool(data["chance_constrained"]),
+                       data["warm_start"], data.get("n_nodes"), data.get("n_orbits"),
+                       data.get("koz_switch_node"))
+        except (KeyError, TypeError) as exc:
+            raise InputError("request_json", f"malformed: {exc!r}") from exc
+
 
 @dataclass(frozen=True)
 class PosthocDecision:
@@ -87,6 +106,8 @@ class PlanResult:
     posthoc: PosthocDecision | None
     constraint_margin_m: float
     timings_ms: dict = field(default_factory=dict)
+    request: PlanRequest | None = None
+    art_dv_rtn_mps: np.ndarray | None = None  # (N, 3) learned warm start, if one was proposed
 
     def to_json(self) -> dict:
         """The plan as JSON-ready data (units in the names)."""
@@ -132,6 +153,25 @@ class GuidancePipeline:
         self.deadline_s = deadline_s
         self._cache: dict = {}
 
+    def config_json(self) -> dict:
+        """The configuration this pipeline plans with (recorded with every run)."""
+        from dataclasses import asdict
+
+        return {"scenario": asdict(self.scenario), "uncertainty": asdict(self.uncertainty),
+                "scp": asdict(self.scp_config), "samples_per_node": self.samples_per_node,
+                "deadline_s": self.deadline_s}
+
+    @classmethod
+    def from_config_json(cls, data: dict) -> "GuidancePipeline":
+        """Rebuild a pipeline from `config_json` output (for replay)."""
+        try:
+            return cls(ScenarioConfig(**data["scenario"]),
+                       UncertaintyConfig(**data["uncertainty"]), ScpConfig(**data["scp"]),
+                       samples_per_node=data["samples_per_node"],
+                       deadline_s=data["deadline_s"])
+        except (KeyError, TypeError) as exc:
+            raise InputError("config", f"recorded configuration is malformed: {exc!r}") from exc
+
     def _setup(self, request: PlanRequest) -> tuple[Horizon, PassiveSafety]:
         n_nodes = int(request.n_nodes or self.scenario.n_nodes)
         n_orbits = float(request.n_orbits or self.scenario.n_orbits)
@@ -159,13 +199,13 @@ class GuidancePipeline:
         roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
         cvx = solve_cvx(horizon, request.roe0_m, roe_f)
         t_cvx = time.perf_counter()
-        warm, source, posthoc, t_art = cvx.dv_rtn_mps, "cvx", None, 0.0
+        warm, source, posthoc, t_art, art_dv = cvx.dv_rtn_mps, "cvx", None, 0.0, None
         if request.warm_start in ("auto", "art") and self.provider is not None:
             ta = time.perf_counter()
             proposal = self.provider.propose(request, horizon, safety, cvx)
             t_art = 1e3 * (time.perf_counter() - ta)
             if proposal is not None:
-                posthoc = proposal[1]
+                art_dv, posthoc = proposal
                 if posthoc.accepted or request.warm_start == "art":
                     warm, source = proposal[0], "art"
         elif request.warm_start == "art":
@@ -181,4 +221,4 @@ class GuidancePipeline:
                    "art": t_art, "scp": res.solve_time_ms, "total": 1e3 * (t_end - t0)}
         return PlanResult(res.status, request.chief_oe, horizon.epochs_s, res.dv_rtn_mps,
                           res.roe_m, horizon.to_rtn(res.roe_m), res.cost_mps, res, cvx, source,
-                          posthoc, margin, timings)
+                          posthoc, margin, timings, request, art_dv)

@@ -9,7 +9,7 @@ import json
 from dataclasses import dataclass
 
 import numpy as np
-from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
+from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest, SolveRecord
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from art_guidance.checks import as_finite_array, check_psd
@@ -127,6 +127,27 @@ def plan_to_msg(result: PlanResult, stamp_ns: int, plan_id: str) -> ManeuverPlan
     msg.scp_iterations = int(result.scp.iterations)
     msg.solve_time_ms = float(result.timings_ms.get("total", 0.0))
     msg.constraint_margin_m = float(result.constraint_margin_m)
+    return msg
+
+
+def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str,
+                     trigger: str) -> SolveRecord:
+    """Everything needed to replay one solve: request, warm starts, SCP history, timings."""
+    msg = SolveRecord()
+    ns_to_stamp(msg.header.stamp, stamp_ns)
+    msg.plan_id, msg.trigger = plan_id, trigger
+    if result.art_dv_rtn_mps is not None:
+        msg.warm_start_art_dv_rtn_mps = np.asarray(result.art_dv_rtn_mps).reshape(-1).tolist()
+    if np.all(np.isfinite(result.cvx.dv_rtn_mps)):
+        msg.warm_start_cvx_dv_rtn_mps = result.cvx.dv_rtn_mps.reshape(-1).tolist()
+    hist = result.scp.history
+    msg.scp_cost_history_mps = [float(h.cost_mps) for h in hist]
+    msg.scp_trust_radius_history = [float(h.trust_radius) for h in hist]
+    msg.scp_max_violation_history = [float(h.max_violation) for h in hist]
+    t = result.timings_ms
+    msg.timing_art_ms, msg.timing_cvx_ms = float(t.get("art", 0.0)), float(t.get("cvx", 0.0))
+    msg.timing_scp_ms, msg.timing_total_ms = float(t.get("scp", 0.0)), float(t.get("total", 0.0))
+    msg.request_json = json.dumps(result.request.to_json() if result.request else {})
     return msg
 
 
