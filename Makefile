@@ -39,7 +39,7 @@ $(VENV)/.stamp-msgs: $(VENV)/.stamp-ros $(MSG_SRC)
 	touch $@
 
 $(VENV)/.stamp-pkg: $(VENV)/.stamp-msgs setup.py setup.cfg
-	$(PIP) install -e ".[test]" 2>&1 | sed "/^WARNING: Location/d"
+	$(PIP) install -e ".[test,distributed]" 2>&1 | sed "/^WARNING: Location/d"
 	$(PY) -c "import art_guidance, torch, clarabel, osqp, cvxpy, rosbags, mcap_ros2" >/dev/null
 	touch $@
 

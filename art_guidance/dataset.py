@@ -1,15 +1,37 @@
-"""Randomised rendezvous scenarios (paper Table I ranges).
+"""Randomised rendezvous scenarios and the paper's 3-stage dataset pipeline.
 
-The full 3-stage dataset pipeline builds on `sample_scenario`; every sample is reproducible from
-its integer seed alone.
+`sample_scenario` draws one transfer (paper Table I ranges) from an integer seed. A dataset of
+n samples uses the seeds of SEED_RULE; every sample is solved in three stages (paper,
+"Dataset generation"): the convex TPBVP (CVX), a collision-avoidance SCP warm-started by it, and
+the passive-safety SCP (deterministic or chance-constrained) warm-started by that; the last
+feasible solution is stored with its reward-to-go and constraint-to-go. Every record depends on
+its seed and the configuration alone, so the local process pool and Ray, run in any chunking
+and resumed any number of times, produce identical data (timings aside). Storage and
+`load_dataset`: `art_guidance.storage`; driver and CLI: `art_guidance.generate`.
 """
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
+import math
+import time
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
-from art_guidance.config import ScenarioConfig
+from art_guidance import __version__
+from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
+from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
+from art_guidance.errors import GuidanceError, InputError
+from art_guidance.optim import ScpStatus, Scvx, solve_cvx
+from art_guidance.safety import PassiveSafety
+from art_guidance.storage import load_dataset
+
+__all__ = ["FIELDS", "MODES", "SEED_RULE", "SEED_STRIDE", "STAGES", "TIMING_FIELDS",
+           "GenerationSpec", "ScenarioSample", "generate_chunk", "load_dataset", "sample_scenario",
+           "sample_seed", "solve_sample"]
 
 
 @dataclass(frozen=True)
@@ -30,3 +52,244 @@ def sample_scenario(scenario: ScenarioConfig, seed: int) -> ScenarioSample:
     names = sorted(scenario.waypoints_rtn)
     name = names[int(rng.integers(len(names)))]
     return ScenarioSample(int(seed), rtn0, name, np.asarray(scenario.waypoints_rtn[name]))
+
+
+# =========================================================================== 3-stage pipeline
+MODES = ("deterministic", "chance")
+STAGES = ("cvx", "collision_avoidance", "passive_safety")
+SEED_STRIDE = 1_000_003
+SEED_RULE = f"seed_i = base_seed * {SEED_STRIDE} + i"
+PIPELINE_VERSION = 1  # bump when a code change alters the stored data of a given seed
+KEPT_INFEASIBLE = 0
+TIMING_FIELDS = ("stage_time_ms",)  # the only stored fields that differ between runs
+
+# Stored per sample (one entry each, stacked along a leading sample axis in shards and in
+# `load_dataset`). N = number of nodes. Infeasible samples (kept_stage 0) hold NaN in the
+# trajectory fields and -1 in constraint_to_go.
+FIELDS = {
+    "index": "() int64, sample index i in 0..n-1",
+    "seed": "() int64, scenario seed (SEED_RULE)",
+    "waypoint": "() str, terminal waypoint name",
+    "rtn0": "(6,) initial RTN state [m, m/s]",
+    "target_rtn": "(6,) terminal RTN state after the last burn [m, m/s]",
+    "roe0_m": "(6,) initial a-scaled ROE [m]",
+    "roe_f_m": "(6,) terminal post-burn a-scaled ROE [m]",
+    "kept_stage": "() int8, stage of the stored trajectory: 3 passive safety, 2 collision "
+                  "avoidance, 0 none feasible",
+    "feasible": "() bool, kept_stage > 0",
+    "roe_m": "(N, 6) pre-burn a-scaled ROE of the stored trajectory [m]",
+    "rtn": "(N, 6) pre-burn RTN states, horizon.to_rtn(roe_m) [m, m/s]",
+    "dv_rtn_mps": "(N, 3) impulsive delta-v in RTN [m/s]",
+    "cost_mps": "() sum of ||dv||_2 [m/s]",
+    "reward_to_go_mps": "(N,) R(t_i) = -sum_{j>=i} ||dv_j||_2 [m/s]",
+    "constraint_to_go": "(N,) int32, C(t_i) under the mode's passive-safety model",
+    "margin_m": "(N,) passive-safety margin under the mode's model [m], >= 0 safe",
+    "cvx_roe_m": "(N, 6) CVX (stage 1) pre-burn ROE [m]",
+    "cvx_dv_rtn_mps": "(N, 3) CVX delta-v in RTN [m/s]",
+    "cvx_cost_mps": "() CVX cost, the lower bound [m/s]",
+    "cvx_constraint_to_go0": "() int32, C_CVX(t_1): constraint-to-go at node 0 of the CVX "
+                             "trajectory under the stage-3 model (-1 if CVX failed)",
+    "stage_status": "(3,) int8, ScpStatus value per stage (cvx, ca, ps)",
+    "stage_iterations": "(3,) int32, convex subproblems solved per stage",
+    "stage_cost_mps": "(3,) cost of each stage's returned trajectory [m/s]",
+    "stage_time_ms": "(3,) wall time per stage [ms] (not reproducible)",
+}
+
+
+def sample_seed(base_seed: int, index: int) -> int:
+    """Scenario seed of sample `index` of a dataset started with `base_seed` (SEED_RULE).
+
+    With index < SEED_STRIDE the seeds of different base seeds never collide.
+    """
+    return int(base_seed) * SEED_STRIDE + int(index)
+
+
+@dataclass(frozen=True)
+class GenerationSpec:
+    """Everything a generation task needs; picklable, identical on every worker.
+
+    Attributes:
+        mode: "deterministic" or "chance" (the stage-3 passive-safety model).
+        base_seed: dataset seed S >= 0 (sample seeds follow SEED_RULE).
+        scenario, scp: configuration; uncertainty: None in deterministic mode.
+        samples_per_node: drift samples linearised per node in both SCP stages.
+    """
+
+    mode: str
+    base_seed: int
+    scenario: ScenarioConfig
+    uncertainty: UncertaintyConfig | None
+    scp: ScpConfig
+    samples_per_node: int = 3
+
+    @classmethod
+    def build(cls, mode: str, base_seed: int, scenario: ScenarioConfig | None = None,
+              uncertainty: UncertaintyConfig | None = None,
+              scp: ScpConfig | None = None) -> "GenerationSpec":
+        """Validate the options and load missing configs from the packaged YAML files."""
+        if mode not in MODES:
+            raise InputError("--mode", f"must be one of {MODES}", mode)
+        if isinstance(base_seed, bool) or not isinstance(base_seed, (int, np.integer)) \
+                or not 0 <= base_seed < 2**63 // SEED_STRIDE - 1:
+            raise InputError("--seed", "must be an integer in [0, 2^63 / 1000003 - 1) (the "
+                             "sample seeds are int64)", base_seed)
+        unc = None
+        if mode == "chance":
+            unc = uncertainty or UncertaintyConfig.from_yaml()
+        return cls(mode, int(base_seed), scenario or ScenarioConfig.from_yaml(), unc,
+                   scp or ScpConfig.from_yaml())
+
+    @property
+    def config_sha256(self) -> str:
+        """Fingerprint of everything but the seed that determines the stored data."""
+        return hashlib.sha256(json.dumps(self._config(), sort_keys=True).encode()).hexdigest()
+
+    def _config(self) -> dict:
+        unc = None if self.uncertainty is None else dataclasses.asdict(self.uncertainty)
+        return {"scenario": dataclasses.asdict(self.scenario), "uncertainty": unc,
+                "scp": dataclasses.asdict(self.scp), "samples_per_node": self.samples_per_node,
+                "pipeline_version": PIPELINE_VERSION}
+
+    def header(self, n: int) -> dict:
+        """Manifest header of a dataset of `n` samples."""
+        return {"mode": self.mode, "base_seed": self.base_seed, "n": int(n),
+                "seed_rule": SEED_RULE, "config_sha256": self.config_sha256,
+                "config": self._config(), "stages": list(STAGES), "fields": FIELDS,
+                "art_guidance_version": __version__,
+                "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+
+@dataclass(frozen=True)
+class _Models:
+    """Per-process cache: the horizon and both safety models (built once, ~20 ms)."""
+
+    chief: np.ndarray
+    horizon: Horizon
+    collision: PassiveSafety   # stage 2: deterministic, T_safety = 0
+    passive: PassiveSafety     # stage 3: the mode's model (deterministic or chance)
+
+
+_MODELS: dict[str, _Models] = {}
+
+
+def _models(spec: GenerationSpec) -> _Models:
+    key = spec.config_sha256
+    if key not in _MODELS:
+        sc = spec.scenario
+        chief = np.array(sc.chief_oe)
+        horizon = Horizon.build(chief, time_grid_s(chief[0], sc.n_orbits, sc.n_nodes))
+        _MODELS.clear()
+        _MODELS[key] = _Models(chief, horizon, PassiveSafety(horizon, sc, None, t_safety_s=0.0),
+                               PassiveSafety(horizon, sc, spec.uncertainty))
+    return _MODELS[key]
+
+
+@dataclass(frozen=True)
+class _Stage:
+    status: ScpStatus
+    roe_m: np.ndarray | None
+    dv_rtn_mps: np.ndarray | None
+    cost_mps: float
+    iterations: int
+    time_ms: float
+
+    @property
+    def feasible(self) -> bool:
+        return self.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS)
+
+
+def _run_cvx(m: _Models, roe0: np.ndarray, roe_f: np.ndarray) -> _Stage:
+    t0 = time.perf_counter()
+    try:
+        sol = solve_cvx(m.horizon, roe0, roe_f)
+    except GuidanceError:
+        return _Stage(ScpStatus.SOLVER_ERROR, None, None, math.nan, 1,
+                      1e3 * (time.perf_counter() - t0))
+    ok = sol.status is ScpStatus.CONVERGED
+    return _Stage(sol.status, sol.roe_m if ok else None, sol.dv_rtn_mps if ok else None,
+                  sol.cost_mps, 1, sol.solve_time_ms)
+
+
+def _run_scp(spec: GenerationSpec, safety: PassiveSafety, roe0: np.ndarray, roe_f: np.ndarray,
+             warm: np.ndarray) -> _Stage:
+    t0 = time.perf_counter()
+    try:
+        res = Scvx(safety, roe0, roe_f, spec.scp,
+                   samples_per_node=spec.samples_per_node).solve(warm)
+    except GuidanceError:
+        return _Stage(ScpStatus.SOLVER_ERROR, None, None, math.nan, 0,
+                      1e3 * (time.perf_counter() - t0))
+    return _Stage(res.status, res.roe_m, res.dv_rtn_mps, res.cost_mps, res.iterations,
+                  res.solve_time_ms)
+
+
+def solve_sample(spec: GenerationSpec, index: int) -> dict[str, np.ndarray]:
+    """Run the paper's three stages for sample `index` and build its record (see FIELDS).
+
+    Stage 1 solves the convex TPBVP (CVX); stage 2 the collision-avoidance SCP (deterministic,
+    T_safety = 0) warm-started by CVX (zeros if CVX failed); stage 3 the mode's passive-safety
+    SCP warm-started by stage 2's returned trajectory. Kept: stage 3 if feasible (SCVx*
+    CONVERGED or MAX_ITERATIONS with the constraints met), else stage 2 if feasible, else none
+    (the CVX solution is never kept: it ignores safety); the sample is then recorded as
+    infeasible with `kept_stage` 0.
+    """
+    m = _models(spec)
+    n = m.horizon.n_nodes
+    sample = sample_scenario(spec.scenario, sample_seed(spec.base_seed, index))
+    roe0 = roe_from_rtn_linear(m.chief, sample.rtn0)
+    roe_f = np.linalg.solve(m.horizon.psi[-1], sample.target_rtn)
+    cvx = _run_cvx(m, roe0, roe_f)
+    warm = cvx.dv_rtn_mps if cvx.dv_rtn_mps is not None else np.zeros((n, 3))
+    ca = _run_scp(spec, m.collision, roe0, roe_f, warm)
+    ps = _run_scp(spec, m.passive, roe0, roe_f,
+                  ca.dv_rtn_mps if ca.dv_rtn_mps is not None else warm)
+    kept = 3 if ps.feasible else 2 if ca.feasible else KEPT_INFEASIBLE
+    stages = (cvx, ca, ps)
+    rec = {
+        "index": np.int64(index), "seed": np.int64(sample.seed),
+        "waypoint": np.str_(sample.waypoint), "rtn0": sample.rtn0,
+        "target_rtn": sample.target_rtn, "roe0_m": roe0, "roe_f_m": roe_f,
+        "kept_stage": np.int8(kept), "feasible": np.bool_(kept != KEPT_INFEASIBLE),
+        "stage_status": np.array([s.status.value for s in stages], np.int8),
+        "stage_iterations": np.array([s.iterations for s in stages], np.int32),
+        "stage_cost_mps": np.array([s.cost_mps for s in stages]),
+        "stage_time_ms": np.array([s.time_ms for s in stages]),
+    }
+    rec.update(_trajectory_fields(m, stages[kept - 1] if kept else None, n))
+    if cvx.roe_m is not None:
+        c_cvx = m.passive.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0]
+        rec.update(cvx_roe_m=cvx.roe_m, cvx_dv_rtn_mps=cvx.dv_rtn_mps,
+                   cvx_cost_mps=np.float64(cvx.cost_mps), cvx_constraint_to_go0=np.int32(c_cvx))
+    else:
+        rec.update(cvx_roe_m=np.full((n, 6), np.nan), cvx_dv_rtn_mps=np.full((n, 3), np.nan),
+                   cvx_cost_mps=np.float64(np.nan), cvx_constraint_to_go0=np.int32(-1))
+    return rec
+
+
+def _trajectory_fields(m: _Models, stage: _Stage | None, n: int) -> dict[str, np.ndarray]:
+    if stage is None:
+        return {"roe_m": np.full((n, 6), np.nan), "rtn": np.full((n, 6), np.nan),
+                "dv_rtn_mps": np.full((n, 3), np.nan), "cost_mps": np.float64(np.nan),
+                "reward_to_go_mps": np.full(n, np.nan),
+                "constraint_to_go": np.full(n, -1, np.int32), "margin_m": np.full(n, np.nan)}
+    roe, dv = stage.roe_m, stage.dv_rtn_mps
+    ev = m.passive.evaluate(roe, dv)
+    norms = np.linalg.norm(dv, axis=1)
+    return {"roe_m": roe, "rtn": m.horizon.to_rtn(roe), "dv_rtn_mps": dv,
+            "cost_mps": np.float64(stage.cost_mps),
+            "reward_to_go_mps": -np.cumsum(norms[::-1])[::-1],
+            "constraint_to_go": ev.constraint_to_go.astype(np.int32), "margin_m": ev.margin_m}
+
+
+def generate_chunk(spec: GenerationSpec, indices: Sequence[int]) -> dict[str, np.ndarray]:
+    """The task both engines run: solve the samples `indices` and stack their records.
+
+    Args:
+        spec: generation options and configuration.
+        indices: sample indices (a shard's worth).
+
+    Returns:
+        {field: (M, ...) array} with the FIELDS of every sample, in the order of `indices`.
+    """
+    records = [solve_sample(spec, int(i)) for i in indices]
+    return {k: np.stack([r[k] for r in records]) for k in FIELDS}

@@ -1,0 +1,289 @@
+"""`art-guidance generate`: run the 3-stage dataset pipeline on a process pool or on Ray.
+
+The driver opens (creates or resumes) the dataset directory, splits the missing sample indices
+into chunks of `shard_size`, hands each chunk to an engine as one task
+(`dataset.generate_chunk`), and commits every finished chunk as one shard. Both engines run the
+same task function on the same inputs, so they produce the same data.
+
+- local: a process pool of `workers` processes (forked where available; each worker dies with
+  the driver) or, with one worker, the driver process itself;
+- ray: Ray tasks (`pip install .[distributed]`), on a local Ray instance of `workers` CPUs, on
+  the instance the caller already initialised, or on the cluster at `ray_address`.
+"""
+from __future__ import annotations
+
+import argparse
+import ctypes
+import multiprocessing as mp
+import os
+import signal
+import sys
+import time
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+from tqdm import tqdm
+
+from art_guidance.config import ScenarioConfig
+from art_guidance.dataset import (
+    KEPT_INFEASIBLE, MODES, SEED_RULE, SEED_STRIDE, STAGES, GenerationSpec, generate_chunk,
+)
+from art_guidance.errors import ConfigError, InputError
+from art_guidance.optim import ScpStatus
+from art_guidance.storage import SUMMARY, DatasetWriter, aggregate_stats
+
+Engine = Callable[[GenerationSpec, list[list[int]], int, str | None], Iterator[dict]]
+ENGINES = ("local", "ray")
+_PR_SET_PDEATHSIG = 1
+_FEASIBLE = (ScpStatus.CONVERGED.value, ScpStatus.MAX_ITERATIONS.value)
+
+
+def default_workers() -> int:
+    """CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+# --------------------------------------------------------------------------- local engine
+def _worker_init(parent_pid: int) -> None:
+    """Pool worker set-up: die with the driver (even on SIGKILL), leave Ctrl-C to it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent_pid:  # the driver died before prctl took effect
+        os._exit(1)
+
+
+def _local_engine(spec: GenerationSpec, chunks: list[list[int]], workers: int,
+                  address: str | None = None) -> Iterator[dict]:
+    """Run the chunks on `workers` processes (in this process when workers == 1)."""
+    if workers == 1 or len(chunks) == 1:
+        return (generate_chunk(spec, c) for c in chunks)
+    methods = mp.get_all_start_methods()
+    ctx = mp.get_context("fork" if "fork" in methods else "spawn")
+    pool = ProcessPoolExecutor(min(workers, len(chunks)), mp_context=ctx,
+                               initializer=_worker_init, initargs=(os.getpid(),))
+    futures = [pool.submit(generate_chunk, spec, c) for c in chunks]  # workers start here
+    return _drain_pool(pool, futures)
+
+
+def _drain_pool(pool: ProcessPoolExecutor, futures: list[Future]) -> Iterator[dict]:
+    finished = False
+    try:
+        for fut in as_completed(futures):
+            yield fut.result()
+        finished = True
+    finally:
+        if not finished:  # interrupted or failed: stop the workers now
+            for fut in futures:
+                fut.cancel()
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+# --------------------------------------------------------------------------- ray engine
+def _ray_engine(spec: GenerationSpec, chunks: list[list[int]], workers: int,
+                address: str | None = None) -> Iterator[dict]:
+    """Run the chunks as Ray tasks of one CPU each."""
+    try:
+        import ray
+    except ImportError as exc:
+        raise ConfigError("--engine ray needs Ray: pip install 'art_guidance[distributed]' "
+                          "(or use --engine local)") from exc
+    started = not ray.is_initialized()
+    if started:
+        kwargs = {"address": address} if address else {"num_cpus": workers}
+        ray.init(include_dashboard=False, log_to_driver=False, **kwargs)
+    task = ray.remote(num_cpus=1)(generate_chunk)
+    spec_ref = ray.put(spec)
+    pending = [task.remote(spec_ref, c) for c in chunks]
+    return _drain_ray(ray, pending, started)
+
+
+def _drain_ray(ray, pending: list, started: bool) -> Iterator[dict]:
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(done[0])
+    finally:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        if started:
+            ray.shutdown()
+
+
+_ENGINES: dict[str, Engine] = {"local": _local_engine, "ray": _ray_engine}
+
+
+# --------------------------------------------------------------------------- statistics
+def shard_stats(arrays: dict[str, np.ndarray]) -> dict[str, float]:
+    """Per-shard counts and time sums stored in the manifest (summed into the summary)."""
+    status, kept = arrays["stage_status"], arrays["kept_stage"]
+    out: dict[str, float] = {"n": int(kept.size)}
+    for k, stage in enumerate(STAGES):
+        ok = (status[:, k] == ScpStatus.CONVERGED.value) if k == 0 else \
+            np.isin(status[:, k], _FEASIBLE)
+        out[f"failed_{stage}"] = int((~ok).sum())
+        out[f"time_ms_{stage}"] = float(arrays["stage_time_ms"][:, k].sum())
+        out[f"iterations_{stage}"] = int(arrays["stage_iterations"][:, k].sum())
+    for value, name in ((3, "passive_safety"), (2, "collision_avoidance"),
+                        (KEPT_INFEASIBLE, "infeasible")):
+        out[f"kept_{name}"] = int((kept == value).sum())
+    return out
+
+
+def _summary(writer: DatasetWriter, run: list[dict], wall_s: float, engine: str,
+             workers: int) -> dict:
+    agg = aggregate_stats(writer.shards)
+    total = max(int(agg.get("n", 0)), 1)
+    head = writer.header
+    out = {
+        "dir": str(writer.root), "mode": head["mode"], "base_seed": head["base_seed"],
+        "n": head["n"], "samples": int(agg.get("n", 0)),
+        "complete": int(agg.get("n", 0)) == head["n"],
+        "kept": {k: int(agg.get(f"kept_{k}", 0))
+                 for k in ("passive_safety", "collision_avoidance", "infeasible")},
+        "infeasible_rate": {s: agg.get(f"failed_{s}", 0) / total for s in STAGES},
+        "mean_time_ms": {s: agg.get(f"time_ms_{s}", 0.0) / total for s in STAGES},
+        "mean_iterations": {s: agg.get(f"iterations_{s}", 0) / total for s in STAGES},
+    }
+    done = sum(int(r["kept_stage"].size) for r in run)
+    this = {"samples": done, "wall_time_s": wall_s, "engine": engine, "workers": workers,
+            "trajectories_per_s": done / wall_s if wall_s > 0 else 0.0}
+    if run:
+        times = np.concatenate([r["stage_time_ms"] for r in run])
+        this["median_time_ms"] = {s: float(np.median(times[:, k])) for k, s in enumerate(STAGES)}
+    out["this_run"] = this
+    return out
+
+
+def _report(summary: dict, log: Callable[[str], None]) -> None:
+    this, kept, rate = summary["this_run"], summary["kept"], summary["infeasible_rate"]
+    log(f"generated {this['samples']} trajectories in {this['wall_time_s']:.1f} s "
+        f"({this['trajectories_per_s']:.2f} traj/s, {this['engine']} engine, "
+        f"{this['workers']} workers)")
+    log(f"{summary['dir']}: {summary['samples']} of {summary['n']} samples ({summary['mode']}, "
+        f"seed {summary['base_seed']}); kept passive safety {kept['passive_safety']}, "
+        f"collision avoidance {kept['collision_avoidance']}, infeasible {kept['infeasible']}")
+    log("infeasible rate per stage: " + ", ".join(f"{s} {100 * r:.1f} %"
+                                                  for s, r in rate.items()))
+
+
+# --------------------------------------------------------------------------- driver
+def generate(out_dir: str | Path, n: int, mode: str, *, base_seed: int = 0,
+             workers: int | None = None, engine: str = "local", shard_size: int = 32,
+             scenario: ScenarioConfig | None = None, ray_address: str | None = None,
+             progress: bool = True, log: Callable[[str], None] = print) -> dict:
+    """Generate (or resume) a dataset of `n` samples in `out_dir`.
+
+    Args:
+        out_dir: dataset directory (created if missing; resumed if it holds this dataset).
+        n: number of samples, 1 <= n <= SEED_STRIDE.
+        mode: "deterministic" or "chance" (stage-3 passive-safety model).
+        base_seed: dataset seed S >= 0; sample i uses scenario seed S * 1_000_003 + i.
+        workers: parallel processes / Ray CPUs (default: the CPUs available).
+        engine: "local" (process pool) or "ray".
+        shard_size: samples per task and per shard.
+        scenario: scenario config (default: packaged YAML); uncertainty and SCP configs are
+            always the packaged ones.
+        ray_address: Ray cluster address (engine "ray"); None starts a local instance.
+        progress: show a tqdm progress bar (rate, ETA) on stderr.
+        log: where the one-line messages go.
+
+    Returns:
+        The summary (also written to `out_dir/summary.json` unless nothing was to do), with
+        "status": "complete", "already_complete" or "interrupted".
+
+    Raises:
+        InputError: bad options, an unwritable or foreign directory, or a directory holding
+            a dataset of another mode, seed or size.
+        ConfigError: changed configuration on resume, or Ray missing for engine "ray".
+        DatasetError: corrupt existing shards or manifest.
+    """
+    workers = default_workers() if workers is None else workers
+    _check_options(n, workers, engine, shard_size)
+    spec = GenerationSpec.build(mode, base_seed, scenario)
+    with DatasetWriter(out_dir, spec.header(n)) as writer:
+        done = writer.done_indices
+        todo = np.setdiff1d(np.arange(n), done)
+        if todo.size == 0:
+            log(f"{out_dir}: already complete ({n} of {n} samples, {mode}, seed {base_seed});"
+                " nothing to do")
+            return dict(_summary(writer, [], 0.0, engine, workers), status="already_complete")
+        if done.size:
+            log(f"resuming {out_dir}: {done.size} of {n} samples present, {todo.size} to go")
+        chunks = [todo[i:i + shard_size].tolist() for i in range(0, todo.size, shard_size)]
+        status, run, t0 = "complete", [], time.perf_counter()
+        results = _ENGINES[engine](spec, chunks, workers, ray_address)
+        with tqdm(total=n, initial=int(done.size), unit="traj", desc=f"generate {mode}",
+                  disable=not progress, smoothing=0.05, dynamic_ncols=True) as bar:
+            try:
+                for arrays in results:
+                    writer.write_shard(arrays, shard_stats(arrays))
+                    run.append({k: arrays[k] for k in ("kept_stage", "stage_time_ms")})
+                    bar.update(int(arrays["index"].size))
+            except KeyboardInterrupt:
+                status = "interrupted"
+                results.close()
+        summary = dict(_summary(writer, run, time.perf_counter() - t0, engine, workers),
+                       status=status)
+        writer.write_json(SUMMARY, summary)
+    _report(summary, log)
+    if status == "interrupted":
+        log("interrupted: re-run the same command to resume")
+    return summary
+
+
+def _check_options(n: int, workers: int, engine: str, shard_size: int) -> None:
+    for name, value in (("--n", n), ("--workers", workers), ("--shard-size", shard_size)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise InputError(name, "must be an integer >= 1", value)
+    if n > SEED_STRIDE:
+        raise InputError("--n", f"must be <= {SEED_STRIDE} (seed rule: {SEED_RULE})", n)
+    if engine not in ENGINES:
+        raise InputError("--engine", f"must be one of {ENGINES}", engine)
+
+
+# --------------------------------------------------------------------------- CLI
+def _cmd_generate(args: argparse.Namespace) -> int:
+    """Generate a trajectory dataset with the paper's 3-stage pipeline (resumable)."""
+    scenario = ScenarioConfig.from_yaml(args.scenario) if args.scenario else None
+    summary = generate(args.out, args.n, args.mode, base_seed=args.seed, workers=args.workers,
+                       engine=args.engine, shard_size=args.shard_size, scenario=scenario,
+                       ray_address=args.ray_address, progress=not args.no_progress)
+    if summary["status"] == "complete":
+        print(f"summary -> {Path(args.out) / SUMMARY}")
+    return 130 if summary["status"] == "interrupted" else 0
+
+
+def add_generate_parser(sub: argparse._SubParsersAction) -> None:
+    """Register `generate` on the `art-guidance` subparsers."""
+    p = sub.add_parser(
+        "generate", help="generate a trajectory dataset (3-stage, resumable, parallel)",
+        description=_cmd_generate.__doc__ + " Re-running the same command resumes an "
+        "interrupted run and does nothing on a complete one. Exit 0 done, 130 interrupted, "
+        "2 bad input or corrupt directory.")
+    p.add_argument("--n", type=int, required=True, help="number of samples")
+    p.add_argument("--mode", choices=MODES, required=True,
+                   help="stage-3 passive safety: deterministic or chance-constrained")
+    p.add_argument("--out", required=True, help="dataset directory (created or resumed)")
+    p.add_argument("--seed", type=int, default=0,
+                   help=f"dataset seed S >= 0; sample i uses scenario seed S * {SEED_STRIDE} + i")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes (local) or CPUs (local Ray instance); default: all CPUs")
+    p.add_argument("--engine", choices=ENGINES, default="local",
+                   help="local process pool (default) or Ray ('pip install .[distributed]')")
+    p.add_argument("--shard-size", type=int, default=32, help="samples per task and shard")
+    p.add_argument("--ray-address", default=None,
+                   help="Ray cluster address (default: start a local instance)")
+    p.add_argument("--scenario", default=None, help="scenario YAML (default: packaged)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_generate)
