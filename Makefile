@@ -38,7 +38,7 @@ $(VENV)/.stamp-msgs: $(VENV)/.stamp-ros $(MSG_SRC)
 	$(PY) -c "from art_guidance_msgs.msg import ManeuverPlan"
 	touch $@
 
-$(VENV)/.stamp-pkg: $(VENV)/.stamp-msgs setup.py setup.cfg
+$(VENV)/.stamp-pkg: $(VENV)/.stamp-msgs setup.py setup.cfg Makefile
 	$(PIP) install -e ".[test,distributed]" 2>&1 | sed "/^WARNING: Location/d"
 	$(PY) -c "import art_guidance, torch, clarabel, osqp, cvxpy, rosbags, mcap_ros2" >/dev/null
 	touch $@

@@ -181,6 +181,7 @@ class ScpConfig:
     w0: float = 10.0
     w_max: float = 1e8
     max_iterations: int = 20
+    tightening: float = 1e-2
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -195,6 +196,8 @@ class ScpConfig:
             raise ConfigError("scp needs 0 < r_min <= r0 <= r_max")
         if self.max_iterations < 1:
             raise ConfigError("scp.max_iterations must be >= 1")
+        if not 0 <= self.tightening < 0.5:
+            raise ConfigError("scp.tightening must be in [0, 0.5)")
 
     @classmethod
     def from_yaml(cls, path: str | Path | None = None) -> "ScpConfig":

@@ -66,8 +66,8 @@ class Scvx:
         self.cfg = config or ScpConfig()
         self.norm = norm
         self.k = int(min(max(samples_per_node, 1), safety.n_samples))
-        # The convex model is tightened by eps_feas so converged plans keep a margin >= 0.
-        self.tighten = self.cfg.eps_feas
+        # The convex model is tightened so converged plans keep a nonlinear margin >= 0.
+        self.tighten = self.cfg.tightening
         self.sub = ScpSubproblem(self.horizon, self.roe0_m, self.roe_f_m, norm, solver, self.k)
 
     def _iterate(self, dv_rtn_mps: np.ndarray) -> _Iterate:
