@@ -56,7 +56,7 @@ lint: setup
 	$(PY) -m flake8 art_guidance test benchmarks .ci setup.py
 
 demo: setup
-	$(VENV)/bin/art-guidance demo --json out/demo_plan.json
+	$(VENV)/bin/art-guidance demo
 
 bench: setup
 	$(VENV)/bin/art-guidance bench all

@@ -40,6 +40,7 @@ setup(
     entry_points={
         "console_scripts": [
             f"guidance_node = {PACKAGE}.node:main",
+            f"sim_node = {PACKAGE}.sim_node:main",
             f"art-guidance = {PACKAGE}.cli:main",
         ],
     },

@@ -15,7 +15,7 @@ from art_guidance.generate import add_generate_parser as _add_generate
 Handler = Callable[[argparse.Namespace], int]
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
+def _offline_demo(args: argparse.Namespace) -> int:
     """Plan the paper's nominal transfer: free drift, CVX, then chance-constrained SCVx*."""
     from art_guidance.config import ScenarioConfig
     from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
@@ -47,12 +47,78 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0 if result.scp.feasible else 1
 
 
+def _cmd_demo(args: argparse.Namespace) -> int:
+    """Closed-loop rendezvous: the guidance node and the simulator as two processes over DDS."""
+    if args.offline:
+        return _offline_demo(args)
+    import os
+    import signal
+    import subprocess
+    import time
+    from pathlib import Path
+
+    from art_guidance.config import default_config_dir
+
+    out = Path(args.out).resolve()
+    run = out / time.strftime("run_%Y%m%dT%H%M%S")
+    run.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain_id or 30 + os.getpid() % 60),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_HOME=str(run / "ros"),
+               ROS_LOG_DIR=str(run / "ros" / "log"),
+               FASTRTPS_DEFAULT_PROFILES_FILE=str(default_config_dir() / "fastdds_localhost.xml"))
+    bag = run / "mcap"
+    node_cmd = [sys.executable, "-m", "art_guidance.node", "--ros-args",
+                "-p", "stamp_check:=order", "-p", f"record_dir:={bag}",
+                "-p", f"default_waypoint:={args.waypoint}"]
+    sim_cmd = [sys.executable, "-m", "art_guidance.sim_node", "--ros-args",
+               "-p", f"waypoint:={args.waypoint}", "-p", f"seed:={args.seed}",
+               "-p", f"png_path:={run / 'rendezvous.png'}",
+               "-p", f"summary_path:={run / 'summary.json'}"]
+    print(f"guidance node and simulator on ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']}; logs in {run}")
+    with open(run / "node.log", "w") as node_log:
+        node = subprocess.Popen(node_cmd, env=env, stdout=node_log, stderr=subprocess.STDOUT)
+        try:
+            sim = subprocess.run(sim_cmd, env=env, stdout=subprocess.PIPE, text=True,
+                                 timeout=args.timeout)
+        finally:
+            node.send_signal(signal.SIGINT)
+            try:
+                node.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                node.kill()
+    summary = _last_json_line(sim.stdout)
+    for key, value in summary.items():
+        shown = f"{value:.4g}" if isinstance(value, float) else value
+        print(f"  {key}: {shown}")
+    print(f"MCAP log (rosbag2 bag): {bag}\nplot: {run / 'rendezvous.png'}\n"
+          f"node log: {run / 'node.log'}\nreplay it: art-guidance replay {bag}")
+    return sim.returncode
+
+
+def _last_json_line(text: str) -> dict:
+    for line in reversed(text.strip().splitlines()):
+        try:
+            data = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(data, dict):
+            return data
+    return {"error": "the simulator printed no summary", "output": text[-2000:]}
+
+
 def _add_demo(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="run the main demonstration",
-                       description=_cmd_demo.__doc__)
+    p = sub.add_parser("demo", help="closed-loop rendezvous: node + simulator over DDS",
+                       description=_cmd_demo.__doc__ + " Exit 0 when the waypoint is reached.")
     p.add_argument("--scenario", default=None, help="scenario YAML (default: packaged)")
     p.add_argument("--waypoint", default="plus_vbar", help="terminal waypoint name")
-    p.add_argument("--json", default=None, help="also write the plan as JSON")
+    p.add_argument("--seed", type=int, default=0, help="simulator seed (initial state, errors)")
+    p.add_argument("--out", default="out/demo", help="where the run folder goes")
+    p.add_argument("--timeout", type=float, default=900.0, help="wall-clock limit [s]")
+    p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: "
+                   "derived from the process id)")
+    p.add_argument("--offline", action="store_true",
+                   help="only plan the nominal transfer in-process (no ROS)")
+    p.add_argument("--json", default=None, help="with --offline: also write the plan as JSON")
     p.set_defaults(func=_cmd_demo)
 
 
@@ -202,6 +268,12 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_replay)
 
 
+def _add_sim(sub: argparse._SubParsersAction) -> None:
+    from art_guidance.sim_node import add_sim_parser
+
+    add_sim_parser(sub)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argparse tree of every subcommand."""
     parser = argparse.ArgumentParser(
@@ -216,7 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
-    _add_demo, _add_plan, _add_bench, _add_node, _add_replay, _add_generate]
+    _add_demo, _add_plan, _add_bench, _add_node, _add_replay, _add_generate, _add_sim]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -111,6 +111,7 @@ class GuidanceNode(Node):
         self._stop = False
         self._latest_nav: NavState | None = None
         self._latest_nav_msg: RelativeNavState | None = None
+        self._stamp_floor_ns: int | None = None
         self._active: ActivePlan | None = None
         self._last_plan_ns: int | None = None
         self._ids = itertools.count(1)
@@ -156,6 +157,7 @@ class GuidanceNode(Node):
             return
         with self._lock:
             self._latest_nav, self._latest_nav_msg = nav, msg
+            self._stamp_floor_ns = nav.stamp_ns
             decision, deviation = self._decide(nav)
             if decision == "replanning":
                 self._submit(self._job_for(nav, msg, "nav"))
@@ -171,6 +173,7 @@ class GuidanceNode(Node):
         with self._lock:
             self.target, self._request_msg = target, msg
             self._active = None  # a new target restarts the horizon
+            self._stamp_floor_ns = None  # and a new stamp sequence (e.g. a new simulation)
             if self._latest_nav is not None:
                 self._submit(self._job_for(self._latest_nav, self._latest_nav_msg, "request"))
         self._publish_diag("art_guidance/replan_request", OK, f"target {target.waypoint}",
@@ -181,9 +184,9 @@ class GuidanceNode(Node):
         mode = self.p["stamp_check"]
         if mode == "off":
             return
-        latest = self._latest_nav.stamp_ns if self._latest_nav is not None else None
-        if latest is not None and stamp_ns <= latest:
-            raise GuidanceError(f"stale stamp: {stamp_ns} ns is not newer than {latest} ns")
+        floor = self._stamp_floor_ns
+        if floor is not None and stamp_ns <= floor:
+            raise GuidanceError(f"stale stamp: {stamp_ns} ns is not newer than {floor} ns")
         if mode == "wallclock":
             age_s = (time.time_ns() - stamp_ns) * 1e-9
             if age_s > self.p["max_nav_age_s"]:

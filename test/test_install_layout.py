@@ -30,7 +30,7 @@ def prefix(tmp_path_factory) -> Path:
 
 
 def test_console_scripts_under_lib_package(prefix):
-    for script in ("guidance_node", "art-guidance"):
+    for script in ("guidance_node", "sim_node", "art-guidance"):
         path = prefix / "lib" / "art_guidance" / script
         assert path.is_file(), f"missing {path}"
         assert os.access(path, os.X_OK)
@@ -51,7 +51,8 @@ def test_installed_cli_runs_from_prefix(prefix):
                          env=env, capture_output=True, text=True, timeout=60, cwd=prefix)
     assert out.returncode == 0, out.stderr
     assert "art-guidance" in out.stdout
-    demo = subprocess.run([sys.executable, str(prefix / "lib/art_guidance/art-guidance"), "demo"],
+    demo = subprocess.run([sys.executable, str(prefix / "lib/art_guidance/art-guidance"), "demo",
+                           "--offline"],
                           env=env, capture_output=True, text=True, timeout=60, cwd=prefix)
     assert demo.returncode == 0, demo.stderr
     assert "free drift" in demo.stdout

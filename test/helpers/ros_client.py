@@ -43,8 +43,10 @@ class Client:
         self.plans: list[tuple[float, ManeuverPlan]] = []
         self.diags: list[tuple[float, dict, str]] = []
         self._cv = threading.Condition()
-        self.node.create_subscription(ManeuverPlan, "guidance/maneuver_plan", self._on_plan, qos)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, qos)
+        self.plan_sub = self.node.create_subscription(ManeuverPlan, "guidance/maneuver_plan",
+                                                      self._on_plan, qos)
+        self.diag_sub = self.node.create_subscription(DiagnosticArray, "/diagnostics",
+                                                      self._on_diag, qos)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self.executor.spin, daemon=True)
@@ -65,10 +67,11 @@ class Client:
     def wait_matched(self, timeout_s: float = 15.0) -> bool:
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
+            # both directions matched at the endpoint level, not just seen in the graph
             if (self.nav_pub.get_subscription_count() > 0
                     and self.req_pub.get_subscription_count() > 0
-                    and self.node.count_publishers("guidance/maneuver_plan") > 0
-                    and self.node.count_publishers("/diagnostics") > 0):
+                    and self.plan_sub.get_publisher_count() > 0
+                    and self.diag_sub.get_publisher_count() > 0):
                 return True
             time.sleep(0.05)
         return False
