@@ -230,13 +230,13 @@ def _cmd_node(args: argparse.Namespace) -> int:
 
 
 def _add_node(sub: argparse._SubParsersAction) -> None:
+    from art_guidance.node import PARAMETERS
+
+    params = ", ".join(f"{k} ({v!r})" for k, v in PARAMETERS.items())
     p = sub.add_parser(
         "node", help="run the ROS 2 guidance node",
-        description=_cmd_node.__doc__ + " Parameters: config_dir, default_waypoint, "
-        "chance_constrained, warm_start, replan_sigma_threshold, replan_period_s, stamp_check "
-        "(wallclock|order|off), max_nav_age_s, max_nav_future_s, solve_deadline_s, "
-        "min_remaining_nodes, samples_per_node. Example: art-guidance node --ros-args "
-        "-p stamp_check:=order")
+        description=f"{_cmd_node.__doc__} Parameters (default): {params}. Example: "
+        "art-guidance node --ros-args -p stamp_check:=order")
     p.add_argument("ros_args", nargs=argparse.REMAINDER,
                    help="passed to rclpy, e.g. --ros-args -p name:=value")
     p.set_defaults(func=_cmd_node)

@@ -17,12 +17,11 @@ import argparse
 import sys
 
 import numpy as np
-import rclpy
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from spin_main import spin_until_shutdown
 
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
 from art_guidance.dynamics import Horizon, orbital_period_s
@@ -146,17 +145,9 @@ def main() -> int:
     parser.add_argument("--replan-every", type=int, default=10)
     parser.add_argument("--drop-first", type=int, default=0, help="ignore the first N fixes")
     args = parser.parse_args()
-    rclpy.init()
-    node = FakeGuidance(args.mode, args.replan_every, args.drop_first)
-    print("fake guidance ready", flush=True)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_until_shutdown(
+        lambda: FakeGuidance(args.mode, args.replan_every, args.drop_first),
+        "fake guidance ready")
 
 
 if __name__ == "__main__":

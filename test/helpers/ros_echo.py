@@ -1,12 +1,11 @@
 """A separate process that echoes art_guidance_msgs messages back: `<type>_in` -> `<type>_out`."""
 import sys
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest, SolveRecord
+from spin_main import spin_until_shutdown
 
 TYPES = {"nav": RelativeNavState, "plan": ManeuverPlan, "replan": ReplanRequest,
          "record": SolveRecord}
@@ -24,17 +23,7 @@ class Echo(Node):
 
 
 def main() -> int:
-    rclpy.init()
-    node = Echo()
-    print("echo ready", flush=True)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_until_shutdown(Echo, "echo ready")
 
 
 if __name__ == "__main__":
