@@ -97,6 +97,9 @@ class GuidanceNode(Node):
             self.scenario, UncertaintyConfig.from_yaml(path("uncertainty.yaml")),
             ScpConfig.from_yaml(path("scp.yaml")), samples_per_node=self.p["samples_per_node"],
             deadline_s=self.p["solve_deadline_s"])
+        if self.p["default_waypoint"] not in self.scenario.waypoints_rtn:
+            raise ConfigError(f"default_waypoint {self.p['default_waypoint']!r} is not one of "
+                              f"{sorted(self.scenario.waypoints_rtn)}")
         self.target = Target(self.p["default_waypoint"],
                              np.asarray(self.scenario.waypoints_rtn[self.p["default_waypoint"]]),
                              self.p["chance_constrained"], self.p["warm_start"], None)
@@ -141,6 +144,10 @@ class GuidanceNode(Node):
                 raise ConfigError(f"parameter {name} must be > 0, got {self.p[name]}")
         if self.p["warm_start"] not in ("auto", "cvx", "art"):
             raise ConfigError("warm_start must be auto, cvx or art")
+        if int(self.p["min_remaining_nodes"]) < 2 or int(self.p["samples_per_node"]) < 1:
+            raise ConfigError("min_remaining_nodes must be >= 2 and samples_per_node >= 1")
+        if int(self.p["record_max_bytes"]) < 4096:
+            raise ConfigError("record_max_bytes must be >= 4096")
 
     # ------------------------------------------------------------------ callbacks
     def _on_nav(self, msg: RelativeNavState) -> None:

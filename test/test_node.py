@@ -1,6 +1,7 @@
 """The guidance node over real DDS, in its own process: plans, bad input, bursts."""
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import time
@@ -128,3 +129,48 @@ def test_burst_keeps_node_responsive_and_plans_newest(client, node_proc):
     assert len(plans_in_burst) < 100, "queued requests were not superseded"
     assert _rss_kb(node_proc.pid) - rss_before < 200_000  # < 200 MB growth
     assert node_proc.poll() is None
+
+
+def test_params_file_is_honoured(ros_env, python_exe, tmp_path):
+    """--params-file with the packaged layout; a changed waypoint reaches the plan."""
+    from art_guidance.config import default_config_dir
+
+    text = (default_config_dir() / "guidance_node.yaml").read_text()
+    params = tmp_path / "params.yaml"
+    params.write_text(text.replace("default_waypoint: plus_vbar", "default_waypoint: minus_rbar")
+                      .replace("record: true", "record: false"))
+    env = dict(ros_env, ROS_DOMAIN_ID=str(int(ros_env["ROS_DOMAIN_ID"]) + 1))
+    proc = subprocess.Popen([python_exe, "-m", "art_guidance.node", "--ros-args",
+                             "--params-file", str(params)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        out = subprocess.run([python_exe, "-c", _PLAN_ONCE], env=env, capture_output=True,
+                             text=True, timeout=90)
+        assert out.returncode == 0, out.stdout + out.stderr
+        final = np.asarray(json.loads(out.stdout.strip().splitlines()[-1]))
+        assert np.allclose(final[:3], [-750.0, 0.0, 0.0], atol=60.0)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=20)
+
+
+_PLAN_ONCE = """
+import json, time, numpy as np
+from ros_client import Client, nav_msg
+from art_guidance.config import ScenarioConfig
+c = Client('params_probe')
+assert c.wait_matched(20.0)
+stamp = time.time_ns()
+c.nav_pub.publish(nav_msg(stamp, np.array(ScenarioConfig().rtn0_nominal)))
+plan = c.plan_for(stamp, 60.0)
+print(json.dumps(np.asarray(plan.rtn).reshape(-1, 6)[-1].tolist()))
+c.close()
+"""
+
+
+def test_bad_parameter_refuses_to_start(ros_env, python_exe):
+    out = subprocess.run([python_exe, "-m", "art_guidance.node", "--ros-args",
+                          "-p", "stamp_check:=sometimes"], env=ros_env, capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 2
+    assert "stamp_check" in out.stderr

@@ -79,3 +79,21 @@ def test_sigterm_finishes_the_bag(ros_env, python_exe, tmp_path):
         plans = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
                  if c.topic == "/guidance/maneuver_plan"]
     assert [p.plan_id for p in plans] == ids
+
+
+def test_unwritable_log_directory_does_not_stop_guidance(ros_env, python_exe):
+    proc = _start(ros_env, python_exe, "/proc/art_guidance_cannot_write_here")
+    client = Client("recording_test_client3")
+    try:
+        assert client.wait_matched(20.0)
+        ids = _plan_ids(client, 2, np.random.default_rng(7))
+        assert len(ids) == 2  # plans still arrive
+        errors = client.wait_for(lambda _, diags: [v for _, v, n in diags
+                                                   if n == "art_guidance/recorder"], 10.0)
+        assert errors, "no recorder error on /diagnostics"
+        assert proc.poll() is None
+    finally:
+        client.close()
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
+    assert proc.returncode == 0
