@@ -50,9 +50,8 @@ def client(node_proc):
 
 
 def test_plan_arrives_for_nav_state(client, node_proc):
-    stamp = time.time_ns()
-    client.nav_pub.publish(nav_msg(stamp, NOMINAL_RTN))
-    assert client.decision_for(stamp) == "replanning"
+    stamp, decision = client.send_nav(NOMINAL_RTN)
+    assert decision == "replanning"
     plan = client.plan_for(stamp, timeout_s=30.0)
     assert plan is not None, "no plan within 30 s"
     assert plan.status in (ManeuverPlan.STATUS_CONVERGED, ManeuverPlan.STATUS_MAX_ITERATIONS)
@@ -156,12 +155,11 @@ def test_params_file_is_honoured(ros_env, python_exe, tmp_path):
 
 _PLAN_ONCE = """
 import json, time, numpy as np
-from ros_client import Client, nav_msg
+from ros_client import Client
 from art_guidance.config import ScenarioConfig
 c = Client('params_probe')
 assert c.wait_matched(20.0)
-stamp = time.time_ns()
-c.nav_pub.publish(nav_msg(stamp, np.array(ScenarioConfig().rtn0_nominal)))
+stamp, _ = c.send_nav(np.array(ScenarioConfig().rtn0_nominal))
 plan = c.plan_for(stamp, 60.0)
 print(json.dumps(np.asarray(plan.rtn).reshape(-1, 6)[-1].tolist()))
 c.close()

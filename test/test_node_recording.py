@@ -30,9 +30,8 @@ def _start(ros_env, python_exe, record_dir):
 def _plan_ids(client, n, rng):
     ids = []
     for _ in range(n):
-        stamp = time.time_ns()
         offset = rng.normal(0.0, 100.0, 6) * [1, 1, 0, 0, 0, 0]
-        client.nav_pub.publish(nav_msg(stamp, NOMINAL_RTN + offset))
+        stamp, _ = client.send_nav(NOMINAL_RTN + offset)
         plan = client.plan_for(stamp, timeout_s=30.0)
         assert plan is not None
         ids.append(plan.plan_id)

@@ -102,6 +102,20 @@ class Client:
             return None
         return self.wait_for(find, timeout_s)
 
+    def send_nav(self, rtn: np.ndarray, attempts: int = 5, wait_s: float = 3.0,
+                 **kwargs) -> tuple[int, str | None]:
+        """Publish a nav fix until the node answers it (the first sample after an endpoint
+        match can be lost while discovery completes on the other side); returns (stamp,
+        decision)."""
+        decision = None
+        for _ in range(attempts):
+            stamp = time.time_ns()
+            self.nav_pub.publish(nav_msg(stamp, rtn, **kwargs))
+            decision = self.decision_for(stamp, wait_s)
+            if decision is not None:
+                break
+        return stamp, decision
+
     def close(self) -> None:
         self.executor.shutdown()
         self._thread.join(timeout=5)
