@@ -10,6 +10,7 @@ import numpy as np
 
 from art_guidance import __version__
 from art_guidance.errors import GuidanceError, InputError
+from art_guidance.files import write_json_atomic
 from art_guidance.generate import add_generate_parser as _add_generate
 
 Handler = Callable[[argparse.Namespace], int]
@@ -42,7 +43,7 @@ def _offline_demo(args: argparse.Namespace) -> int:
         print(f"{horizon.epochs_s[k]:8.0f} {rtn[k, 0]:9.1f} {rtn[k, 1]:9.1f} {rtn[k, 2]:8.1f} "
               f"{dv_mm[k]:12.2f}")
     if args.json:
-        _write_json(args.json, result.to_json())
+        write_json_atomic(args.json, result.to_json())
         print(f"plan written to {args.json}")
     return 0 if result.scp.feasible else 1
 
@@ -144,25 +145,11 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     data = result.to_json()
     data.update(seed=args.seed, waypoint=args.waypoint or sample.waypoint,
                 mode="deterministic" if args.deterministic else "chance")
-    _write_json(args.json, data)
+    write_json_atomic(args.json, data)
     print(f"{result.status.name}: cost {result.cost_mps:.4f} m/s (CVX {result.cvx.cost_mps:.4f}),"
           f" {result.scp.iterations} SCP iterations, margin {result.constraint_margin_m:.2f} m, "
           f"{result.timings_ms['total']:.0f} ms -> {args.json}")
     return 0 if result.scp.feasible else 1
-
-
-def _write_json(path: str, data: dict) -> None:
-    """Write atomically (temp file + rename) so a reader never sees half a file."""
-    import os
-    import tempfile
-    from pathlib import Path
-
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=target.name, suffix=".tmp")
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=1)
-    os.replace(tmp, target)
 
 
 def _add_plan(sub: argparse._SubParsersAction) -> None:
@@ -205,7 +192,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         for key, value in report[name].items():
             print(f"  {key}: {value:.4g}" if isinstance(value, float) else f"  {key}: {value}")
     if args.json:
-        _write_json(args.json, report)
+        write_json_atomic(args.json, report)
     return 0
 
 
@@ -248,7 +235,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
     report = replay(args.log)
     if args.json:
-        _write_json(args.json, report)
+        write_json_atomic(args.json, report)
     for row in report["per_solve"]:
         verdict = {True: "match", False: "MISMATCH", None: "skipped"}[row["match"]]
         extra = (f"cost diff {row['cost_rel_diff']:.1e}, dv diff {row['dv_max_abs_diff_mps']:.1e}"

@@ -62,9 +62,11 @@ from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.ros_adapters import ns_to_stamp, stamp_to_ns
 from art_guidance.sim import (
-    EPOCH_MATCH_S, RendezvousSim, koz_switch_time_s, plot_rendezvous, run_safety_model,
+    EPOCH_MATCH_S, RendezvousSim, koz_switch_time_s, run_safety_model,
     summarize,
 )
+from art_guidance.files import write_json_atomic
+from art_guidance.sim_plot import plot_rendezvous
 
 SIM_EPOCH0_NS = 1_000_000_000 * 1_000_000_000  # sim t = 0 is stamped 1e9 s (2001-09-09)
 DIAG_NAME = "art_guidance/nav"
@@ -456,17 +458,8 @@ class ClosedLoop:
                             None if self.active is None else self.active.rtn,
                             target_rtn=self.target, summary=summary)
         if p["summary_path"]:
-            _write_json(p["summary_path"], summary)
+            write_json_atomic(p["summary_path"], summary)
         return summary, code
-
-
-def _write_json(path: str, data: dict) -> None:
-    """Write atomically (temp file + rename)."""
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(target.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1), encoding="utf-8")
-    os.replace(tmp, target)
 
 
 def _spin(executor: SingleThreadedExecutor) -> None:
