@@ -90,6 +90,44 @@ class PosthocDecision:
 
 
 @dataclass(frozen=True)
+class PosthocThresholds:
+    """Acceptance region of the post hoc check (paper: -1.5 <= 100 E_R <= 3.5, 0 <= E_C <= 2)."""
+
+    e_r_pct_min: float = -1.5
+    e_r_pct_max: float = 3.5
+    e_c_min: float = 0.0
+    e_c_max: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not (self.e_r_pct_min <= self.e_r_pct_max and self.e_c_min <= self.e_c_max):
+            raise InputError("posthoc", "thresholds need min <= max", self)
+
+
+def posthoc_check(dv_rtn_mps: np.ndarray, roe_m: np.ndarray, cvx_cost_mps: float,
+                  safety: PassiveSafety, thresholds: PosthocThresholds) -> PosthocDecision:
+    """Compare a rollout's realised performance with the desired one (paper eq. for E_P).
+
+    The desired reward-to-go is the CVX lower bound (R_des = -J_CVX) and the desired
+    constraint-violation budget is zero, so E_R = (R - R_des) / R_des and E_C = C(t1).
+
+    Args:
+        dv_rtn_mps: (N, 3) rollout controls [m/s].
+        roe_m: (N, 6) rollout states [m] (dynamics in the loop).
+        cvx_cost_mps: J_CVX [m/s].
+        safety: the plan's passive-safety model (gives C(t1)).
+        thresholds: acceptance region.
+    """
+    r_des = -float(cvx_cost_mps)
+    r_art = -float(np.linalg.norm(dv_rtn_mps, axis=1).sum())
+    e_r = (r_art - r_des) / r_des if abs(r_des) > 1e-12 else float("inf")
+    e_c = float(safety.evaluate(roe_m, dv_rtn_mps).constraint_to_go[0])
+    t = thresholds
+    accepted = bool(t.e_r_pct_min <= 100.0 * e_r <= t.e_r_pct_max
+                    and t.e_c_min <= e_c <= t.e_c_max)
+    return PosthocDecision(float(e_r), e_c, accepted)
+
+
+@dataclass(frozen=True)
 class PlanResult:
     """A plan and everything needed to publish, record and replay it."""
 
@@ -131,10 +169,13 @@ class PlanResult:
 
 
 class WarmStartProvider(Protocol):
-    """Proposes a warm start; returns (dv_rtn_mps (N, 3), PosthocDecision) or None."""
+    """Proposes warm-start controls (N, 3) [m/s] for a request, or None (e.g. out of domain).
 
-    def propose(self, request: PlanRequest, horizon: Horizon, safety: PassiveSafety,
-                cvx: ConvexSolution) -> tuple[np.ndarray, PosthocDecision] | None:
+    The pipeline rolls them out through its own dynamics and applies the post hoc check.
+    """
+
+    def propose(self, request: PlanRequest, horizon: Horizon,
+                cvx: ConvexSolution) -> np.ndarray | None:
         ...
 
 
@@ -144,13 +185,15 @@ class GuidancePipeline:
     def __init__(self, scenario: ScenarioConfig | None = None,
                  uncertainty: UncertaintyConfig | None = None, scp: ScpConfig | None = None,
                  provider: WarmStartProvider | None = None, samples_per_node: int = 3,
-                 deadline_s: float | None = None) -> None:
+                 deadline_s: float | None = None,
+                 posthoc: PosthocThresholds | None = None) -> None:
         self.scenario = scenario or ScenarioConfig.from_yaml()
         self.uncertainty = uncertainty or UncertaintyConfig.from_yaml()
         self.scp_config = scp or ScpConfig.from_yaml()
         self.provider = provider
         self.samples_per_node = samples_per_node
         self.deadline_s = deadline_s
+        self.posthoc = posthoc or PosthocThresholds()
         self._cache: dict = {}
 
     def config_json(self) -> dict:
@@ -159,7 +202,7 @@ class GuidancePipeline:
 
         return {"scenario": asdict(self.scenario), "uncertainty": asdict(self.uncertainty),
                 "scp": asdict(self.scp_config), "samples_per_node": self.samples_per_node,
-                "deadline_s": self.deadline_s}
+                "deadline_s": self.deadline_s, "posthoc": asdict(self.posthoc)}
 
     @classmethod
     def from_config_json(cls, data: dict) -> "GuidancePipeline":
@@ -168,7 +211,8 @@ class GuidancePipeline:
             return cls(ScenarioConfig(**data["scenario"]),
                        UncertaintyConfig(**data["uncertainty"]), ScpConfig(**data["scp"]),
                        samples_per_node=data["samples_per_node"],
-                       deadline_s=data["deadline_s"])
+                       deadline_s=data["deadline_s"],
+                       posthoc=PosthocThresholds(**data.get("posthoc", {})))
         except (KeyError, TypeError) as exc:
             raise InputError("config", f"recorded configuration is malformed: {exc!r}") from exc
 
@@ -202,12 +246,19 @@ class GuidancePipeline:
         warm, source, posthoc, t_art, art_dv = cvx.dv_rtn_mps, "cvx", None, 0.0, None
         if request.warm_start in ("auto", "art") and self.provider is not None:
             ta = time.perf_counter()
-            proposal = self.provider.propose(request, horizon, safety, cvx)
-            t_art = 1e3 * (time.perf_counter() - ta)
+            proposal = self.provider.propose(request, horizon, cvx)
             if proposal is not None:
-                art_dv, posthoc = proposal
-                if posthoc.accepted or request.warm_start == "art":
-                    warm, source = proposal[0], "art"
+                try:
+                    art_dv = as_finite_array("warm start", proposal, (horizon.n_nodes, 3))
+                except InputError:  # a broken model output is rejected, never flown
+                    posthoc = PosthocDecision(float("nan"), float("nan"), False)
+                else:
+                    art_roe = horizon.propagate(request.roe0_m, art_dv)
+                    posthoc = posthoc_check(art_dv, art_roe, cvx.cost_mps, safety,
+                                            self.posthoc)
+                    if posthoc.accepted or request.warm_start == "art":
+                        warm, source = art_dv, "art"
+            t_art = 1e3 * (time.perf_counter() - ta)
         elif request.warm_start == "art":
             raise InputError("warm_start", "no learned warm-start model is loaded", "art")
         if not np.all(np.isfinite(warm)):

@@ -1,0 +1,104 @@
+"""GuidancePipeline: the warm-start seam, the post hoc check and the CVX fallback."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from art_guidance.config import ScenarioConfig
+from art_guidance.dataset import sample_scenario
+from art_guidance.dynamics import roe_from_rtn_linear
+from art_guidance.errors import InputError
+from art_guidance.optim import ScpStatus
+from art_guidance.pipeline import (
+    GuidancePipeline, PlanRequest, PosthocThresholds, posthoc_check,
+)
+
+
+class ScaledCvx:
+    """A stand-in learned model: the CVX controls times a factor (cost changes by it)."""
+
+    def __init__(self, factor: float) -> None:
+        self.factor = factor
+        self.calls = 0
+
+    def propose(self, request, horizon, cvx):
+        self.calls += 1
+        return cvx.dv_rtn_mps * self.factor
+
+
+@pytest.fixture(scope="module")
+def request_0():
+    scenario = ScenarioConfig.from_yaml()
+    s = sample_scenario(scenario, 4)
+    chief = np.array(scenario.chief_oe)
+    return scenario, PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
+                                 chance_constrained=False)
+
+
+def test_posthoc_metrics_follow_the_paper_definitions(request_0):
+    scenario, req = request_0
+    pipeline = GuidancePipeline(scenario, provider=ScaledCvx(1.02))
+    result = pipeline.plan(req)
+    ph = result.posthoc
+    # R_art = 1.02 R_des  =>  E_R = (R_art - R_des) / R_des = +0.02
+    assert ph.e_r == pytest.approx(0.02, abs=1e-9)
+    assert ph.e_c == int(ph.e_c) and ph.e_c >= 0  # C(t1) of the rollout, an integer count
+    assert ph.accepted == (ph.e_c <= 2)
+    assert result.art_dv_rtn_mps is not None
+
+
+def test_rejected_rollout_falls_back_to_cvx(request_0):
+    scenario, req = request_0
+    provider = ScaledCvx(0.5)  # half the lower bound: 100 E_R = -50, outside [-1.5, 3.5]
+    result = GuidancePipeline(scenario, provider=provider).plan(req)
+    assert provider.calls == 1
+    assert result.posthoc is not None and not result.posthoc.accepted
+    assert result.posthoc.e_r == pytest.approx(-0.5)
+    assert result.warm_start == "cvx"
+    assert result.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS)
+
+
+def test_accepted_rollout_warm_starts_scp(request_0):
+    scenario, req = request_0
+    wide = PosthocThresholds(e_r_pct_min=-100.0, e_r_pct_max=100.0, e_c_max=1000.0)
+    result = GuidancePipeline(scenario, provider=ScaledCvx(1.01), posthoc=wide).plan(req)
+    assert result.posthoc.accepted and result.warm_start == "art"
+    assert result.scp.feasible
+    assert np.abs(result.rtn[-1, :3] - req.target_rtn[:3]).max() < 100.0  # pre-burn, near it
+
+
+def test_forced_art_uses_the_rollout_even_if_rejected(request_0):
+    scenario, req = request_0
+    forced = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start="art")
+    result = GuidancePipeline(scenario, provider=ScaledCvx(0.5)).plan(forced)
+    assert not result.posthoc.accepted and result.warm_start == "art"
+    cvx_only = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start="cvx")
+    provider = ScaledCvx(1.0)
+    assert GuidancePipeline(scenario, provider=provider).plan(cvx_only).warm_start == "cvx"
+    assert provider.calls == 0
+
+
+def test_broken_provider_output_falls_back_to_cvx(request_0):
+    scenario, req = request_0
+
+    class Broken:
+        def propose(self, request, horizon, cvx):
+            return np.full((horizon.n_nodes, 3), np.nan)
+
+    for warm_start in ("auto", "art"):
+        forced = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start)
+        result = GuidancePipeline(scenario, provider=Broken()).plan(forced)
+        assert result.warm_start == "cvx" and not result.posthoc.accepted
+        assert result.scp.feasible
+
+
+def test_posthoc_check_on_an_unsafe_rollout(request_0):
+    scenario, req = request_0
+    pipeline = GuidancePipeline(scenario)
+    horizon, safety = pipeline._setup(req)
+    dv = np.zeros((horizon.n_nodes, 3))
+    roe = horizon.propagate(req.roe0_m, dv)
+    decision = posthoc_check(dv, roe, 1.0, safety, PosthocThresholds())
+    assert decision.e_r == pytest.approx(-1.0) and not decision.accepted
+    with pytest.raises(InputError):
+        PosthocThresholds(e_r_pct_min=5.0, e_r_pct_max=1.0)
