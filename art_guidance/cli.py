@@ -58,15 +58,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
-    from art_guidance.config import default_config_dir
+    from art_guidance.ros_env import isolated_ros_env
 
     out = Path(args.out).resolve()
     run = out / time.strftime("run_%Y%m%dT%H%M%S")
     run.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain_id or 30 + os.getpid() % 60),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_HOME=str(run / "ros"),
-               ROS_LOG_DIR=str(run / "ros" / "log"),
-               FASTRTPS_DEFAULT_PROFILES_FILE=str(default_config_dir() / "fastdds_localhost.xml"))
+    env = dict(os.environ, **isolated_ros_env(run / "ros",
+                                              args.domain_id or 30 + os.getpid() % 60))
     bag = run / "mcap"
     node_cmd = [sys.executable, "-m", "art_guidance.node", "--ros-args",
                 "-p", "stamp_check:=order", "-p", f"record_dir:={bag}",
@@ -206,13 +204,8 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_node(args: argparse.Namespace) -> int:
     """Run the ROS 2 guidance node (same as `ros2 run art_guidance guidance_node`)."""
-    import os
-
-    from art_guidance.config import default_config_dir
     from art_guidance.node import main as node_main
 
-    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE",
-                          str(default_config_dir() / "fastdds_localhost.xml"))
     return node_main(["guidance_node", *args.ros_args])
 
 

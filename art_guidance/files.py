@@ -1,21 +1,41 @@
-"""Small file helpers shared by the command line and the processes."""
+"""Small file helpers shared by the command line, the storage and the processes."""
 from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
+
+TMP_SUFFIX = ".tmp"
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: str | Path, data: bytes) -> None:
+    """Write `data` atomically: temp file in the same directory, fsync, rename, fsync the dir.
+
+    A reader (or a crash) never sees half a file; the temp name ends in `TMP_SUFFIX`.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}{TMP_SUFFIX}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
 
 
 def write_json_atomic(path: str | Path, data: object) -> None:
-    """Write JSON via a temp file in the same directory and a rename: never half a file."""
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=target.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=1)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """`write_atomic` of indented JSON."""
+    write_atomic(path, json.dumps(data, indent=1).encode())

@@ -30,6 +30,7 @@ from art_guidance.dynamics import control_matrix, orbital_period_s, propagate_me
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.pipeline import GuidancePipeline, PlanRequest, PlanResult
 from art_guidance.recorder import McapRecorder, default_log_dir
+from art_guidance.ros_env import use_fast_discovery
 from art_guidance.ros_adapters import (
     NavState, Target, diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg,
     status_plan_msg, target_from_msg,
@@ -367,6 +368,7 @@ def _versions() -> dict:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the node until SIGINT/SIGTERM (Jazzy-correct shutdown order)."""
+    use_fast_discovery()
     rclpy.init(args=list(argv) if argv is not None else sys.argv)
     node = None
     executor = SingleThreadedExecutor()

@@ -28,6 +28,8 @@ from typing import Iterable
 from mcap.writer import CompressionType, Writer
 from mcap_ros2._dynamic import serialize_dynamic
 
+from art_guidance.files import write_atomic
+
 LOG = logging.getLogger("art_guidance.recorder")
 SEPARATOR = "=" * 80
 TOPICS = {
@@ -214,9 +216,7 @@ class McapRecorder:
             f"  message_count: {sum(self.counts.values())}\n"
             f"  topics_with_message_count:\n{topics}"
             "  compression_format: ''\n  compression_mode: ''\n")
-        tmp = self.directory / "metadata.yaml.tmp"
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, self.directory / "metadata.yaml")
+        write_atomic(self.directory / "metadata.yaml", text.encode())
 
 
 def _plain(msg: object) -> SimpleNamespace:

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import threading
 import time
@@ -56,7 +55,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from art_guidance.config import ScenarioConfig, UncertaintyConfig, default_config_dir
+from art_guidance.config import ScenarioConfig, UncertaintyConfig
 from art_guidance.dataset import sample_scenario
 from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import GuidanceError, InputError
@@ -66,6 +65,7 @@ from art_guidance.sim import (
     summarize,
 )
 from art_guidance.files import write_json_atomic
+from art_guidance.ros_env import use_fast_discovery
 from art_guidance.sim_plot import plot_rendezvous
 
 SIM_EPOCH0_NS = 1_000_000_000 * 1_000_000_000  # sim t = 0 is stamped 1e9 s (2001-09-09)
@@ -476,9 +476,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: full argument vector (program name first), e.g. ``["sim", "--ros-args", "-p",
             "seed:=3"]``; None uses sys.argv.
     """
-    profile = default_config_dir() / "fastdds_localhost.xml"
-    if profile.is_file():
-        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(profile))
+    use_fast_discovery()
     try:
         rclpy.init(args=list(argv) if argv is not None else sys.argv)
     except Exception as exc:  # RCLError on unparsable --ros-args (e.g. `-p name:=`)

@@ -31,13 +31,13 @@ from typing import Any, Iterable
 import numpy as np
 
 from art_guidance.errors import ConfigError, GuidanceError, InputError
+from art_guidance.files import TMP_SUFFIX, write_atomic
 
 FORMAT_VERSION = 1
 MANIFEST = "manifest.jsonl"
 SPLIT = "split.json"
 SUMMARY = "summary.json"
 LOCK = ".lock"
-TMP_SUFFIX = ".tmp"
 TEST_FRACTION = 0.1
 SPLIT_STREAM = 0x5E17  # second SeedSequence word: the split never reuses a scenario stream
 _SHARD_RE = re.compile(r"^shard-(\d{6,})\.npz$")
@@ -67,25 +67,6 @@ def train_test_split(base_seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     perm = rng.permutation(int(n))
     n_test = int(round(TEST_FRACTION * n))
     return np.sort(perm[n_test:]).astype(np.int64), np.sort(perm[:n_test]).astype(np.int64)
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write `data` to `path` atomically: temp file in the same directory, fsync, os.replace."""
-    tmp = path.with_name(f"{path.name}.{os.getpid()}{TMP_SUFFIX}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
 
 
 def encode_shard(arrays: dict[str, np.ndarray]) -> bytes:

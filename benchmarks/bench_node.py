@@ -21,26 +21,18 @@ from tqdm import tqdm
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.pipeline import GuidancePipeline, PlanRequest
+from art_guidance.ros_env import isolated_ros_env
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _env() -> dict:
-    home = tempfile.mkdtemp(prefix="art_guidance_bench_")
-    env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_HOME=home,
-               ROS_LOG_DIR=f"{home}/log",
-               FASTRTPS_DEFAULT_PROFILES_FILE=str(REPO / "config/fastdds_localhost.xml"))
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO / "test/helpers"), env.get("PYTHONPATH", "")])
-    return env
-
-
 def run(repeats: int = 30) -> dict:
     """Latency over `repeats` plans; returns p50/p95 [ms] and the in-process reference."""
-    env = _env()
-    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE",
-                                           "ROS_HOME", "ROS_LOG_DIR",
-                                           "FASTRTPS_DEFAULT_PROFILES_FILE")})
+    ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_bench_"),
+                           150 + os.getpid() % 50)
+    os.environ.update(ros)  # this process is the client
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO / "test/helpers"), env.get("PYTHONPATH", "")])
     sys.path.insert(0, str(REPO / "test/helpers"))
     from ros_client import Client, nav_msg
 

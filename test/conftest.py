@@ -8,21 +8,17 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from art_guidance.ros_env import isolated_ros_env
+
 HELPERS = Path(__file__).resolve().parent / "helpers"
 
 
 def _ros_env() -> dict[str, str]:
-    home = Path(tempfile.mkdtemp(prefix="art_guidance_ros_"))
-    return {
-        # Own domain per session so concurrent runs on one machine do not cross-talk.
-        "ROS_DOMAIN_ID": str(100 + os.getpid() % 100),
-        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-        "ROS_HOME": str(home),
-        "ROS_LOG_DIR": str(home / "log"),
-        "FASTRTPS_DEFAULT_PROFILES_FILE": str(REPO / "config" / "fastdds_localhost.xml"),
-        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
-    }
+    # Own domain per session so concurrent runs on one machine do not cross-talk.
+    env = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_ros_"),
+                           100 + os.getpid() % 100)
+    env["RMW_IMPLEMENTATION"] = "rmw_fastrtps_cpp"
+    return env
 
 
 ROS_ENV = _ros_env()

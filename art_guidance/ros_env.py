@@ -1,0 +1,34 @@
+"""The ROS 2 environment the processes and tests run in: loopback discovery, own domain."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from art_guidance.config import default_config_dir
+
+PROFILE_VAR = "FASTRTPS_DEFAULT_PROFILES_FILE"
+
+
+def fast_discovery_profile() -> Path:
+    """The packaged Fast DDS profile with faster loopback discovery."""
+    return default_config_dir() / "fastdds_localhost.xml"
+
+
+def use_fast_discovery() -> None:
+    """Point Fast DDS at the packaged profile unless the caller chose one (before rclpy.init)."""
+    profile = fast_discovery_profile()
+    if profile.is_file():
+        os.environ.setdefault(PROFILE_VAR, str(profile))
+
+
+def isolated_ros_env(home: str | Path, domain_id: int) -> dict[str, str]:
+    """Variables for processes that must talk only to each other on this machine.
+
+    Args:
+        home: ROS_HOME for logs (created by ROS on first use).
+        domain_id: ROS_DOMAIN_ID shared by the processes (0-232).
+    """
+    home = Path(home)
+    return {"ROS_DOMAIN_ID": str(int(domain_id)), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+            "ROS_HOME": str(home), "ROS_LOG_DIR": str(home / "log"),
+            PROFILE_VAR: str(fast_discovery_profile())}
