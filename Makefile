@@ -6,13 +6,14 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip --disable-pip-version-check -q
+CONSTRAINTS := .ci/constraints.txt
 BUILD := build
 MSG_SRC := $(wildcard msg_schemas/msg/*.msg) msg_schemas/CMakeLists.txt msg_schemas/package.xml
 ROS_ENV := VIRTUAL_ENV=$(abspath $(VENV)) AMENT_PREFIX_PATH=$(abspath $(VENV)) \
 	PATH=$(abspath $(VENV))/bin:$$PATH
 PYTEST_ARGS ?=
 
-.PHONY: all setup test test-fast demo lint bench clean distclean
+.PHONY: all setup test test-fast demo lint bench lock clean distclean
 
 all: setup
 
@@ -20,8 +21,9 @@ $(VENV)/.stamp-venv:
 	$(PYTHON) -m venv $(VENV)
 	touch $@
 
-$(VENV)/.stamp-ros: $(VENV)/.stamp-venv .ci/requirements-ros.txt .ci/fix_ros_cmake_paths.py
-	$(PIP) install -r .ci/requirements-ros.txt 2>&1 | sed "/^WARNING: Location/d"
+$(VENV)/.stamp-ros: $(VENV)/.stamp-venv .ci/requirements-ros.txt .ci/fix_ros_cmake_paths.py \
+		$(CONSTRAINTS)
+	$(PIP) install -c $(CONSTRAINTS) -r .ci/requirements-ros.txt 2>&1 | sed "/^WARNING: Location/d"
 	$(PY) -c "import rclpy, rosidl_adapter" >/dev/null
 	$(PY) .ci/fix_ros_cmake_paths.py
 	touch $@
@@ -38,8 +40,8 @@ $(VENV)/.stamp-msgs: $(VENV)/.stamp-ros $(MSG_SRC)
 	$(PY) -c "from art_guidance_msgs.msg import ManeuverPlan"
 	touch $@
 
-$(VENV)/.stamp-pkg: $(VENV)/.stamp-msgs setup.py setup.cfg Makefile
-	$(PIP) install -e ".[test,distributed]" 2>&1 | sed "/^WARNING: Location/d"
+$(VENV)/.stamp-pkg: $(VENV)/.stamp-msgs setup.py setup.cfg Makefile $(CONSTRAINTS)
+	$(PIP) install -c $(CONSTRAINTS) -e ".[test,distributed]" 2>&1 | sed "/^WARNING: Location/d"
 	$(PY) -c "import art_guidance, torch, clarabel, osqp, cvxpy, rosbags, mcap_ros2" >/dev/null
 	touch $@
 
@@ -60,6 +62,19 @@ demo: setup
 
 bench: setup
 	$(VENV)/bin/art-guidance bench all
+
+# Re-resolve every dependency from the registries (newest allowed versions) and rewrite the pins.
+lock:
+	rm -rf $(BUILD)/lock-venv
+	$(PYTHON) -m venv $(BUILD)/lock-venv
+	$(BUILD)/lock-venv/bin/python -m pip --disable-pip-version-check -q install \
+		-r .ci/requirements-ros.txt ".[test,distributed]" 2>&1 | sed "/^WARNING: Location/d"
+	head -3 $(CONSTRAINTS) > $(BUILD)/constraints.txt
+	$(BUILD)/lock-venv/bin/python -m pip freeze --exclude art_guidance \
+		| sed 's/^torch==\([0-9.]*\)+cpu$$/torch==\1/' >> $(BUILD)/constraints.txt
+	mv $(BUILD)/constraints.txt $(CONSTRAINTS)
+	rm -rf $(BUILD)/lock-venv
+	@echo "pins rewritten: git diff $(CONSTRAINTS)"
 
 clean:
 	rm -rf $(BUILD) .pytest_cache out

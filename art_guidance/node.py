@@ -75,6 +75,7 @@ class Job:
 class ActivePlan:
     """The newest successful plan, in absolute time."""
 
+    plan_id: str
     t0_ns: int
     result: PlanResult
     end_ns: int
@@ -266,9 +267,9 @@ class GuidanceNode(Node):
                 self._solve(job)
             except Exception as exc:  # the worker must survive anything
                 self.get_logger().error(f"planning failed: {type(exc).__name__}: {exc}")
-                self.plan_pub.publish(status_plan_msg(job.nav.stamp_ns, self._next_id(),
-                                                      ManeuverPlan.STATUS_SOLVER_ERROR,
-                                                      f"{type(exc).__name__}: {exc}"))
+                self.plan_pub.publish(status_plan_msg(
+                    job.nav.stamp_ns, self._next_id(), ManeuverPlan.STATUS_SOLVER_ERROR,
+                    f"{type(exc).__name__}: {exc}", self._active_id()))
             finally:
                 with self._lock:
                     self._busy = False
@@ -281,20 +282,33 @@ class GuidanceNode(Node):
         result = self.pipeline.plan(request)
         plan_id = self._next_id()
         plan_msg = plan_to_msg(result, job.nav.stamp_ns, plan_id)
+        with self._lock:
+            # An unusable replan never replaces the plan in force: the node keeps flying it.
+            if result.scp.feasible:
+                self._activate(job, result, plan_id)
+            active_id = self._active_id()
+        plan_msg.active_plan_id = active_id
+        if result.scp.feasible:
+            action = "activated"
+        else:
+            action = "kept_active_plan" if active_id else "no_plan"
+            plan_msg.status_text = (
+                f"{result.status.name}: replan not usable (margin "
+                f"{result.constraint_margin_m:.2f} m after {result.scp.iterations} "
+                f"iterations); " + (f"plan {active_id} stays in force" if active_id
+                                    else "no plan is in force"))
         # recorded (and fsync'ed) before it is published: a crash never loses a published plan
         self._record(job, result, plan_id, plan_msg)
         self.plan_pub.publish(plan_msg)
         self.stats["plans"] += 1
-        if result.scp.feasible:
-            with self._lock:
-                self._activate(job, result)
         level = OK if result.scp.feasible else WARN
         self.get_logger().info(
             f"{plan_id} ({job.trigger}): {result.status.name}, {result.cost_mps:.4f} m/s, "
             f"{result.scp.iterations} it, margin {result.constraint_margin_m:.2f} m, "
-            f"{result.timings_ms['total']:.0f} ms")
-        self._publish_diag("art_guidance/plan", level, result.status.name,
+            f"{result.timings_ms['total']:.0f} ms; {action} (in force: {active_id or 'none'})")
+        self._publish_diag("art_guidance/plan", level, f"{result.status.name}: {action}",
                            {"plan_id": plan_id, "nav_stamp_ns": str(job.nav.stamp_ns),
+                            "action": action, "active_plan_id": active_id,
                             "cost_mps": result.cost_mps,
                             "solve_time_ms": result.timings_ms["total"]})
 
@@ -313,16 +327,21 @@ class GuidanceNode(Node):
             self._publish_diag("art_guidance/recorder", ERROR, self.recorder.last_error,
                                {"errors": self.recorder.errors})
 
-    def _activate(self, job: Job, result: PlanResult) -> None:
+    def _activate(self, job: Job, result: PlanResult, plan_id: str) -> None:
         dt_s = float(result.epochs_s[1] - result.epochs_s[0])
         t0 = job.nav.stamp_ns
         if self._active is None:
             switch_ns = t0 + int(self.scenario.ae_to_koz_node * dt_s * 1e9)
         else:
             switch_ns = self._active.switch_ns
-        self._active = ActivePlan(t0, result, t0 + int(round(result.epochs_s[-1] * 1e9)),
-                                  dt_s, switch_ns)
+        self._active = ActivePlan(plan_id, t0, result,
+                                  t0 + int(round(result.epochs_s[-1] * 1e9)), dt_s, switch_ns)
         self._last_plan_ns = t0
+
+    def _active_id(self) -> str:
+        """Id of the plan in force ("" = none)."""
+        active = self._active
+        return "" if active is None else active.plan_id
 
     def _next_id(self) -> str:
         return f"plan-{next(self._ids)}"
@@ -332,7 +351,8 @@ class GuidanceNode(Node):
         self.stats["rejected"] += 1
         self.get_logger().warning(f"nav message rejected: {reason}")
         self.plan_pub.publish(status_plan_msg(stamp_ns, "rejected",
-                                              ManeuverPlan.STATUS_REJECTED_INPUT, reason))
+                                              ManeuverPlan.STATUS_REJECTED_INPUT, reason,
+                                              self._active_id()))
         self._diag(stamp_ns, WARN, "rejected", {"reason": reason})
 
     def _diag(self, stamp_ns: int, level: int, decision: str, extra: dict) -> None:
@@ -358,7 +378,8 @@ def _versions() -> dict:
     from importlib.metadata import PackageNotFoundError, version
 
     out = {}
-    for pkg in ("art_guidance", "clarabel", "osqp", "numpy", "scipy", "mcap", "torch"):
+    for pkg in ("art_guidance", "clarabel", "osqp", "numpy", "scipy", "mcap",
+                "mcap-ros2-support", "torch", "rclpy"):
         try:
             out[pkg] = version(pkg)
         except PackageNotFoundError:

@@ -151,12 +151,14 @@ def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str,
     return msg
 
 
-def status_plan_msg(stamp_ns: int, plan_id: str, status: int, text: str) -> ManeuverPlan:
+def status_plan_msg(stamp_ns: int, plan_id: str, status: int, text: str,
+                    active_plan_id: str = "") -> ManeuverPlan:
     """A ManeuverPlan carrying only a status (no maneuvers), e.g. for rejected input."""
     msg = ManeuverPlan()
     ns_to_stamp(msg.header.stamp, stamp_ns)
     msg.header.frame_id = "chief_rtn"
     msg.plan_id, msg.status, msg.status_text = plan_id, int(status), text[:500]
+    msg.active_plan_id = active_plan_id
     return msg
 
 

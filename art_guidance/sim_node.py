@@ -316,6 +316,7 @@ class ClosedLoop:
         self.executed: set[tuple[int, int]] = set()
         self.sent: set[int] = set()  # nav stamps published by this run
         self.counts = {"steps": 0, "plans_received": 0, "replans": 0, "plans_failed": 0,
+                       "replans_kept_active": 0,
                        "plans_foreign": 0, "idle_steps": 0, **{d: 0 for d in DECISIONS}}
         self._seen_plans = 0
 
@@ -407,9 +408,10 @@ class ClosedLoop:
                 continue  # the answer to a rejected nav fix, not a replan
             self.counts["replans"] += 1
             if msg.status not in USABLE_STATUSES:
-                self.counts["plans_failed"] += 1
-                self.log.warning(f"plan {msg.plan_id} not usable: status {msg.status} "
-                                 f"{msg.status_text}")
+                kept = self.active is not None and msg.active_plan_id == self.active.plan_id
+                # the guidance keeps the plan in force: so does the simulator
+                self.counts["replans_kept_active" if kept else "plans_failed"] += 1
+                self.log.warning(f"plan {msg.plan_id} not usable: {msg.status_text}")
                 continue
             try:
                 plan = parse_plan(msg, self.node.epoch0_ns)

@@ -65,6 +65,31 @@ def test_plan_arrives_for_nav_state(client, node_proc):
     assert node_proc.poll() is None
 
 
+def test_unusable_replan_keeps_the_plan_in_force(client, node_proc):
+    """A replan that cannot be made safe never replaces the active plan, and says so."""
+    stamp, decision = client.send_nav(NOMINAL_RTN + [300.0, 0, 0, 0, 0, 0])  # off the plan
+    assert decision == "replanning"
+    first = client.plan_for(stamp, timeout_s=30.0)
+    assert first is not None and first.status in (ManeuverPlan.STATUS_CONVERGED,
+                                                  ManeuverPlan.STATUS_MAX_ITERATIONS)
+    assert first.active_plan_id == first.plan_id
+    # 300 m from the target, inside the 1 km approach ellipsoid: no burn can make it safe
+    inside = np.array([0.0, 300.0, 0.0, 0.0, 0.0, 0.0])
+    stamp = time.time_ns()
+    client.nav_pub.publish(nav_msg(stamp, inside))
+    assert client.decision_for(stamp) == "replanning"
+    failed = client.plan_for(stamp, timeout_s=30.0)
+    assert failed is not None and failed.status == ManeuverPlan.STATUS_INFEASIBLE
+    assert failed.constraint_margin_m < 0.0
+    assert failed.active_plan_id == first.plan_id
+    assert f"plan {first.plan_id} stays in force" in failed.status_text
+    diag = client.wait_for(lambda _, diags: next(
+        (v for _, v, n in diags if n == "art_guidance/plan"
+         and v.get("plan_id") == failed.plan_id), None), 10.0)
+    assert diag["action"] == "kept_active_plan" and diag["active_plan_id"] == first.plan_id
+    assert node_proc.poll() is None
+
+
 def _bad_messages(now: int) -> dict[str, RelativeNavState]:
     nan = NOMINAL_RTN.copy()
     nan[1] = np.nan
