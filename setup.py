@@ -39,8 +39,8 @@ setup(
     license="MIT",
     entry_points={
         "console_scripts": [
-            f"guidance_node = {PACKAGE}.node:main",
-            f"sim_node = {PACKAGE}.sim_node:main",
+            f"guidance_node = {PACKAGE}.ros.guidance_node:main",
+            f"sim_node = {PACKAGE}.ros.sim_node:main",
             f"art-guidance = {PACKAGE}.cli:main",
         ],
     },

@@ -13,10 +13,10 @@ import tempfile
 
 import numpy as np
 
-from art_guidance.dataset import STAGES
-from art_guidance.generate import generate
+from art_guidance.data.stages import STAGES
+from art_guidance.data.generate import generate
 from art_guidance.optim import ScpStatus
-from art_guidance.storage import load_dataset
+from art_guidance.data.storage import load_dataset
 
 WORKERS = 2
 

@@ -20,8 +20,8 @@ from tqdm import tqdm
 
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.pipeline import GuidancePipeline, PlanRequest
-from art_guidance.ros_env import isolated_ros_env
+from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest
+from art_guidance.ros.env import isolated_ros_env
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -36,7 +36,7 @@ def run(repeats: int = 30) -> dict:
     sys.path.insert(0, str(REPO / "test/helpers"))
     from ros_client import Client, nav_msg
 
-    proc = subprocess.Popen([sys.executable, "-m", "art_guidance.node", "--ros-args",
+    proc = subprocess.Popen([sys.executable, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "-p", "replan_sigma_threshold:=1e-9"], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     client = Client("art_guidance_bench_client")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from art_guidance.ros_env import isolated_ros_env
+from art_guidance.ros.env import isolated_ros_env
 
 HELPERS = Path(__file__).resolve().parent / "helpers"
 

@@ -6,7 +6,7 @@ import subprocess
 
 import pytest
 
-from art_guidance.replay import read_log, replay
+from art_guidance.record.replay import read_log, replay
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

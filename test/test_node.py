@@ -29,7 +29,7 @@ def _rss_kb(pid: int) -> int:
 
 @pytest.fixture(scope="module")
 def node_proc(ros_env, python_exe):
-    proc = subprocess.Popen([python_exe, "-m", "art_guidance.node", "--ros-args",
+    proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "-p", "solve_deadline_s:=10.0"],
                             env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
@@ -164,7 +164,7 @@ def test_params_file_is_honoured(ros_env, python_exe, tmp_path):
     params.write_text(text.replace("default_waypoint: plus_vbar", "default_waypoint: minus_rbar")
                       .replace("record: true", "record: false"))
     env = dict(ros_env, ROS_DOMAIN_ID=str(int(ros_env["ROS_DOMAIN_ID"]) + 1))
-    proc = subprocess.Popen([python_exe, "-m", "art_guidance.node", "--ros-args",
+    proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "--params-file", str(params)], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -192,7 +192,7 @@ c.close()
 
 
 def test_bad_parameter_refuses_to_start(ros_env, python_exe):
-    out = subprocess.run([python_exe, "-m", "art_guidance.node", "--ros-args",
+    out = subprocess.run([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                           "-p", "stamp_check:=sometimes"], env=ros_env, capture_output=True,
                          text=True, timeout=60)
     assert out.returncode == 2

@@ -14,7 +14,7 @@ from rosbags.highlevel import AnyReader  # noqa: E402
 from ros_client import Client, nav_msg  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
-from art_guidance.replay import read_log, replay  # noqa: E402
+from art_guidance.record.replay import read_log, replay  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
@@ -27,7 +27,7 @@ def _node_with_client(ros_env, python_exe, record_dir, name):
     The client is closed on exit and a node still running is killed; stopping it properly is
     the test's business.
     """
-    proc = subprocess.Popen([python_exe, "-m", "art_guidance.node", "--ros-args",
+    proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "-p", f"record_dir:={record_dir}",
                              "-p", "replan_sigma_threshold:=1e-9"],
                             env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from art_guidance.config import ScenarioConfig
-from art_guidance.dataset import sample_scenario
+from art_guidance.data.stages import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import InputError
 from art_guidance.optim import ScpStatus
-from art_guidance.pipeline import (
+from art_guidance.planning.pipeline import (
     GuidancePipeline, PlanRequest, PosthocThresholds, posthoc_check,
 )
 

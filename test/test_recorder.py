@@ -10,12 +10,12 @@ from ros_client import nav_msg
 
 from art_guidance.cli import main as cli_main
 from art_guidance.config import ScenarioConfig
-from art_guidance.dataset import sample_scenario
+from art_guidance.data.stages import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.pipeline import GuidancePipeline, PlanRequest
-from art_guidance.recorder import TOPICS, McapRecorder, ros2msg_schema
-from art_guidance.replay import read_log, replay
-from art_guidance.ros_adapters import plan_to_msg, solve_record_msg
+from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest
+from art_guidance.record.recorder import TOPICS, McapRecorder, ros2msg_schema
+from art_guidance.record.replay import read_log, replay
+from art_guidance.ros.adapters import plan_to_msg, solve_record_msg
 
 AnyReader = pytest.importorskip("rosbags.highlevel").AnyReader
 

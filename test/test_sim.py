@@ -11,11 +11,11 @@ from matplotlib.image import imread
 from art_guidance import dynamics as dyn
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
 from art_guidance.errors import InputError
-from art_guidance.sim import (
+from art_guidance.sim.simulator import (
     RendezvousSim, koz_switch_time_s, mean_elements_of_chief, propagate_truth,
     run_safety_model, summarize,
 )
-from art_guidance.sim_plot import plot_rendezvous
+from art_guidance.sim.plot import plot_rendezvous
 
 # Constants typed in from PHYSICS.md (independent of the package).
 MU = 3.986004415e14

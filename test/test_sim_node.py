@@ -2,7 +2,7 @@
 
 `test/helpers/fake_guidance.py` implements the protocol trivially (a hand-made 3-node plan, or
 GuidancePipeline plans over the remaining horizon every 10 fixes); the simulator runs as
-`python -m art_guidance.sim_node` with ROS parameters.
+`python -m art_guidance.ros.sim_node` with ROS parameters.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ pytest.importorskip("rclpy")
 from art_guidance_msgs.msg import ManeuverPlan  # noqa: E402
 
 from art_guidance.errors import InputError  # noqa: E402
-from art_guidance.sim_node import (  # noqa: E402
+from art_guidance.ros.sim_node import (  # noqa: E402
     SIM_EPOCH0_NS, add_sim_parser, exit_code, parse_plan, sim_argv, sim_stamp_ns, sim_time_s,
 )
 
@@ -47,7 +47,7 @@ def _stop(proc: subprocess.Popen) -> str:
 
 def _run_sim(ros_env, python_exe, tmp_path, params: dict[str, str], timeout_s: float = 60.0):
     png, summary = tmp_path / "run.png", tmp_path / "summary.json"
-    argv = [python_exe, "-m", "art_guidance.sim_node", "--ros-args",
+    argv = [python_exe, "-m", "art_guidance.ros.sim_node", "--ros-args",
             "-p", f"png_path:={png}", "-p", f"summary_path:={summary}"]
     for name, value in params.items():
         argv += ["-p", f"{name}:={value}"]
@@ -139,7 +139,7 @@ def test_sim_without_guidance_gives_up_and_reports(ros_env, python_exe, tmp_path
     args = parser.parse_args(["sim", "--waypoint", "minus_vbar", "--seed", "4",
                               "--deterministic", "--png", str(png), "--summary-json",
                               str(summary), "--step-timeout", "2"])
-    argv = [python_exe, "-m", "art_guidance.sim_node", *sim_argv(args)[1:]]
+    argv = [python_exe, "-m", "art_guidance.ros.sim_node", *sim_argv(args)[1:]]
     out = subprocess.run(argv, env=ros_env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 1, out.stderr
     s = _summary_line(out.stdout)

@@ -27,12 +27,12 @@ import numpy as np
 from tqdm import tqdm
 
 from art_guidance.config import ScenarioConfig
-from art_guidance.dataset import (
+from art_guidance.data.stages import (
     KEPT_INFEASIBLE, MODES, SEED_RULE, SEED_STRIDE, STAGES, GenerationSpec, generate_chunk,
 )
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ScpStatus
-from art_guidance.storage import SUMMARY, DatasetWriter, aggregate_stats
+from art_guidance.data.storage import SUMMARY, DatasetWriter, aggregate_stats
 
 Engine = Callable[[GenerationSpec, list[list[int]], int, str | None], Iterator[dict]]
 ENGINES = ("local", "ray")

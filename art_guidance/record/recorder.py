@@ -30,7 +30,7 @@ from mcap_ros2._dynamic import serialize_dynamic
 
 from art_guidance.files import write_atomic
 
-LOG = logging.getLogger("art_guidance.recorder")
+LOG = logging.getLogger("art_guidance.record.recorder")
 SEPARATOR = "=" * 80
 TOPICS = {
     "/nav/relative_state": "art_guidance_msgs/msg/RelativeNavState",

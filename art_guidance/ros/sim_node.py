@@ -56,17 +56,17 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
-from art_guidance.dataset import sample_scenario
+from art_guidance.data.stages import sample_scenario
 from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import GuidanceError, InputError
-from art_guidance.ros_adapters import ns_to_stamp, stamp_to_ns
-from art_guidance.sim import (
+from art_guidance.ros.adapters import ns_to_stamp, stamp_to_ns
+from art_guidance.sim.simulator import (
     EPOCH_MATCH_S, RendezvousSim, koz_switch_time_s, run_safety_model,
     summarize,
 )
 from art_guidance.files import write_json_atomic
-from art_guidance.ros_env import use_fast_discovery
-from art_guidance.sim_plot import plot_rendezvous
+from art_guidance.ros.env import use_fast_discovery
+from art_guidance.sim.plot import plot_rendezvous
 
 SIM_EPOCH0_NS = 1_000_000_000 * 1_000_000_000  # sim t = 0 is stamped 1e9 s (2001-09-09)
 DIAG_NAME = "art_guidance/nav"

@@ -11,7 +11,7 @@ import numpy as np
 from art_guidance import __version__
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.files import write_json_atomic
-from art_guidance.generate import add_generate_parser as _add_generate
+from art_guidance.data.generate import add_generate_parser as _add_generate
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -20,7 +20,7 @@ def _offline_demo(args: argparse.Namespace) -> int:
     """Plan the paper's nominal transfer: free drift, CVX, then chance-constrained SCVx*."""
     from art_guidance.config import ScenarioConfig
     from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
-    from art_guidance.pipeline import GuidancePipeline, PlanRequest
+    from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest
 
     scenario = ScenarioConfig.from_yaml(args.scenario)
     chief = np.array(scenario.chief_oe)
@@ -58,7 +58,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
-    from art_guidance.ros_env import isolated_ros_env
+    from art_guidance.ros.env import isolated_ros_env
 
     out = Path(args.out).resolve()
     run = out / time.strftime("run_%Y%m%dT%H%M%S")
@@ -66,10 +66,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     env = dict(os.environ, **isolated_ros_env(run / "ros",
                                               args.domain_id or 30 + os.getpid() % 60))
     bag = run / "mcap"
-    node_cmd = [sys.executable, "-m", "art_guidance.node", "--ros-args",
+    node_cmd = [sys.executable, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                 "-p", "stamp_check:=order", "-p", f"record_dir:={bag}",
                 "-p", f"default_waypoint:={args.waypoint}"]
-    sim_cmd = [sys.executable, "-m", "art_guidance.sim_node", "--ros-args",
+    sim_cmd = [sys.executable, "-m", "art_guidance.ros.sim_node", "--ros-args",
                "-p", f"waypoint:={args.waypoint}", "-p", f"seed:={args.seed}",
                "-p", f"png_path:={run / 'rendezvous.png'}",
                "-p", f"summary_path:={run / 'summary.json'}"]
@@ -124,9 +124,9 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 def _cmd_plan(args: argparse.Namespace) -> int:
     """Plan one randomised transfer of the paper scenario and write it as JSON."""
     from art_guidance.config import ScenarioConfig
-    from art_guidance.dataset import sample_scenario
+    from art_guidance.data.stages import sample_scenario
     from art_guidance.dynamics import roe_from_rtn_linear
-    from art_guidance.pipeline import GuidancePipeline, PlanRequest
+    from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest
 
     scenario = ScenarioConfig.from_yaml(args.scenario)
     sample = sample_scenario(scenario, args.seed)
@@ -171,7 +171,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     import importlib.util
     from pathlib import Path
 
-    root = Path(__file__).resolve().parent.parent / "benchmarks"
+    root = Path(__file__).resolve().parents[2] / "benchmarks"
     names = sorted(p.stem[len("bench_"):] for p in root.glob("bench_*.py"))
     if not names:
         raise InputError("bench", "benchmarks/ not found (run from a source checkout)")
@@ -204,13 +204,13 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_node(args: argparse.Namespace) -> int:
     """Run the ROS 2 guidance node (same as `ros2 run art_guidance guidance_node`)."""
-    from art_guidance.node import main as node_main
+    from art_guidance.ros.guidance_node import main as node_main
 
     return node_main(["guidance_node", *args.ros_args])
 
 
 def _add_node(sub: argparse._SubParsersAction) -> None:
-    from art_guidance.node import PARAMETERS
+    from art_guidance.ros.guidance_node import PARAMETERS
 
     params = ", ".join(f"{k} ({v!r})" for k, v in PARAMETERS.items())
     p = sub.add_parser(
@@ -224,7 +224,7 @@ def _add_node(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     """Re-solve every request recorded in an MCAP log (file or bag folder) and compare plans."""
-    from art_guidance.replay import replay
+    from art_guidance.record.replay import replay
 
     report = replay(args.log)
     if args.json:
@@ -249,7 +249,7 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_sim(sub: argparse._SubParsersAction) -> None:
-    from art_guidance.sim_node import add_sim_parser
+    from art_guidance.ros.sim_node import add_sim_parser
 
     add_sim_parser(sub)
 
@@ -282,7 +282,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into `head` and the like
         sys.stderr.close()
         return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

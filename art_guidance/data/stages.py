@@ -7,7 +7,7 @@ the passive-safety SCP (deterministic or chance-constrained) warm-started by tha
 feasible solution is stored with its reward-to-go and constraint-to-go. Every record depends on
 its seed and the configuration alone, so the local process pool and Ray, run in any chunking
 and resumed any number of times, produce identical data (timings aside). Storage and
-`load_dataset`: `art_guidance.storage`; driver and CLI: `art_guidance.generate`.
+`load_dataset`: `art_guidance.data.storage`; driver and CLI: `art_guidance.data.generate`.
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.optim import ScpStatus, Scvx, solve_cvx
 from art_guidance.safety import PassiveSafety
-from art_guidance.storage import load_dataset
+from art_guidance.data.storage import load_dataset
 
 __all__ = ["FIELDS", "MODES", "SEED_RULE", "SEED_STRIDE", "STAGES", "TIMING_FIELDS",
            "GenerationSpec", "ScenarioSample", "generate_chunk", "load_dataset", "sample_scenario",

@@ -28,10 +28,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.dynamics import control_matrix, orbital_period_s, propagate_mean_oe, stm_j2
 from art_guidance.errors import ConfigError, GuidanceError
-from art_guidance.pipeline import GuidancePipeline, PlanRequest, PlanResult
-from art_guidance.recorder import McapRecorder, default_log_dir
-from art_guidance.ros_env import use_fast_discovery
-from art_guidance.ros_adapters import (
+from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest, PlanResult
+from art_guidance.record.recorder import McapRecorder, default_log_dir
+from art_guidance.ros.env import use_fast_discovery
+from art_guidance.ros.adapters import (
     NavState, Target, diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg,
     status_plan_msg, target_from_msg,
 )

@@ -11,7 +11,7 @@ from art_guidance.dynamics import (
     mean_arg_latitude, mean_motion, orbital_period_s, propagate_mean_oe, psi_from_latitude,
     stm_j2,
 )
-from art_guidance.sim import RendezvousSim
+from art_guidance.sim.simulator import RendezvousSim
 
 
 def drift_arcs_rtn(sim: RendezvousSim, n_samples: int = 60,

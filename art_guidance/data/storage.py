@@ -163,7 +163,7 @@ def load_dataset(root: str | Path, verify: bool = True,
 
     Returns:
         {name: array with a leading sample axis (M, ...)} as written by the generator (see
-        `art_guidance.dataset.generate_chunk`), plus "is_test" (M,) bool from the split.
+        `art_guidance.data.stages.generate_chunk`), plus "is_test" (M,) bool from the split.
 
     Raises:
         DatasetError: checksum or index mismatch, missing shard, or (when required) an

@@ -1,7 +1,7 @@
 """Closed-loop rendezvous simulator: nonlinear truth, navigation and actuation errors, reporting.
 
-Pure numpy/scipy (no rclpy); `art_guidance.sim_node` wraps it in a ROS 2 process and
-`art_guidance.sim_plot` draws a run.
+Pure numpy/scipy (no rclpy); `art_guidance.ros.sim_node` wraps it in a ROS 2 process and
+`art_guidance.sim.plot` draws a run.
 
 Truth model: both spacecraft are integrated together (one 12-state) in the inertial frame under
 two-body gravity plus the J2 zonal term (DOP853, rtol 1e-11). The acceleration and the

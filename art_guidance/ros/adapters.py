@@ -15,7 +15,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from art_guidance.checks import as_finite_array, check_psd
 from art_guidance.dynamics import check_oe, psi_matrix
 from art_guidance.errors import InputError
-from art_guidance.pipeline import PlanResult
+from art_guidance.planning.pipeline import PlanResult
 
 FRAMES = {RelativeNavState.REPRESENTATION_ROE: ("chief_roe", ""),
           RelativeNavState.REPRESENTATION_RTN: ("chief_rtn", "")}

@@ -1,0 +1,1 @@
+"""The paper's warm-start analysis (section V): runs, metrics, figures and report."""

@@ -1,0 +1,1 @@
+"""Closed-loop simulation: nonlinear truth, the rendezvous simulator, its guidance link, plots."""
