@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest
+from art_guidance.planning import GuidancePipeline, PlanRequest
 from art_guidance.ros.env import isolated_ros_env
 
 REPO = Path(__file__).resolve().parents[1]

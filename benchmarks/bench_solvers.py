@@ -17,7 +17,7 @@ from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.data.stages import sample_scenario
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.optim import ScpStatus, Scvx, solve_cvx
-from art_guidance.optim.reference import cvxpy_tpbvp
+from cvxpy_reference import cvxpy_tpbvp
 from art_guidance.safety import PassiveSafety
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from art_guidance.ros.env import isolated_ros_env
 
-HELPERS = Path(__file__).resolve().parent / "helpers"
+TEST_ROOT = Path(__file__).resolve().parent  # on sys.path via setup.cfg `pythonpath`
 
 
 def _ros_env() -> dict[str, str]:
@@ -23,7 +23,6 @@ def _ros_env() -> dict[str, str]:
 
 ROS_ENV = _ros_env()
 os.environ.update(ROS_ENV)
-sys.path.insert(0, str(HELPERS))  # test-side helpers (ros_client, ...) importable by tests
 
 
 @pytest.fixture(scope="session")
@@ -32,7 +31,8 @@ def ros_env() -> dict[str, str]:
     env = dict(os.environ)
     env.update(ROS_ENV)
     env["PYTHONUNBUFFERED"] = "1"
-    env["PYTHONPATH"] = os.pathsep.join([str(HELPERS), env.get("PYTHONPATH", "")])
+    # child processes import the test helpers as `helpers.<module>` too
+    env["PYTHONPATH"] = os.pathsep.join([str(TEST_ROOT), env.get("PYTHONPATH", "")])
     return env
 
 

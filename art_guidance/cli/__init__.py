@@ -20,7 +20,7 @@ def _offline_demo(args: argparse.Namespace) -> int:
     """Plan the paper's nominal transfer: free drift, CVX, then chance-constrained SCVx*."""
     from art_guidance.config import ScenarioConfig
     from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
-    from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest
+    from art_guidance.planning import GuidancePipeline, PlanRequest
 
     scenario = ScenarioConfig.from_yaml(args.scenario)
     chief = np.array(scenario.chief_oe)
@@ -126,7 +126,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from art_guidance.config import ScenarioConfig
     from art_guidance.data.stages import sample_scenario
     from art_guidance.dynamics import roe_from_rtn_linear
-    from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest
+    from art_guidance.planning import GuidancePipeline, PlanRequest
 
     scenario = ScenarioConfig.from_yaml(args.scenario)
     sample = sample_scenario(scenario, args.seed)
@@ -176,6 +176,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if not names:
         raise InputError("bench", "benchmarks/ not found (run from a source checkout)")
     chosen = names if args.name == "all" else [args.name]
+    if str(root) not in sys.path:  # benchmarks share modules (e.g. the cvxpy reference)
+        sys.path.insert(0, str(root))
     report = {}
     for name in chosen:
         path = root / f"bench_{name}.py"

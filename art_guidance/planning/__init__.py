@@ -3,3 +3,14 @@
 Pure numpy (no ROS): the node, the CLI, the simulator's in-process link and the dataset tools
 all plan through `GuidancePipeline.plan(request) -> PlanResult`.
 """
+
+from art_guidance.planning.pipeline import GuidancePipeline
+from art_guidance.planning.posthoc import PosthocThresholds, posthoc_check
+from art_guidance.planning.types import (
+    WARM_STARTS, NavState, PlanRequest, PlanResult, PosthocDecision, Target, WarmStart,
+    WarmStartProvider,
+)
+
+__all__ = ["GuidancePipeline", "NavState", "PlanRequest", "PlanResult", "PosthocDecision",
+           "PosthocThresholds", "Target", "WARM_STARTS", "WarmStart", "WarmStartProvider",
+           "posthoc_check"]

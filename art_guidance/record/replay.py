@@ -16,7 +16,7 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2._dynamic import generate_dynamic
 
 from art_guidance.errors import InputError
-from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest
+from art_guidance.planning import GuidancePipeline, PlanRequest
 
 COST_REL_TOL = 1e-6     # relative cost agreement of a re-solve
 DV_ABS_TOL_MPS = 1e-5   # largest delta-v component difference [m/s]

@@ -6,8 +6,6 @@ Only this module and `node`/`sim_node` import ROS message types. Every check rai
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
-
 import numpy as np
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest, SolveRecord
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -15,30 +13,13 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from art_guidance.checks import as_finite_array, check_psd
 from art_guidance.dynamics import check_oe, psi_matrix
 from art_guidance.errors import InputError
-from art_guidance.planning.pipeline import PlanResult
+from art_guidance.planning import WARM_STARTS, NavState, PlanResult, Target
 
 FRAMES = {RelativeNavState.REPRESENTATION_ROE: ("chief_roe", ""),
           RelativeNavState.REPRESENTATION_RTN: ("chief_rtn", "")}
 MAX_RANGE_M = 500e3     # beyond this the linear relative models are meaningless
 MAX_SPEED_MPS = 500.0   # relative speed bound for an RTN state
-WARM_STARTS = ("", "auto", "cvx", "art")
-
-
-@dataclass(frozen=True)
-class NavState:
-    """A validated navigation estimate in a-scaled ROE.
-
-    Attributes:
-        stamp_ns: epoch of the estimate [ns].
-        chief_oe: (6,) chief mean elements at the stamp.
-        roe_m: (6,) mean a-scaled ROE [m].
-        cov_m2: (6, 6) covariance of roe_m [m^2].
-    """
-
-    stamp_ns: int
-    chief_oe: np.ndarray
-    roe_m: np.ndarray
-    cov_m2: np.ndarray
+REQUEST_WARM_STARTS = ("",) + WARM_STARTS  # "" = auto
 
 
 def stamp_to_ns(stamp: object) -> int:
@@ -75,17 +56,6 @@ def nav_from_msg(msg: RelativeNavState) -> NavState:
     return NavState(stamp_to_ns(msg.header.stamp), chief, roe, 0.5 * (cov + cov.T))
 
 
-@dataclass(frozen=True)
-class Target:
-    """A validated replanning target."""
-
-    waypoint: str
-    target_rtn: np.ndarray
-    chance_constrained: bool
-    warm_start: str
-    n_orbits: float | None
-
-
 def target_from_msg(msg: ReplanRequest, waypoints: dict) -> Target:
     """Validate a ReplanRequest against the configured waypoints."""
     if msg.waypoint == "custom":
@@ -97,8 +67,9 @@ def target_from_msg(msg: ReplanRequest, waypoints: dict) -> Target:
     else:
         raise InputError("waypoint", f"unknown; choose from {sorted(waypoints) + ['custom']}",
                          msg.waypoint)
-    if msg.warm_start not in WARM_STARTS:
-        raise InputError("warm_start", f"must be one of {WARM_STARTS}", msg.warm_start)
+    if msg.warm_start not in REQUEST_WARM_STARTS:
+        raise InputError("warm_start", f"must be one of {REQUEST_WARM_STARTS}",
+                         msg.warm_start)
     horizon = float(msg.horizon_orbits)
     if not np.isfinite(horizon) or horizon > 20:
         raise InputError("horizon_orbits", "must be finite and <= 20", horizon)

@@ -10,7 +10,6 @@ by a ManeuverPlan whose header.stamp is that nav stamp.
 from __future__ import annotations
 
 import itertools
-import math
 import sys
 import threading
 import time
@@ -26,18 +25,23 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
-from art_guidance.dynamics import control_matrix, orbital_period_s, propagate_mean_oe, stm_j2
 from art_guidance.errors import ConfigError, GuidanceError
-from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest, PlanResult
+from art_guidance.planning import (
+    WARM_STARTS, GuidancePipeline, NavState, PlanRequest, PlanResult, Target,
+)
+from art_guidance.planning.replan import (
+    Action, Decision, ReplanPolicy, ReplanSettings, unusable_text,
+)
 from art_guidance.record.recorder import McapRecorder, default_log_dir
 from art_guidance.ros.env import use_fast_discovery
 from art_guidance.ros.adapters import (
-    NavState, Target, diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg,
-    status_plan_msg, target_from_msg,
+    diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg, status_plan_msg,
+    target_from_msg,
 )
 
 OK, WARN, ERROR = 0, 1, 2
-STAMP_CHECKS = ("wallclock", "order", "off")
+POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
+                     "max_nav_age_s", "max_nav_future_s", "min_remaining_nodes")
 PARAMETERS = {
     "config_dir": "",                 # "" = packaged config/
     "default_waypoint": "plus_vbar",  # target until a replan request names one
@@ -71,18 +75,6 @@ class Job:
     koz_switch_node: int | None
 
 
-@dataclass
-class ActivePlan:
-    """The newest successful plan, in absolute time."""
-
-    plan_id: str
-    t0_ns: int
-    result: PlanResult
-    end_ns: int
-    dt_s: float
-    switch_ns: int
-
-
 class GuidanceNode(Node):
     """Thin rclpy shell around `GuidancePipeline`."""
 
@@ -92,6 +84,7 @@ class GuidanceNode(Node):
             self.declare_parameter(name, default)
         self.p = {name: self.get_parameter(name).value for name in PARAMETERS}
         self._validate_parameters()
+        settings = {name: self.p[name] for name in POLICY_PARAMETERS}
         cfg_dir = self.p["config_dir"] or None
         path = (lambda f: None) if cfg_dir is None else (lambda f: f"{cfg_dir}/{f}")
         self.scenario = ScenarioConfig.from_yaml(path("scenario.yaml"))
@@ -102,6 +95,8 @@ class GuidanceNode(Node):
         if self.p["default_waypoint"] not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {self.p['default_waypoint']!r} is not one of "
                               f"{sorted(self.scenario.waypoints_rtn)}")
+        self.policy = ReplanPolicy(ReplanSettings(
+            **settings, ae_to_koz_node=self.scenario.ae_to_koz_node))
         self.target = Target(self.p["default_waypoint"],
                              np.asarray(self.scenario.waypoints_rtn[self.p["default_waypoint"]]),
                              self.p["chance_constrained"], self.p["warm_start"], None)
@@ -116,9 +111,6 @@ class GuidanceNode(Node):
         self._stop = False
         self._latest_nav: NavState | None = None
         self._latest_nav_msg: RelativeNavState | None = None
-        self._stamp_floor_ns: int | None = None
-        self._active: ActivePlan | None = None
-        self._last_plan_ns: int | None = None
         self._ids = itertools.count(1)
         self._request_msg: ReplanRequest | None = None
         self.recorder = self._make_recorder()
@@ -138,16 +130,14 @@ class GuidanceNode(Node):
         return McapRecorder(directory, meta, max_bytes=int(self.p["record_max_bytes"]))
 
     def _validate_parameters(self) -> None:
-        if self.p["stamp_check"] not in STAMP_CHECKS:
-            raise ConfigError(f"stamp_check must be one of {STAMP_CHECKS}")
-        for name in ("replan_sigma_threshold", "max_nav_age_s", "max_nav_future_s",
-                     "solve_deadline_s"):
-            if not float(self.p[name]) > 0:
-                raise ConfigError(f"parameter {name} must be > 0, got {self.p[name]}")
-        if self.p["warm_start"] not in ("auto", "cvx", "art"):
-            raise ConfigError("warm_start must be auto, cvx or art")
-        if int(self.p["min_remaining_nodes"]) < 2 or int(self.p["samples_per_node"]) < 1:
-            raise ConfigError("min_remaining_nodes must be >= 2 and samples_per_node >= 1")
+        """Checks of the node's own parameters (the policy's are checked by ReplanSettings)."""
+        if not float(self.p["solve_deadline_s"]) > 0:
+            raise ConfigError(f"parameter solve_deadline_s must be > 0, "
+                              f"got {self.p['solve_deadline_s']}")
+        if self.p["warm_start"] not in WARM_STARTS:
+            raise ConfigError(f"warm_start must be one of {WARM_STARTS}")
+        if int(self.p["samples_per_node"]) < 1:
+            raise ConfigError("samples_per_node must be >= 1")
         if int(self.p["record_max_bytes"]) < 4096:
             raise ConfigError("record_max_bytes must be >= 4096")
 
@@ -157,7 +147,8 @@ class GuidanceNode(Node):
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         try:
             nav = nav_from_msg(msg)
-            self._check_stamp(nav.stamp_ns)
+            with self._lock:
+                self.policy.check_stamp(nav.stamp_ns, time.time_ns())
         except GuidanceError as exc:
             self._reject(stamp_ns, str(exc))
             return
@@ -166,11 +157,11 @@ class GuidanceNode(Node):
             return
         with self._lock:
             self._latest_nav, self._latest_nav_msg = nav, msg
-            self._stamp_floor_ns = nav.stamp_ns
-            decision, deviation = self._decide(nav)
-            if decision == "replanning":
+            self.policy.accept(nav)
+            decision, deviation = self.policy.decide(nav, self._busy or self._job is not None)
+            if decision is Decision.REPLANNING:
                 self._submit(self._job_for(nav, msg, "nav"))
-        self._diag(nav.stamp_ns, OK, decision, {"deviation_sigma": round(deviation, 3)})
+        self._diag(nav.stamp_ns, OK, decision.value, {"deviation_sigma": round(deviation, 3)})
 
     def _on_request(self, msg: ReplanRequest) -> None:
         try:
@@ -181,71 +172,16 @@ class GuidanceNode(Node):
             return
         with self._lock:
             self.target, self._request_msg = target, msg
-            self._active = None  # a new target restarts the horizon
-            self._stamp_floor_ns = None  # and a new stamp sequence (e.g. a new simulation)
+            self.policy.reset()  # a new target restarts the horizon and the stamp sequence
             if self._latest_nav is not None:
                 self._submit(self._job_for(self._latest_nav, self._latest_nav_msg, "request"))
         self._publish_diag("art_guidance/replan_request", OK, f"target {target.waypoint}",
                            {"waypoint": target.waypoint})
 
-    # ------------------------------------------------------------------ decisions
-    def _check_stamp(self, stamp_ns: int) -> None:
-        mode = self.p["stamp_check"]
-        if mode == "off":
-            return
-        floor = self._stamp_floor_ns
-        if floor is not None and stamp_ns <= floor:
-            raise GuidanceError(f"stale stamp: {stamp_ns} ns is not newer than {floor} ns")
-        if mode == "wallclock":
-            age_s = (time.time_ns() - stamp_ns) * 1e-9
-            if age_s > self.p["max_nav_age_s"]:
-                raise GuidanceError(f"stale stamp: {age_s:.3f} s old")
-            if -age_s > self.p["max_nav_future_s"]:
-                raise GuidanceError(f"stamp {-age_s:.3f} s in the future")
-
-    def _decide(self, nav: NavState) -> tuple[str, float]:
-        """Replan when nothing is active, a solve is under way, the state deviates or is due."""
-        active = self._active
-        if active is None or self._busy or self._job is not None:
-            return "replanning", math.nan
-        remaining = (active.end_ns - nav.stamp_ns) * 1e-9
-        if remaining < (self.p["min_remaining_nodes"] - 1) * active.dt_s:
-            return "on_plan", math.nan
-        deviation = self._deviation_sigma(active, nav)
-        period = self.p["replan_period_s"]
-        due = period > 0 and (nav.stamp_ns - (self._last_plan_ns or 0)) * 1e-9 >= period
-        if deviation > self.p["replan_sigma_threshold"] or due:
-            return "replanning", deviation
-        return "on_plan", deviation
-
-    @staticmethod
-    def _deviation_sigma(active: ActivePlan, nav: NavState) -> float:
-        """Largest per-axis |nav - predicted| in navigation sigmas."""
-        res = active.result
-        tau = (nav.stamp_ns - active.t0_ns) * 1e-9
-        k = int(np.searchsorted(res.epochs_s, tau + 0.5, side="right")) - 1
-        k = min(max(k, 0), len(res.epochs_s) - 1)
-        dt = tau - res.epochs_s[k]
-        if abs(dt) < 0.5:
-            predicted = res.roe_m[k]
-        else:
-            oe_k = propagate_mean_oe(res.chief_oe, res.epochs_s[k])
-            post = res.roe_m[k] + control_matrix(oe_k) @ res.dv_rtn_mps[k]
-            predicted = stm_j2(oe_k, dt) @ post
-        sigma = np.sqrt(np.maximum(np.diag(nav.cov_m2), 1e-12))
-        return float(np.max(np.abs(nav.roe_m - predicted) / sigma))
-
     def _job_for(self, nav: NavState, msg: RelativeNavState, trigger: str) -> Job:
-        active = self._active
-        if active is None:
-            return Job(nav, self.target, trigger, msg, self._request_msg, None,
-                       self.target.n_orbits, None)
-        remaining_s = (active.end_ns - nav.stamp_ns) * 1e-9
-        n_nodes = int(round(remaining_s / active.dt_s)) + 1
-        period = orbital_period_s(nav.chief_oe[0])
-        switch = max(0, math.ceil((active.switch_ns - nav.stamp_ns) * 1e-9 / active.dt_s))
-        return Job(nav, self.target, trigger, msg, self._request_msg, max(n_nodes, 3),
-                   max(remaining_s, 2 * active.dt_s) / period, switch)
+        w = self.policy.window(nav, self.target.n_orbits)
+        return Job(nav, self.target, trigger, msg, self._request_msg, w.n_nodes, w.n_orbits,
+                   w.koz_switch_node)
 
     def _submit(self, job: Job) -> None:
         """Called with the lock held: replace any queued job, wake the worker."""
@@ -282,21 +218,12 @@ class GuidanceNode(Node):
         result = self.pipeline.plan(request)
         plan_id = self._next_id()
         plan_msg = plan_to_msg(result, job.nav.stamp_ns, plan_id)
-        with self._lock:
-            # An unusable replan never replaces the plan in force: the node keeps flying it.
-            if result.scp.feasible:
-                self._activate(job, result, plan_id)
-            active_id = self._active_id()
+        with self._lock:  # an unusable replan never replaces the plan in force
+            action = self.policy.on_result(plan_id, job.nav.stamp_ns, result)
+            active_id = self.policy.active_id
         plan_msg.active_plan_id = active_id
-        if result.scp.feasible:
-            action = "activated"
-        else:
-            action = "kept_active_plan" if active_id else "no_plan"
-            plan_msg.status_text = (
-                f"{result.status.name}: replan not usable (margin "
-                f"{result.constraint_margin_m:.2f} m after {result.scp.iterations} "
-                f"iterations); " + (f"plan {active_id} stays in force" if active_id
-                                    else "no plan is in force"))
+        if action is not Action.ACTIVATED:
+            plan_msg.status_text = unusable_text(result, active_id)
         # recorded (and fsync'ed) before it is published: a crash never loses a published plan
         self._record(job, result, plan_id, plan_msg)
         self.plan_pub.publish(plan_msg)
@@ -305,10 +232,11 @@ class GuidanceNode(Node):
         self.get_logger().info(
             f"{plan_id} ({job.trigger}): {result.status.name}, {result.cost_mps:.4f} m/s, "
             f"{result.scp.iterations} it, margin {result.constraint_margin_m:.2f} m, "
-            f"{result.timings_ms['total']:.0f} ms; {action} (in force: {active_id or 'none'})")
-        self._publish_diag("art_guidance/plan", level, f"{result.status.name}: {action}",
+            f"{result.timings_ms['total']:.0f} ms; {action.value} "
+            f"(in force: {active_id or 'none'})")
+        self._publish_diag("art_guidance/plan", level, f"{result.status.name}: {action.value}",
                            {"plan_id": plan_id, "nav_stamp_ns": str(job.nav.stamp_ns),
-                            "action": action, "active_plan_id": active_id,
+                            "action": action.value, "active_plan_id": active_id,
                             "cost_mps": result.cost_mps,
                             "solve_time_ms": result.timings_ms["total"]})
 
@@ -327,21 +255,10 @@ class GuidanceNode(Node):
             self._publish_diag("art_guidance/recorder", ERROR, self.recorder.last_error,
                                {"errors": self.recorder.errors})
 
-    def _activate(self, job: Job, result: PlanResult, plan_id: str) -> None:
-        dt_s = float(result.epochs_s[1] - result.epochs_s[0])
-        t0 = job.nav.stamp_ns
-        if self._active is None:
-            switch_ns = t0 + int(self.scenario.ae_to_koz_node * dt_s * 1e9)
-        else:
-            switch_ns = self._active.switch_ns
-        self._active = ActivePlan(plan_id, t0, result,
-                                  t0 + int(round(result.epochs_s[-1] * 1e9)), dt_s, switch_ns)
-        self._last_plan_ns = t0
-
     def _active_id(self) -> str:
         """Id of the plan in force ("" = none)."""
-        active = self._active
-        return "" if active is None else active.plan_id
+        with self._lock:
+            return self.policy.active_id
 
     def _next_id(self) -> str:
         return f"plan-{next(self._ids)}"

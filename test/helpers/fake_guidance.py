@@ -21,11 +21,11 @@ from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from spin_main import spin_until_shutdown
+from helpers.spin_main import spin_until_shutdown
 
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
 from art_guidance.dynamics import Horizon, orbital_period_s
-from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest
+from art_guidance.planning import GuidancePipeline, PlanRequest
 
 HANDMADE_EPOCHS_S = (0.0, 300.0, 600.0)
 HANDMADE_DV_MPS = ((0.0, 1e-3, 0.0), (1e-3, 0.0, 0.0), (0.0, -1e-3, 0.0))

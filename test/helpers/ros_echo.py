@@ -5,7 +5,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest, SolveRecord
-from spin_main import spin_until_shutdown
+from helpers.spin_main import spin_until_shutdown
 
 TYPES = {"nav": RelativeNavState, "plan": ManeuverPlan, "replan": ReplanRequest,
          "record": SolveRecord}

@@ -30,7 +30,7 @@ SUMMARY_KEYS = {"miss_m", "velocity_error_mps", "total_dv_mps", "min_safety_marg
 
 
 def _fake(ros_env, python_exe, *args: str) -> subprocess.Popen:
-    proc = subprocess.Popen([python_exe, "-m", "fake_guidance", *args], env=ros_env,
+    proc = subprocess.Popen([python_exe, "-m", "helpers.fake_guidance", *args], env=ros_env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     return proc
 

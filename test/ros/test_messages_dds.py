@@ -71,7 +71,7 @@ def _spin_until(node: Node, cond, timeout_s: float) -> bool:
 
 
 def test_messages_round_trip_between_processes(ros_env, python_exe):
-    echo = subprocess.Popen([python_exe, "-m", "ros_echo"], env=ros_env,
+    echo = subprocess.Popen([python_exe, "-m", "helpers.ros_echo"], env=ros_env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     node = rclpy.create_node("art_guidance_test_roundtrip")

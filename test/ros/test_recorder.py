@@ -6,13 +6,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_client import nav_msg
+from helpers.ros_client import nav_msg
 
 from art_guidance.cli import main as cli_main
 from art_guidance.config import ScenarioConfig
 from art_guidance.data.stages import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.planning.pipeline import GuidancePipeline, PlanRequest
+from art_guidance.planning import GuidancePipeline, PlanRequest
 from art_guidance.record.recorder import TOPICS, McapRecorder, ros2msg_schema
 from art_guidance.record.replay import read_log, replay
 from art_guidance.ros.adapters import plan_to_msg, solve_record_msg

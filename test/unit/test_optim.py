@@ -10,7 +10,7 @@ from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.optim import ScpStatus, Scvx, control_cost, solve_cvx
 from art_guidance.optim.cvx import L1_REG_S_PER_M
-from art_guidance.optim.reference import cvxpy_tpbvp
+from cvxpy_reference import cvxpy_tpbvp
 from art_guidance.safety import PassiveSafety
 
 SEEDS = (0, 1, 2, 3)

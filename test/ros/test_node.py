@@ -11,7 +11,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState  # noqa: E402
-from ros_client import Client, nav_msg  # noqa: E402
+from helpers.ros_client import Client, nav_msg  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
 
@@ -180,7 +180,7 @@ def test_params_file_is_honoured(ros_env, python_exe, tmp_path):
 
 _PLAN_ONCE = """
 import json, time, numpy as np
-from ros_client import Client
+from helpers.ros_client import Client
 from art_guidance.config import ScenarioConfig
 c = Client('params_probe')
 assert c.wait_matched(20.0)

@@ -9,7 +9,7 @@ from art_guidance.data.stages import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import InputError
 from art_guidance.optim import ScpStatus
-from art_guidance.planning.pipeline import (
+from art_guidance.planning import (
     GuidancePipeline, PlanRequest, PosthocThresholds, posthoc_check,
 )
 

@@ -11,7 +11,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 from rosbags.highlevel import AnyReader  # noqa: E402
-from ros_client import Client, nav_msg  # noqa: E402
+from helpers.ros_client import Client, nav_msg  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
 from art_guidance.record.replay import read_log, replay  # noqa: E402

@@ -1,0 +1,225 @@
+"""When to replan, over which window, and which plan is in force: the node's policy as pure code.
+
+The guidance node (and the simulator's in-process link) hold one `ReplanPolicy` and call it
+under their own lock: `check_stamp` and `accept` for every navigation fix, `decide` to choose
+between replanning and staying on the plan in force, `window` for the remaining horizon of a
+replan, and `on_result` when a solve finishes. A plan that is not usable never replaces the one
+in force.
+"""
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from art_guidance.dynamics import (
+    control_matrix, orbital_period_s, propagate_mean_oe, stm_j2,
+)
+from art_guidance.errors import ConfigError, GuidanceError
+from art_guidance.planning.types import NavState, PlanResult
+
+STAMP_CHECKS = ("wallclock", "order", "off")
+
+
+class Decision(str, enum.Enum):
+    """What the policy does with a navigation fix."""
+
+    REPLANNING = "replanning"
+    ON_PLAN = "on_plan"
+    REJECTED = "rejected"
+
+
+class Action(str, enum.Enum):
+    """What a finished solve did to the plan in force."""
+
+    ACTIVATED = "activated"
+    KEPT_ACTIVE_PLAN = "kept_active_plan"
+    NO_PLAN = "no_plan"
+
+
+@dataclass(frozen=True)
+class ReplanSettings:
+    """Policy parameters (the node's ROS parameters of the same names).
+
+    Attributes:
+        replan_sigma_threshold: replan when any ROE axis deviates more than this [nav sigma].
+        replan_period_s: also replan this often in stamp time [s]; 0 = off.
+        stamp_check: "wallclock" (age/future limits and order), "order" (monotonic), "off".
+        max_nav_age_s, max_nav_future_s: wall-clock stamp limits [s].
+        min_remaining_nodes: below this many nodes left the plan in force is flown out.
+        ae_to_koz_node: node of the approach-ellipsoid -> keep-out-zone switch of a new plan.
+    """
+
+    replan_sigma_threshold: float = 3.0
+    replan_period_s: float = 0.0
+    stamp_check: str = "wallclock"
+    max_nav_age_s: float = 5.0
+    max_nav_future_s: float = 1.0
+    min_remaining_nodes: int = 3
+    ae_to_koz_node: int = 55
+
+    def __post_init__(self) -> None:
+        if self.stamp_check not in STAMP_CHECKS:
+            raise ConfigError(f"stamp_check must be one of {STAMP_CHECKS}, "
+                              f"got {self.stamp_check!r}")
+        for name in ("replan_sigma_threshold", "max_nav_age_s", "max_nav_future_s"):
+            if not float(getattr(self, name)) > 0:
+                raise ConfigError(f"parameter {name} must be > 0, got {getattr(self, name)}")
+        if not float(self.replan_period_s) >= 0:
+            raise ConfigError(f"replan_period_s must be >= 0, got {self.replan_period_s}")
+        if int(self.min_remaining_nodes) < 2:
+            raise ConfigError("min_remaining_nodes must be >= 2")
+
+
+@dataclass(frozen=True)
+class ActivePlan:
+    """The plan in force, in absolute time.
+
+    Attributes:
+        plan_id: its id.
+        t0_ns: stamp of the nav fix it answers (its node 0) [ns].
+        result: the plan.
+        end_ns: epoch of its last node [ns].
+        dt_s: node spacing [s].
+        switch_ns: absolute epoch of the AE -> KOZ switch [ns].
+    """
+
+    plan_id: str
+    t0_ns: int
+    result: PlanResult
+    end_ns: int
+    dt_s: float
+    switch_ns: int
+
+
+@dataclass(frozen=True)
+class ReplanWindow:
+    """The horizon of a replan: None fields mean the scenario's (a fresh plan)."""
+
+    n_nodes: int | None
+    n_orbits: float | None
+    koz_switch_node: int | None
+
+
+class ReplanPolicy:
+    """Decisions of one guidance instance (not thread-safe: call under the caller's lock)."""
+
+    def __init__(self, settings: ReplanSettings) -> None:
+        self.settings = settings
+        self.active: ActivePlan | None = None
+        self.stamp_floor_ns: int | None = None
+        self.last_plan_ns: int | None = None
+
+    @property
+    def active_id(self) -> str:
+        """Id of the plan in force ("" = none)."""
+        return "" if self.active is None else self.active.plan_id
+
+    def reset(self) -> None:
+        """A new target: drop the plan in force and start a new stamp sequence."""
+        self.active = None
+        self.stamp_floor_ns = None
+
+    def check_stamp(self, stamp_ns: int, now_ns: int) -> None:
+        """Refuse a stale, out-of-order or future stamp.
+
+        Raises:
+            GuidanceError: with the reason.
+        """
+        s = self.settings
+        if s.stamp_check == "off":
+            return
+        floor = self.stamp_floor_ns
+        if floor is not None and stamp_ns <= floor:
+            raise GuidanceError(f"stale stamp: {stamp_ns} ns is not newer than {floor} ns")
+        if s.stamp_check == "wallclock":
+            age_s = (now_ns - stamp_ns) * 1e-9
+            if age_s > s.max_nav_age_s:
+                raise GuidanceError(f"stale stamp: {age_s:.3f} s old")
+            if -age_s > s.max_nav_future_s:
+                raise GuidanceError(f"stamp {-age_s:.3f} s in the future")
+
+    def accept(self, nav: NavState) -> None:
+        """Record an accepted fix's stamp as the new floor for the order check."""
+        self.stamp_floor_ns = nav.stamp_ns
+
+    def decide(self, nav: NavState, busy: bool) -> tuple[Decision, float]:
+        """Replan when nothing is in force, a solve is under way, the state deviates or is due.
+
+        Args:
+            nav: the accepted fix.
+            busy: a solve is running or queued (the newest state supersedes it).
+
+        Returns:
+            The decision and the largest per-axis deviation from the plan [nav sigma] (NaN if
+            not computed).
+        """
+        active, s = self.active, self.settings
+        if active is None or busy:
+            return Decision.REPLANNING, math.nan
+        remaining = (active.end_ns - nav.stamp_ns) * 1e-9
+        if remaining < (s.min_remaining_nodes - 1) * active.dt_s:
+            return Decision.ON_PLAN, math.nan
+        deviation = deviation_sigma(active, nav)
+        due = (s.replan_period_s > 0
+               and (nav.stamp_ns - (self.last_plan_ns or 0)) * 1e-9 >= s.replan_period_s)
+        if deviation > s.replan_sigma_threshold or due:
+            return Decision.REPLANNING, deviation
+        return Decision.ON_PLAN, deviation
+
+    def window(self, nav: NavState, n_orbits: float | None) -> ReplanWindow:
+        """The horizon of a replan from `nav`: the remaining nodes of the plan in force.
+
+        Args:
+            nav: the fix to plan from.
+            n_orbits: the target's horizon for a fresh plan [orbits] (None = scenario's).
+        """
+        active = self.active
+        if active is None:
+            return ReplanWindow(None, n_orbits, None)
+        remaining_s = (active.end_ns - nav.stamp_ns) * 1e-9
+        n_nodes = int(round(remaining_s / active.dt_s)) + 1
+        period = orbital_period_s(nav.chief_oe[0])
+        switch = max(0, math.ceil((active.switch_ns - nav.stamp_ns) * 1e-9 / active.dt_s))
+        return ReplanWindow(max(n_nodes, 3), max(remaining_s, 2 * active.dt_s) / period, switch)
+
+    def on_result(self, plan_id: str, t0_ns: int, result: PlanResult) -> Action:
+        """Put a usable plan in force; an unusable one leaves the plan in force as it is."""
+        if not result.scp.feasible:
+            return Action.KEPT_ACTIVE_PLAN if self.active is not None else Action.NO_PLAN
+        dt_s = float(result.epochs_s[1] - result.epochs_s[0])
+        if self.active is None:
+            switch_ns = t0_ns + int(self.settings.ae_to_koz_node * dt_s * 1e9)
+        else:
+            switch_ns = self.active.switch_ns
+        self.active = ActivePlan(plan_id, t0_ns, result,
+                                 t0_ns + int(round(result.epochs_s[-1] * 1e9)), dt_s, switch_ns)
+        self.last_plan_ns = t0_ns
+        return Action.ACTIVATED
+
+
+def deviation_sigma(active: ActivePlan, nav: NavState) -> float:
+    """Largest per-axis |nav - predicted| in navigation sigmas (prediction at the fix's epoch)."""
+    res = active.result
+    tau = (nav.stamp_ns - active.t0_ns) * 1e-9
+    k = int(np.searchsorted(res.epochs_s, tau + 0.5, side="right")) - 1
+    k = min(max(k, 0), len(res.epochs_s) - 1)
+    dt = tau - res.epochs_s[k]
+    if abs(dt) < 0.5:
+        predicted = res.roe_m[k]
+    else:
+        oe_k = propagate_mean_oe(res.chief_oe, res.epochs_s[k])
+        post = res.roe_m[k] + control_matrix(oe_k) @ res.dv_rtn_mps[k]
+        predicted = stm_j2(oe_k, dt) @ post
+    sigma = np.sqrt(np.maximum(np.diag(nav.cov_m2), 1e-12))
+    return float(np.max(np.abs(nav.roe_m - predicted) / sigma))
+
+
+def unusable_text(result: PlanResult, active_id: str) -> str:
+    """Status text of a replan that did not replace the plan in force."""
+    kept = f"plan {active_id} stays in force" if active_id else "no plan is in force"
+    return (f"{result.status.name}: replan not usable (margin "
+            f"{result.constraint_margin_m:.2f} m after {result.scp.iterations} iterations); "
+            f"{kept}")
