@@ -28,12 +28,30 @@ class ConfigError(GuidanceError, ValueError):
     """A configuration value or file is invalid."""
 
 
+class DatasetError(GuidanceError, RuntimeError):
+    """A dataset directory is corrupt, incomplete or inconsistent with its manifest."""
+
+
 class SolverError(GuidanceError, RuntimeError):
     """A numerical solver failed in a way the caller cannot recover from."""
 
 
 class ModelError(GuidanceError, RuntimeError):
     """A model checkpoint is missing, corrupt or incompatible."""
+
+
+class CheckpointError(ModelError):
+    """A checkpoint file is refused: missing, truncated, corrupt, unsafe or incompatible.
+
+    Attributes:
+        path: the checkpoint file.
+        reason: why it was refused.
+    """
+
+    def __init__(self, path: object, reason: str) -> None:
+        self.path = str(path)
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}")
 
 
 def _short(value: Any, limit: int = 120) -> str:

@@ -15,7 +15,7 @@ import numpy as np
 
 from art_guidance.data.stages import STAGES
 from art_guidance.data.generate import generate
-from art_guidance.optim import ScpStatus
+from art_guidance.optim import FEASIBLE_STATUSES, ScpStatus
 from art_guidance.data.storage import load_dataset
 
 WORKERS = 2
@@ -29,7 +29,7 @@ def run(repeats: int = 40) -> dict:
                            engine="local", shard_size=2, log=lambda _: None)
         data = load_dataset(tmp)
     status, times = data["stage_status"], data["stage_time_ms"]
-    feasible = (ScpStatus.CONVERGED.value, ScpStatus.MAX_ITERATIONS.value)
+    feasible = [s.value for s in FEASIBLE_STATUSES]
     out = {
         "samples": repeats,
         "workers": WORKERS,

@@ -47,7 +47,6 @@ def run(repeats: int = 50) -> dict:
         scp_ms.append(1e3 * (time.perf_counter() - t))
         iters.append(res.iterations)
         statuses.append(res.status)
-    feasible = (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS)
     cvx_med, ref_med = float(np.median(cvx_ms)), float(np.median(ref_ms))
     return {
         "scenarios": repeats,
@@ -60,7 +59,7 @@ def run(repeats: int = 50) -> dict:
         "scp_chance_p95_ms": float(np.percentile(scp_ms, 95)),
         "scp_median_iterations": float(np.median(iters)),
         "scp_converged_fraction": float(np.mean([s is ScpStatus.CONVERGED for s in statuses])),
-        "scp_feasible_fraction": float(np.mean([s in feasible for s in statuses])),
+        "scp_feasible_fraction": float(np.mean([s.feasible for s in statuses])),
         "safety_precompute_ms_per_horizon": build_ms,
     }
 

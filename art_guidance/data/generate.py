@@ -31,13 +31,13 @@ from art_guidance.data.stages import (
     KEPT_INFEASIBLE, MODES, SEED_RULE, SEED_STRIDE, STAGES, GenerationSpec, generate_chunk,
 )
 from art_guidance.errors import ConfigError, InputError
-from art_guidance.optim import ScpStatus
+from art_guidance.optim import FEASIBLE_STATUSES, ScpStatus
 from art_guidance.data.storage import SUMMARY, DatasetWriter, aggregate_stats
 
 Engine = Callable[[GenerationSpec, list[list[int]], int, str | None], Iterator[dict]]
 ENGINES = ("local", "ray")
 _PR_SET_PDEATHSIG = 1
-_FEASIBLE = (ScpStatus.CONVERGED.value, ScpStatus.MAX_ITERATIONS.value)
+_FEASIBLE = [s.value for s in FEASIBLE_STATUSES]
 
 
 def default_workers() -> int:

@@ -195,7 +195,7 @@ class _Stage:
 
     @property
     def feasible(self) -> bool:
-        return self.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS)
+        return self.status.feasible
 
 
 def _run_cvx(m: _Models, roe0: np.ndarray, roe_f: np.ndarray) -> _Stage:

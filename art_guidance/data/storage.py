@@ -30,7 +30,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from art_guidance.errors import ConfigError, GuidanceError, InputError
+from art_guidance.errors import ConfigError, DatasetError, InputError
 from art_guidance.files import TMP_SUFFIX, write_atomic
 
 FORMAT_VERSION = 1
@@ -43,10 +43,6 @@ SPLIT_STREAM = 0x5E17  # second SeedSequence word: the split never reuses a scen
 _SHARD_RE = re.compile(r"^shard-(\d{6,})\.npz$")
 # Header fields that must match for a run to resume an existing directory.
 RESUME_KEYS = ("format", "mode", "base_seed", "n", "seed_rule", "config_sha256")
-
-
-class DatasetError(GuidanceError, RuntimeError):
-    """A dataset directory is corrupt, incomplete or inconsistent with its manifest."""
 
 
 def sha256_bytes(data: bytes) -> str:

@@ -16,6 +16,15 @@ class ScpStatus(enum.Enum):
     SOLVER_ERROR = 3
     TIMEOUT = 4
 
+    @property
+    def feasible(self) -> bool:
+        """True if a plan with this status satisfies the constraints (to eps_feas) and may be
+        flown or stored: the one definition of "feasible" (`FEASIBLE_STATUSES`)."""
+        return self in FEASIBLE_STATUSES
+
+
+FEASIBLE_STATUSES = frozenset({ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS})
+
 
 @dataclass(frozen=True)
 class ConvexSolution:
@@ -86,4 +95,4 @@ class ScpResult:
     @property
     def feasible(self) -> bool:
         """True when the returned iterate satisfies the constraints (to eps_feas)."""
-        return self.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS)
+        return self.status.feasible

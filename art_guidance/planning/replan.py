@@ -18,7 +18,7 @@ from art_guidance.dynamics import (
     control_matrix, orbital_period_s, propagate_mean_oe, stm_j2,
 )
 from art_guidance.errors import ConfigError, GuidanceError
-from art_guidance.planning.types import NavState, PlanResult
+from art_guidance.planning.types import NavState, PlanRequest, PlanResult, Target
 
 STAMP_CHECKS = ("wallclock", "order", "off")
 
@@ -198,6 +198,14 @@ class ReplanPolicy:
                                  t0_ns + int(round(result.epochs_s[-1] * 1e9)), dt_s, switch_ns)
         self.last_plan_ns = t0_ns
         return Action.ACTIVATED
+
+
+def request_for(nav: NavState, target: Target, window: ReplanWindow) -> PlanRequest:
+    """The planning request for a fix, a target and a replan window."""
+    return PlanRequest(nav.chief_oe, nav.roe_m, target.target_rtn,
+                       chance_constrained=target.chance_constrained,
+                       warm_start=target.warm_start, n_nodes=window.n_nodes,
+                       n_orbits=window.n_orbits, koz_switch_node=window.koz_switch_node)
 
 
 def deviation_sigma(active: ActivePlan, nav: NavState) -> float:

@@ -13,13 +13,25 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from art_guidance.checks import as_finite_array, check_psd
 from art_guidance.dynamics import check_oe, psi_matrix
 from art_guidance.errors import InputError
+from art_guidance.optim import ScpStatus
 from art_guidance.planning import WARM_STARTS, NavState, PlanResult, Target
+from art_guidance.sim.link import LinkPlan
 
 FRAMES = {RelativeNavState.REPRESENTATION_ROE: ("chief_roe", ""),
           RelativeNavState.REPRESENTATION_RTN: ("chief_rtn", "")}
 MAX_RANGE_M = 500e3     # beyond this the linear relative models are meaningless
 MAX_SPEED_MPS = 500.0   # relative speed bound for an RTN state
 REQUEST_WARM_STARTS = ("",) + WARM_STARTS  # "" = auto
+# The one mapping between solve statuses and ManeuverPlan.status (tested to be one-to-one);
+# STATUS_REJECTED_INPUT has no solve behind it.
+MSG_STATUS = {
+    ScpStatus.CONVERGED: ManeuverPlan.STATUS_CONVERGED,
+    ScpStatus.MAX_ITERATIONS: ManeuverPlan.STATUS_MAX_ITERATIONS,
+    ScpStatus.INFEASIBLE: ManeuverPlan.STATUS_INFEASIBLE,
+    ScpStatus.SOLVER_ERROR: ManeuverPlan.STATUS_SOLVER_ERROR,
+    ScpStatus.TIMEOUT: ManeuverPlan.STATUS_TIMEOUT,
+}
+STATUS_FROM_MSG = {v: k for k, v in MSG_STATUS.items()}
 
 
 def stamp_to_ns(stamp: object) -> int:
@@ -83,7 +95,7 @@ def plan_to_msg(result: PlanResult, stamp_ns: int, plan_id: str) -> ManeuverPlan
     ns_to_stamp(msg.header.stamp, stamp_ns)
     msg.header.frame_id = "chief_rtn"
     msg.plan_id = plan_id
-    msg.status = int(result.status.value)
+    msg.status = MSG_STATUS[result.status]
     msg.status_text = result.status.name
     msg.epochs_s = result.epochs_s.astype(float).tolist()
     msg.dv_rtn_mps = result.dv_rtn_mps.reshape(-1).tolist()
@@ -145,3 +157,15 @@ def diagnostics_msg(now_ns: int, name: str, level: int, message: str,
                      for k, v in values.items()]
     arr.status = [status]
     return arr
+
+
+def link_plan_from_msg(msg: ManeuverPlan) -> LinkPlan:
+    """ManeuverPlan -> the simulator's plain `LinkPlan` (status None for a rejection notice).
+
+    An unknown status is read as a solver error: never flown.
+    """
+    status = (None if msg.status == ManeuverPlan.STATUS_REJECTED_INPUT
+              else STATUS_FROM_MSG.get(msg.status, ScpStatus.SOLVER_ERROR))
+    return LinkPlan(stamp_to_ns(msg.header.stamp), msg.plan_id, status, msg.status_text,
+                    msg.active_plan_id, np.asarray(msg.epochs_s, float),
+                    np.asarray(msg.dv_rtn_mps, float), np.asarray(msg.rtn, float))

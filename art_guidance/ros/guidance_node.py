@@ -30,7 +30,7 @@ from art_guidance.planning import (
     WARM_STARTS, GuidancePipeline, NavState, PlanRequest, PlanResult, Target,
 )
 from art_guidance.planning.replan import (
-    Action, Decision, ReplanPolicy, ReplanSettings, unusable_text,
+    Action, Decision, ReplanPolicy, ReplanSettings, request_for, unusable_text,
 )
 from art_guidance.record.recorder import McapRecorder, default_log_dir
 from art_guidance.ros.env import use_fast_discovery
@@ -66,13 +66,10 @@ class Job:
     """A planning job for the worker."""
 
     nav: NavState
-    target: Target
+    request: PlanRequest
     trigger: str
     nav_msg: RelativeNavState
     request_msg: ReplanRequest | None
-    n_nodes: int | None
-    n_orbits: float | None
-    koz_switch_node: int | None
 
 
 class GuidanceNode(Node):
@@ -179,9 +176,8 @@ class GuidanceNode(Node):
                            {"waypoint": target.waypoint})
 
     def _job_for(self, nav: NavState, msg: RelativeNavState, trigger: str) -> Job:
-        w = self.policy.window(nav, self.target.n_orbits)
-        return Job(nav, self.target, trigger, msg, self._request_msg, w.n_nodes, w.n_orbits,
-                   w.koz_switch_node)
+        window = self.policy.window(nav, self.target.n_orbits)
+        return Job(nav, request_for(nav, self.target, window), trigger, msg, self._request_msg)
 
     def _submit(self, job: Job) -> None:
         """Called with the lock held: replace any queued job, wake the worker."""
@@ -211,11 +207,7 @@ class GuidanceNode(Node):
                     self._busy = False
 
     def _solve(self, job: Job) -> None:
-        request = PlanRequest(job.nav.chief_oe, job.nav.roe_m, job.target.target_rtn,
-                              chance_constrained=job.target.chance_constrained,
-                              warm_start=job.target.warm_start, n_nodes=job.n_nodes,
-                              n_orbits=job.n_orbits, koz_switch_node=job.koz_switch_node)
-        result = self.pipeline.plan(request)
+        result = self.pipeline.plan(job.request)
         plan_id = self._next_id()
         plan_msg = plan_to_msg(result, job.nav.stamp_ns, plan_id)
         with self._lock:  # an unusable replan never replaces the plan in force

@@ -292,10 +292,6 @@ class RendezvousSim:
         """The ROE [m] the guidance model works with: `mean_roe_m` or `true_roe_m`."""
         return self.mean_roe_m() if self.mean_elements else self.true_roe_m()
 
-    def range_m(self) -> float:
-        """True relative range [m]."""
-        return float(np.linalg.norm(self.deputy_eci[:3] - self.chief_eci[:3]))
-
     # ------------------------------------------------------------------ sensors, actuators
     def nav_estimate(self, rng: np.random.Generator | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:

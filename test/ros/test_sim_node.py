@@ -19,8 +19,11 @@ pytest.importorskip("rclpy")
 from art_guidance_msgs.msg import ManeuverPlan  # noqa: E402
 
 from art_guidance.errors import InputError  # noqa: E402
-from art_guidance.ros.sim_node import (  # noqa: E402
-    SIM_EPOCH0_NS, add_sim_parser, exit_code, parse_plan, sim_argv, sim_stamp_ns, sim_time_s,
+from art_guidance.optim import ScpStatus  # noqa: E402
+from art_guidance.ros.adapters import MSG_STATUS, link_plan_from_msg  # noqa: E402
+from art_guidance.ros.sim_node import add_sim_parser, sim_argv  # noqa: E402
+from art_guidance.sim.closed_loop import (  # noqa: E402
+    SIM_EPOCH0_NS, exit_code, parse_plan, sim_stamp_ns, sim_time_s,
 )
 
 pytestmark = pytest.mark.ros
@@ -168,21 +171,36 @@ def test_plan_parsing_and_exit_code():
     msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
     msg.epochs_s = [0.0, 60.0, 120.0]
     msg.dv_rtn_mps = [0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0, -0.1, 0.0]
-    plan = parse_plan(msg)
+    plan = parse_plan(link_plan_from_msg(msg))
     assert np.allclose(plan.epochs_s, [120.5, 180.5, 240.5]) and plan.rtn is None
     assert plan.index_at(121.2) == 0 and plan.index_at(150.0) is None
     assert plan.next_epoch_after(120.5) == 180.5 and plan.next_epoch_after(240.5) is None
     assert plan.dv_rtn_mps.shape == (3, 3)
     msg.dv_rtn_mps = msg.dv_rtn_mps[:-1]
     with pytest.raises(InputError):
-        parse_plan(msg)
+        parse_plan(link_plan_from_msg(msg))
     msg.dv_rtn_mps = [0.0] * 9
     msg.epochs_s = [0.0, 60.0, 60.0]
     with pytest.raises(InputError):
-        parse_plan(msg)
+        parse_plan(link_plan_from_msg(msg))
     assert exit_code("final_epoch", 10.0, 50.0) == 0
     assert exit_code("final_epoch", 60.0, 50.0) == 1
     assert exit_code("max_steps", 1.0, 50.0) == 1
+
+
+def test_status_mapping_is_one_to_one():
+    assert set(MSG_STATUS) == set(ScpStatus)
+    values = set(MSG_STATUS.values())
+    assert len(values) == len(ScpStatus)
+    assert ManeuverPlan.STATUS_REJECTED_INPUT not in values
+    msg = ManeuverPlan()
+    for status, value in MSG_STATUS.items():
+        msg.status = value
+        assert link_plan_from_msg(msg).status is status
+    msg.status = ManeuverPlan.STATUS_REJECTED_INPUT
+    assert link_plan_from_msg(msg).rejection
+    msg.status = 200  # from a newer guidance: never flown
+    assert link_plan_from_msg(msg).status is ScpStatus.SOLVER_ERROR
 
 
 def test_cli_options_map_to_ros_parameters():

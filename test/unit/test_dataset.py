@@ -19,12 +19,12 @@ from art_guidance.data.stages import (
     FIELDS, KEPT_INFEASIBLE, SEED_STRIDE, TIMING_FIELDS, sample_scenario, sample_seed,
 )
 from art_guidance.dynamics import Horizon, time_grid_s
-from art_guidance.errors import ConfigError, InputError
+from art_guidance.errors import ConfigError, DatasetError, InputError
 from art_guidance.data.generate import generate
 from art_guidance.optim import ScpStatus
 from art_guidance.safety import PassiveSafety
 from art_guidance.data.storage import (
-    MANIFEST, SPLIT, DatasetError, DatasetWriter, load_dataset, read_manifest, train_test_split,
+    MANIFEST, SPLIT, DatasetWriter, load_dataset, read_manifest, train_test_split,
 )
 
 N, SEED = 12, 7

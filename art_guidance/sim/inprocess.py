@@ -1,0 +1,107 @@
+"""The guidance called directly, without DDS: a `GuidanceLink` for Monte Carlo closed loops.
+
+`InProcessGuidance` runs the same replan policy and pipeline as the guidance node, synchronously:
+`publish_nav` validates the fix, decides, and (when replanning) plans before it returns, so the
+`wait_*` calls answer at once. Plans it publishes are kept with their `PlanResult`.
+"""
+from __future__ import annotations
+
+import itertools
+import time
+
+import numpy as np
+
+from art_guidance.checks import as_finite_array, check_psd
+from art_guidance.dynamics import check_oe
+from art_guidance.errors import GuidanceError, InputError
+from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
+from art_guidance.planning.replan import (
+    Action, Decision, ReplanPolicy, ReplanSettings, request_for, unusable_text,
+)
+from art_guidance.sim.link import LinkPlan
+
+_EMPTY = np.zeros(0)
+
+
+class InProcessGuidance:
+    """A guidance instance in this process (see the module docstring).
+
+    Args:
+        pipeline: the planner.
+        epoch0_ns: stamp of sim time 0 [ns].
+        settings: the replan policy; default: the node's defaults with the stamp-order check
+            (simulated stamps are not wall-clock time).
+    """
+
+    def __init__(self, pipeline: GuidancePipeline, epoch0_ns: int,
+                 settings: ReplanSettings | None = None) -> None:
+        self.pipeline = pipeline
+        self.epoch0_ns = int(epoch0_ns)
+        self.policy = ReplanPolicy(settings or ReplanSettings(
+            stamp_check="order", ae_to_koz_node=pipeline.scenario.ae_to_koz_node))
+        self.target: Target | None = None
+        self.results: list[tuple[str, PlanResult]] = []
+        self._decisions: dict[int, dict[str, str]] = {}
+        self._plans: list[LinkPlan] = []
+        self._ids = itertools.count(1)
+
+    def wait_matched(self, timeout_s: float) -> bool:
+        """Always reachable."""
+        return True
+
+    def publish_request(self, waypoint: str, chance_constrained: bool, warm_start: str) -> None:
+        """Set the target (a configured waypoint) and restart the horizon."""
+        waypoints = self.pipeline.scenario.waypoints_rtn
+        if waypoint not in waypoints:
+            raise InputError("waypoint", f"unknown; choose from {sorted(waypoints)}", waypoint)
+        self.target = Target(waypoint, np.asarray(waypoints[waypoint], float),
+                             bool(chance_constrained), warm_start, None)
+        self.policy.reset()
+
+    def publish_nav(self, stamp_ns: int, chief_oe: np.ndarray, roe_m: np.ndarray,
+                    cov_m2: np.ndarray) -> None:
+        """Decide on a fix and, when replanning, plan before returning."""
+        try:
+            if self.target is None:
+                raise GuidanceError("no replan request received yet")
+            nav = NavState(int(stamp_ns), check_oe(chief_oe),
+                           as_finite_array("roe_m", roe_m, (6,)),
+                           check_psd("cov_m2", as_finite_array("cov_m2", cov_m2, (6, 6))))
+            self.policy.check_stamp(nav.stamp_ns, time.time_ns())
+        except GuidanceError as exc:
+            self._decisions[int(stamp_ns)] = {"decision": Decision.REJECTED.value,
+                                              "reason": str(exc)}
+            self._plans.append(LinkPlan(int(stamp_ns), "rejected", None, str(exc),
+                                        self.policy.active_id, _EMPTY, _EMPTY, _EMPTY))
+            return
+        self.policy.accept(nav)
+        decision, deviation = self.policy.decide(nav, busy=False)
+        self._decisions[nav.stamp_ns] = {"decision": decision.value,
+                                         "deviation_sigma": f"{deviation:.3f}"}
+        if decision is Decision.REPLANNING:
+            self._solve(nav)
+
+    def _solve(self, nav: NavState) -> None:
+        window = self.policy.window(nav, self.target.n_orbits)
+        result = self.pipeline.plan(request_for(nav, self.target, window))
+        plan_id = f"plan-{next(self._ids)}"
+        action = self.policy.on_result(plan_id, nav.stamp_ns, result)
+        active_id = self.policy.active_id
+        text = (result.status.name if action is Action.ACTIVATED
+                else unusable_text(result, active_id))
+        self.results.append((plan_id, result))
+        self._plans.append(LinkPlan(nav.stamp_ns, plan_id, result.status, text, active_id,
+                                    result.epochs_s, result.dv_rtn_mps.ravel(),
+                                    result.rtn.ravel()))
+
+    def wait_decision(self, stamp_ns: int, timeout_s: float) -> dict[str, str] | None:
+        """The decision made on fix `stamp_ns` (None if it was never published)."""
+        return self._decisions.get(int(stamp_ns))
+
+    def wait_plan(self, stamp_ns: int, timeout_s: float) -> bool:
+        """True if a plan answered fix `stamp_ns`."""
+        return any(p.stamp_ns == stamp_ns and not p.rejection for p in self._plans)
+
+    def take_plans(self, start: int) -> list[LinkPlan]:
+        """Plans from index `start` on, in publication order."""
+        return list(self._plans[start:])
