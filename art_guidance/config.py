@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
 import os
 import sys
@@ -219,3 +221,116 @@ def _load_yaml(path: str | Path) -> dict:
     if not isinstance(data, dict):
         raise ConfigError(f"config {path} must hold a mapping")
     return data
+
+
+@dataclass(frozen=True)
+class PosthocThresholds:
+    """Acceptance region of the post hoc check (paper: -1.5 <= 100 E_R <= 3.5, 0 <= E_C <= 2)."""
+
+    e_r_pct_min: float = -1.5
+    e_r_pct_max: float = 3.5
+    e_c_min: float = 0.0
+    e_c_max: float = 2.0
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            val = getattr(self, f.name)
+            if not (isinstance(val, (int, float)) and math.isfinite(val)):
+                raise ConfigError(f"posthoc.{f.name} must be a finite number, got {val!r}")
+        if not (self.e_r_pct_min <= self.e_r_pct_max and self.e_c_min <= self.e_c_max):
+            raise ConfigError(f"posthoc thresholds need min <= max, got {self}")
+
+
+@dataclass(frozen=True)
+class PlanningConfig:
+    """Planning choices of the pipeline (`planning.yaml`)."""
+
+    samples_per_node: int = 3
+    posthoc: PosthocThresholds = field(default_factory=PosthocThresholds)
+
+    def __post_init__(self) -> None:
+        k = self.samples_per_node
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise ConfigError(f"samples_per_node must be an integer >= 1, "
+                              f"got {self.samples_per_node!r}")
+        if isinstance(self.posthoc, Mapping):
+            thresholds = _from_mapping(PosthocThresholds, self.posthoc, "posthoc")
+            object.__setattr__(self, "posthoc", thresholds)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path | None = None) -> "PlanningConfig":
+        """Load `planning.yaml` (default: the packaged one)."""
+        return _from_mapping(cls, _load_yaml(path or default_config_dir() / "planning.yaml"),
+                             "planning")
+
+
+@dataclass(frozen=True)
+class GuidanceConfig:
+    """Every configuration a plan depends on, as one bundle (the YAML files of a config dir).
+
+    One `to_json` and one `sha256` serve the MCAP run metadata, the dataset header and the
+    model checkpoint.
+    """
+
+    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    uncertainty: UncertaintyConfig = field(default_factory=lambda: UncertaintyConfig())
+    scp: ScpConfig = field(default_factory=lambda: ScpConfig())
+    planning: PlanningConfig = field(default_factory=PlanningConfig)
+
+    @classmethod
+    def load(cls, config_dir: str | Path | None = None) -> "GuidanceConfig":
+        """Load scenario, uncertainty, scp and planning YAML from `config_dir` (default:
+        the packaged config/)."""
+        root = Path(config_dir) if config_dir else default_config_dir()
+        return cls(ScenarioConfig.from_yaml(root / "scenario.yaml"),
+                   UncertaintyConfig.from_yaml(root / "uncertainty.yaml"),
+                   ScpConfig.from_yaml(root / "scp.yaml"),
+                   PlanningConfig.from_yaml(root / "planning.yaml"))
+
+    def to_json(self) -> dict:
+        """The bundle as JSON-ready data (`from_json` inverts it)."""
+        return {"scenario": dataclasses.asdict(self.scenario),
+                "uncertainty": dataclasses.asdict(self.uncertainty),
+                "scp": dataclasses.asdict(self.scp),
+                "planning": dataclasses.asdict(self.planning)}
+
+    @classmethod
+    def from_json(cls, data: Mapping) -> "GuidanceConfig":
+        """Rebuild a bundle from `to_json` output (validated again)."""
+        try:
+            return cls(ScenarioConfig(**data["scenario"]),
+                       UncertaintyConfig(**data["uncertainty"]), ScpConfig(**data["scp"]),
+                       _from_mapping(PlanningConfig, data["planning"], "planning"))
+        except (KeyError, TypeError) as exc:
+            raise ConfigError(f"recorded configuration is malformed: {exc!r}") from exc
+
+    def sha256(self) -> str:
+        """Fingerprint of the bundle (canonical JSON)."""
+        return hashlib.sha256(json.dumps(self.to_json(), sort_keys=True).encode()).hexdigest()
+
+    def replace(self, **changes: Any) -> "GuidanceConfig":
+        """A copy with some parts replaced."""
+        return dataclasses.replace(self, **changes)
+
+
+def node_parameter_defaults(path: str | Path | None = None) -> dict[str, Any]:
+    """The guidance node's ROS parameters and their defaults: `guidance_node.yaml`, the one
+    table (the node declares exactly these, plus `samples_per_node` from `planning.yaml`)."""
+    data = _load_yaml(path or default_config_dir() / "guidance_node.yaml")
+    try:
+        params = data["guidance_node"]["ros__parameters"]
+    except (KeyError, TypeError) as exc:
+        raise ConfigError(f"guidance_node.yaml needs guidance_node.ros__parameters: {exc!r}") \
+            from exc
+    if not isinstance(params, Mapping):
+        raise ConfigError("guidance_node.ros__parameters must be a mapping")
+    return dict(params)
+
+
+def _from_mapping(cls: type, data: Any, name: str) -> Any:
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{name} config must be a mapping, got {data!r}")
+    unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
+    if unknown:
+        raise ConfigError(f"unknown {name} parameters: {sorted(unknown)}")
+    return cls(**data)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from art_guidance.config import ScenarioConfig
+from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import GuidancePipeline, PlanRequest
 from art_guidance.ros.env import isolated_ros_env
@@ -32,9 +32,8 @@ def run(repeats: int = 30) -> dict:
                            150 + os.getpid() % 50)
     os.environ.update(ros)  # this process is the client
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO / "test/helpers"), env.get("PYTHONPATH", "")])
-    sys.path.insert(0, str(REPO / "test/helpers"))
-    from ros_client import Client, nav_msg
+    sys.path.insert(0, str(REPO / "test"))  # the tests' DDS client (helpers.ros_client)
+    from helpers.ros_client import Client, nav_msg
 
     proc = subprocess.Popen([sys.executable, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "-p", "replan_sigma_threshold:=1e-9"], env=env,
@@ -65,7 +64,7 @@ def run(repeats: int = 30) -> dict:
         client.close()
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=30)
-    pipeline = GuidancePipeline(scenario)
+    pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario))
     chief = np.array(scenario.chief_oe)
     target = np.asarray(scenario.waypoints_rtn["plus_vbar"])
     ref = []

@@ -12,7 +12,6 @@ same task function on the same inputs, so they produce the same data.
 """
 from __future__ import annotations
 
-import argparse
 import ctypes
 import multiprocessing as mp
 import os
@@ -26,9 +25,9 @@ from typing import Callable, Iterator
 import numpy as np
 from tqdm import tqdm
 
-from art_guidance.config import ScenarioConfig
+from art_guidance.config import GuidanceConfig
 from art_guidance.data.stages import (
-    KEPT_INFEASIBLE, MODES, SEED_RULE, SEED_STRIDE, STAGES, GenerationSpec, generate_chunk,
+    KEPT_INFEASIBLE, SEED_RULE, SEED_STRIDE, STAGES, GenerationSpec, generate_chunk,
 )
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import FEASIBLE_STATUSES, ScpStatus
@@ -180,7 +179,7 @@ def _report(summary: dict, log: Callable[[str], None]) -> None:
 # --------------------------------------------------------------------------- driver
 def generate(out_dir: str | Path, n: int, mode: str, *, base_seed: int = 0,
              workers: int | None = None, engine: str = "local", shard_size: int = 32,
-             scenario: ScenarioConfig | None = None, ray_address: str | None = None,
+             config: GuidanceConfig | None = None, ray_address: str | None = None,
              progress: bool = True, log: Callable[[str], None] = print) -> dict:
     """Generate (or resume) a dataset of `n` samples in `out_dir`.
 
@@ -192,8 +191,7 @@ def generate(out_dir: str | Path, n: int, mode: str, *, base_seed: int = 0,
         workers: parallel processes / Ray CPUs (default: the CPUs available).
         engine: "local" (process pool) or "ray".
         shard_size: samples per task and per shard.
-        scenario: scenario config (default: packaged YAML); uncertainty and SCP configs are
-            always the packaged ones.
+        config: the configuration bundle (default: the packaged YAML files).
         ray_address: Ray cluster address (engine "ray"); None starts a local instance.
         progress: show a tqdm progress bar (rate, ETA) on stderr.
         log: where the one-line messages go.
@@ -210,7 +208,7 @@ def generate(out_dir: str | Path, n: int, mode: str, *, base_seed: int = 0,
     """
     workers = default_workers() if workers is None else workers
     _check_options(n, workers, engine, shard_size)
-    spec = GenerationSpec.build(mode, base_seed, scenario)
+    spec = GenerationSpec.build(mode, base_seed, config)
     with DatasetWriter(out_dir, spec.header(n)) as writer:
         done = writer.done_indices
         todo = np.setdiff1d(np.arange(n), done)
@@ -250,40 +248,3 @@ def _check_options(n: int, workers: int, engine: str, shard_size: int) -> None:
         raise InputError("--n", f"must be <= {SEED_STRIDE} (seed rule: {SEED_RULE})", n)
     if engine not in ENGINES:
         raise InputError("--engine", f"must be one of {ENGINES}", engine)
-
-
-# --------------------------------------------------------------------------- CLI
-def _cmd_generate(args: argparse.Namespace) -> int:
-    """Generate a trajectory dataset with the paper's 3-stage pipeline (resumable)."""
-    scenario = ScenarioConfig.from_yaml(args.scenario) if args.scenario else None
-    summary = generate(args.out, args.n, args.mode, base_seed=args.seed, workers=args.workers,
-                       engine=args.engine, shard_size=args.shard_size, scenario=scenario,
-                       ray_address=args.ray_address, progress=not args.no_progress)
-    if summary["status"] == "complete":
-        print(f"summary -> {Path(args.out) / SUMMARY}")
-    return 130 if summary["status"] == "interrupted" else 0
-
-
-def add_generate_parser(sub: argparse._SubParsersAction) -> None:
-    """Register `generate` on the `art-guidance` subparsers."""
-    p = sub.add_parser(
-        "generate", help="generate a trajectory dataset (3-stage, resumable, parallel)",
-        description=_cmd_generate.__doc__ + " Re-running the same command resumes an "
-        "interrupted run and does nothing on a complete one. Exit 0 done, 130 interrupted, "
-        "2 bad input or corrupt directory.")
-    p.add_argument("--n", type=int, required=True, help="number of samples")
-    p.add_argument("--mode", choices=MODES, required=True,
-                   help="stage-3 passive safety: deterministic or chance-constrained")
-    p.add_argument("--out", required=True, help="dataset directory (created or resumed)")
-    p.add_argument("--seed", type=int, default=0,
-                   help=f"dataset seed S >= 0; sample i uses scenario seed S * {SEED_STRIDE} + i")
-    p.add_argument("--workers", type=int, default=None,
-                   help="processes (local) or CPUs (local Ray instance); default: all CPUs")
-    p.add_argument("--engine", choices=ENGINES, default="local",
-                   help="local process pool (default) or Ray ('pip install .[distributed]')")
-    p.add_argument("--shard-size", type=int, default=32, help="samples per task and shard")
-    p.add_argument("--ray-address", default=None,
-                   help="Ray cluster address (default: start a local instance)")
-    p.add_argument("--scenario", default=None, help="scenario YAML (default: packaged)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=_cmd_generate)

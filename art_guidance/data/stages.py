@@ -11,7 +11,6 @@ and resumed any number of times, produce identical data (timings aside). Storage
 """
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math
@@ -22,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from art_guidance import __version__
-from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
+from art_guidance.config import GuidanceConfig, ScenarioConfig, UncertaintyConfig
 from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.optim import ScpStatus, Scvx, solve_cvx
@@ -111,33 +110,34 @@ class GenerationSpec:
     Attributes:
         mode: "deterministic" or "chance" (the stage-3 passive-safety model).
         base_seed: dataset seed S >= 0 (sample seeds follow SEED_RULE).
-        scenario, scp: configuration; uncertainty: None in deterministic mode.
-        samples_per_node: drift samples linearised per node in both SCP stages.
+        config: the configuration bundle (scenario, uncertainty, SCP, samples per node).
     """
 
     mode: str
     base_seed: int
-    scenario: ScenarioConfig
-    uncertainty: UncertaintyConfig | None
-    scp: ScpConfig
-    samples_per_node: int = 3
+    config: GuidanceConfig
 
     @classmethod
-    def build(cls, mode: str, base_seed: int, scenario: ScenarioConfig | None = None,
-              uncertainty: UncertaintyConfig | None = None,
-              scp: ScpConfig | None = None) -> "GenerationSpec":
-        """Validate the options and load missing configs from the packaged YAML files."""
+    def build(cls, mode: str, base_seed: int,
+              config: GuidanceConfig | None = None) -> "GenerationSpec":
+        """Validate the options; `config` defaults to the packaged YAML files."""
         if mode not in MODES:
             raise InputError("--mode", f"must be one of {MODES}", mode)
         if isinstance(base_seed, bool) or not isinstance(base_seed, (int, np.integer)) \
                 or not 0 <= base_seed < 2**63 // SEED_STRIDE - 1:
             raise InputError("--seed", "must be an integer in [0, 2^63 / 1000003 - 1) (the "
                              "sample seeds are int64)", base_seed)
-        unc = None
-        if mode == "chance":
-            unc = uncertainty or UncertaintyConfig.from_yaml()
-        return cls(mode, int(base_seed), scenario or ScenarioConfig.from_yaml(), unc,
-                   scp or ScpConfig.from_yaml())
+        return cls(mode, int(base_seed), config or GuidanceConfig.load())
+
+    @property
+    def scenario(self) -> ScenarioConfig:
+        """The scenario (Table I)."""
+        return self.config.scenario
+
+    @property
+    def uncertainty(self) -> UncertaintyConfig | None:
+        """The stage-3 uncertainty model (None in deterministic mode)."""
+        return self.config.uncertainty if self.mode == "chance" else None
 
     @property
     def config_sha256(self) -> str:
@@ -145,9 +145,8 @@ class GenerationSpec:
         return hashlib.sha256(json.dumps(self._config(), sort_keys=True).encode()).hexdigest()
 
     def _config(self) -> dict:
-        unc = None if self.uncertainty is None else dataclasses.asdict(self.uncertainty)
-        return {"scenario": dataclasses.asdict(self.scenario), "uncertainty": unc,
-                "scp": dataclasses.asdict(self.scp), "samples_per_node": self.samples_per_node,
+        return {"mode": self.mode, "guidance_config": self.config.to_json(),
+                "guidance_config_sha256": self.config.sha256(),
                 "pipeline_version": PIPELINE_VERSION}
 
     def header(self, n: int) -> dict:
@@ -214,8 +213,8 @@ def _run_scp(spec: GenerationSpec, safety: PassiveSafety, roe0: np.ndarray, roe_
              warm: np.ndarray) -> _Stage:
     t0 = time.perf_counter()
     try:
-        res = Scvx(safety, roe0, roe_f, spec.scp,
-                   samples_per_node=spec.samples_per_node).solve(warm)
+        res = Scvx(safety, roe0, roe_f, spec.config.scp,
+                   samples_per_node=spec.config.planning.samples_per_node).solve(warm)
     except GuidanceError:
         return _Stage(ScpStatus.SOLVER_ERROR, None, None, math.nan, 0,
                       1e3 * (time.perf_counter() - t0))

@@ -5,7 +5,8 @@ all plan through `GuidancePipeline.plan(request) -> PlanResult`.
 """
 
 from art_guidance.planning.pipeline import GuidancePipeline
-from art_guidance.planning.posthoc import PosthocThresholds, posthoc_check
+from art_guidance.config import PosthocThresholds
+from art_guidance.planning.posthoc import posthoc_check
 from art_guidance.planning.types import (
     WARM_STARTS, NavState, PlanRequest, PlanResult, PosthocDecision, Target, WarmStart,
     WarmStartProvider,

@@ -11,11 +11,11 @@ import time
 import numpy as np
 
 from art_guidance.checks import as_finite_array
-from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
+from art_guidance.config import GuidanceConfig
 from art_guidance.dynamics import Horizon, time_grid_s
-from art_guidance.errors import InputError
+from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import Scvx, solve_cvx
-from art_guidance.planning.posthoc import PosthocThresholds, posthoc_check
+from art_guidance.planning.posthoc import posthoc_check
 from art_guidance.planning.types import (
     PlanRequest, PlanResult, PosthocDecision, WarmStartProvider,
 )
@@ -25,38 +25,35 @@ from art_guidance.safety import PassiveSafety
 class GuidancePipeline:
     """Plans with CVX -> (optional learned warm start + post hoc) -> SCVx*."""
 
-    def __init__(self, scenario: ScenarioConfig | None = None,
-                 uncertainty: UncertaintyConfig | None = None, scp: ScpConfig | None = None,
-                 provider: WarmStartProvider | None = None, samples_per_node: int = 3,
-                 deadline_s: float | None = None,
-                 posthoc: PosthocThresholds | None = None) -> None:
-        self.scenario = scenario or ScenarioConfig.from_yaml()
-        self.uncertainty = uncertainty or UncertaintyConfig.from_yaml()
-        self.scp_config = scp or ScpConfig.from_yaml()
+    def __init__(self, config: GuidanceConfig | None = None,
+                 provider: WarmStartProvider | None = None,
+                 deadline_s: float | None = None) -> None:
+        """Args:
+            config: the configuration bundle (default: the packaged YAML files).
+            provider: a learned warm-start provider, or None (CVX only).
+            deadline_s: wall-clock budget of one SCP solve [s], or None.
+        """
+        self.config = config or GuidanceConfig.load()
+        self.scenario = self.config.scenario
+        self.uncertainty = self.config.uncertainty
+        self.scp_config = self.config.scp
+        self.samples_per_node = self.config.planning.samples_per_node
+        self.posthoc = self.config.planning.posthoc
         self.provider = provider
-        self.samples_per_node = samples_per_node
         self.deadline_s = deadline_s
-        self.posthoc = posthoc or PosthocThresholds()
         self._cache: dict = {}
 
     def config_json(self) -> dict:
         """The configuration this pipeline plans with (recorded with every run)."""
-        from dataclasses import asdict
-
-        return {"scenario": asdict(self.scenario), "uncertainty": asdict(self.uncertainty),
-                "scp": asdict(self.scp_config), "samples_per_node": self.samples_per_node,
-                "deadline_s": self.deadline_s, "posthoc": asdict(self.posthoc)}
+        return {**self.config.to_json(), "deadline_s": self.deadline_s,
+                "config_sha256": self.config.sha256()}
 
     @classmethod
     def from_config_json(cls, data: dict) -> "GuidancePipeline":
         """Rebuild a pipeline from `config_json` output (for replay)."""
         try:
-            return cls(ScenarioConfig(**data["scenario"]),
-                       UncertaintyConfig(**data["uncertainty"]), ScpConfig(**data["scp"]),
-                       samples_per_node=data["samples_per_node"],
-                       deadline_s=data["deadline_s"],
-                       posthoc=PosthocThresholds(**data.get("posthoc", {})))
-        except (KeyError, TypeError) as exc:
+            return cls(GuidanceConfig.from_json(data), deadline_s=data["deadline_s"])
+        except (KeyError, TypeError, ConfigError) as exc:
             raise InputError("config", f"recorded configuration is malformed: {exc!r}") from exc
 
     def _setup(self, request: PlanRequest) -> tuple[Horizon, PassiveSafety]:

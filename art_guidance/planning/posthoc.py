@@ -1,27 +1,11 @@
 """The paper's post hoc acceptance check of a learned warm start (E_R, E_C)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from art_guidance.errors import InputError
+from art_guidance.config import PosthocThresholds
 from art_guidance.planning.types import PosthocDecision
 from art_guidance.safety import PassiveSafety
-
-
-@dataclass(frozen=True)
-class PosthocThresholds:
-    """Acceptance region of the post hoc check (paper: -1.5 <= 100 E_R <= 3.5, 0 <= E_C <= 2)."""
-
-    e_r_pct_min: float = -1.5
-    e_r_pct_max: float = 3.5
-    e_c_min: float = 0.0
-    e_c_max: float = 2.0
-
-    def __post_init__(self) -> None:
-        if not (self.e_r_pct_min <= self.e_r_pct_max and self.e_c_min <= self.e_c_max):
-            raise InputError("posthoc", "thresholds need min <= max", self)
 
 
 def posthoc_check(dv_rtn_mps: np.ndarray, roe_m: np.ndarray, cvx_cost_mps: float,

@@ -9,6 +9,7 @@ by a ManeuverPlan whose header.stamp is that nav stamp.
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import sys
 import threading
@@ -24,7 +25,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
+from art_guidance.config import GuidanceConfig, node_parameter_defaults
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.planning import (
     WARM_STARTS, GuidancePipeline, NavState, PlanRequest, PlanResult, Target,
@@ -42,23 +43,7 @@ from art_guidance.ros.adapters import (
 OK, WARN, ERROR = 0, 1, 2
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "min_remaining_nodes")
-PARAMETERS = {
-    "config_dir": "",                 # "" = packaged config/
-    "default_waypoint": "plus_vbar",  # target until a replan request names one
-    "chance_constrained": True,
-    "warm_start": "auto",
-    "replan_sigma_threshold": 3.0,    # replan if any ROE axis deviates more than this [sigma]
-    "replan_period_s": 0.0,           # > 0: also replan this often (stamp time) [s]
-    "stamp_check": "wallclock",       # wallclock | order (monotonic only) | off
-    "max_nav_age_s": 5.0,
-    "max_nav_future_s": 1.0,
-    "solve_deadline_s": 5.0,
-    "min_remaining_nodes": 3,         # below this the active plan is flown out, not replanned
-    "samples_per_node": 3,
-    "record": True,                   # write every solve to MCAP
-    "record_dir": "",                 # "" = <ROS_HOME or ~/.ros>/art_guidance_logs/<run>
-    "record_max_bytes": 268435456,    # rotate MCAP files at this size [bytes]
-}
+PARAMETERS = node_parameter_defaults()  # config/guidance_node.yaml: the one table
 
 
 @dataclass(frozen=True)
@@ -79,16 +64,16 @@ class GuidanceNode(Node):
         super().__init__("guidance_node", **kwargs)
         for name, default in PARAMETERS.items():
             self.declare_parameter(name, default)
-        self.p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        config = GuidanceConfig.load(self.get_parameter("config_dir").value or None)
+        self.declare_parameter("samples_per_node", config.planning.samples_per_node)
+        self.p = {name: self.get_parameter(name).value
+                  for name in [*PARAMETERS, "samples_per_node"]}
         self._validate_parameters()
+        config = config.replace(planning=dataclasses.replace(
+            config.planning, samples_per_node=int(self.p["samples_per_node"])))
+        self.scenario = config.scenario
+        self.pipeline = GuidancePipeline(config, deadline_s=self.p["solve_deadline_s"])
         settings = {name: self.p[name] for name in POLICY_PARAMETERS}
-        cfg_dir = self.p["config_dir"] or None
-        path = (lambda f: None) if cfg_dir is None else (lambda f: f"{cfg_dir}/{f}")
-        self.scenario = ScenarioConfig.from_yaml(path("scenario.yaml"))
-        self.pipeline = GuidancePipeline(
-            self.scenario, UncertaintyConfig.from_yaml(path("uncertainty.yaml")),
-            ScpConfig.from_yaml(path("scp.yaml")), samples_per_node=self.p["samples_per_node"],
-            deadline_s=self.p["solve_deadline_s"])
         if self.p["default_waypoint"] not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {self.p['default_waypoint']!r} is not one of "
                               f"{sorted(self.scenario.waypoints_rtn)}")

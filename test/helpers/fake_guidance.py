@@ -23,7 +23,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from helpers.spin_main import spin_until_shutdown
 
-from art_guidance.config import ScenarioConfig, UncertaintyConfig
+from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import Horizon, orbital_period_s
 from art_guidance.planning import GuidancePipeline, PlanRequest
 
@@ -43,8 +43,7 @@ class FakeGuidance(Node):
                                  qos)
         self.request: ReplanRequest | None = None
         self.scenario = ScenarioConfig.from_yaml()
-        self.pipeline = GuidancePipeline(self.scenario, UncertaintyConfig.from_yaml()) \
-            if mode == "pipeline" else None
+        self.pipeline = GuidancePipeline() if mode == "pipeline" else None
         self.active: tuple[int, np.ndarray] | None = None  # (t0_ns, epochs_s)
         self.navs_since_plan = 0
         self.n_plans = 0

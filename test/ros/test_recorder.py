@@ -9,7 +9,7 @@ import pytest
 from helpers.ros_client import nav_msg
 
 from art_guidance.cli import main as cli_main
-from art_guidance.config import ScenarioConfig
+from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.data.stages import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import GuidancePipeline, PlanRequest
@@ -24,7 +24,7 @@ AnyReader = pytest.importorskip("rosbags.highlevel").AnyReader
 def solves():
     """Three real plans with the messages the node records for them."""
     scenario = ScenarioConfig.from_yaml()
-    pipeline = GuidancePipeline(scenario)
+    pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario))
     chief = np.array(scenario.chief_oe)
     out = []
     for seed in range(3):

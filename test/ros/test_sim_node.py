@@ -21,7 +21,7 @@ from art_guidance_msgs.msg import ManeuverPlan  # noqa: E402
 from art_guidance.errors import InputError  # noqa: E402
 from art_guidance.optim import ScpStatus  # noqa: E402
 from art_guidance.ros.adapters import MSG_STATUS, link_plan_from_msg  # noqa: E402
-from art_guidance.ros.sim_node import add_sim_parser, sim_argv  # noqa: E402
+from art_guidance.cli.sim import add_parser as add_sim_parser, sim_argv  # noqa: E402
 from art_guidance.sim.closed_loop import (  # noqa: E402
     SIM_EPOCH0_NS, exit_code, parse_plan, sim_stamp_ns, sim_time_s,
 )
@@ -216,4 +216,4 @@ def test_cli_options_map_to_ros_parameters():
     assert pairs["chance_constrained"] == "true" and pairs["png_path"] == '"a b/p.png"'
     assert pairs["step_timeout_s"] == "5.0" and pairs["errors"] == "false"
     assert argv.count("--ros-args") == 1
-    assert args.func.__name__ == "_cmd_sim"
+    assert args.func.__module__ == "art_guidance.cli.sim"

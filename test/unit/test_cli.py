@@ -67,3 +67,18 @@ def test_console_script_runs():
     out = subprocess.run([sys.executable, "-m", "art_guidance.cli", "--version"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and "art-guidance" in out.stdout
+
+
+def test_non_ros_commands_never_import_rclpy(tmp_path):
+    """Building the parser and planning must not load ROS (a plain-Python user has none)."""
+    code = ("import sys, json\n"
+            "from art_guidance.cli import build_parser, main\n"
+            "build_parser()\n"
+            f"rc = main(['plan', '--seed', '2', '--warm-start', 'cvx', '--json', "
+            f"{str(tmp_path / 'p.json')!r}])\n"
+            "print(json.dumps([rc, sorted(m for m in sys.modules if m.startswith(('rclpy', "
+            "'art_guidance_msgs', 'art_guidance.ros.guidance', 'art_guidance.ros.sim')))]))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    rc, ros_modules = json.loads(out.stdout.strip().splitlines()[-1])
+    assert rc == 0 and ros_modules == [], out.stderr[-2000:]

@@ -1,13 +1,15 @@
 """GuidancePipeline: the warm-start seam, the post hoc check and the CVX fallback."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from art_guidance.config import ScenarioConfig
+from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.data.stages import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.errors import InputError
+from art_guidance.errors import ConfigError
 from art_guidance.optim import ScpStatus
 from art_guidance.planning import (
     GuidancePipeline, PlanRequest, PosthocThresholds, posthoc_check,
@@ -26,6 +28,14 @@ class ScaledCvx:
         return cvx.dv_rtn_mps * self.factor
 
 
+def _config(scenario: ScenarioConfig, posthoc: PosthocThresholds | None = None
+            ) -> GuidanceConfig:
+    cfg = GuidanceConfig.load().replace(scenario=scenario)
+    if posthoc is None:
+        return cfg
+    return cfg.replace(planning=dataclasses.replace(cfg.planning, posthoc=posthoc))
+
+
 @pytest.fixture(scope="module")
 def request_0():
     scenario = ScenarioConfig.from_yaml()
@@ -37,7 +47,7 @@ def request_0():
 
 def test_posthoc_metrics_follow_the_paper_definitions(request_0):
     scenario, req = request_0
-    pipeline = GuidancePipeline(scenario, provider=ScaledCvx(1.02))
+    pipeline = GuidancePipeline(_config(scenario), provider=ScaledCvx(1.02))
     result = pipeline.plan(req)
     ph = result.posthoc
     # R_art = 1.02 R_des  =>  E_R = (R_art - R_des) / R_des = +0.02
@@ -50,7 +60,7 @@ def test_posthoc_metrics_follow_the_paper_definitions(request_0):
 def test_rejected_rollout_falls_back_to_cvx(request_0):
     scenario, req = request_0
     provider = ScaledCvx(0.5)  # half the lower bound: 100 E_R = -50, outside [-1.5, 3.5]
-    result = GuidancePipeline(scenario, provider=provider).plan(req)
+    result = GuidancePipeline(_config(scenario), provider=provider).plan(req)
     assert provider.calls == 1
     assert result.posthoc is not None and not result.posthoc.accepted
     assert result.posthoc.e_r == pytest.approx(-0.5)
@@ -61,7 +71,7 @@ def test_rejected_rollout_falls_back_to_cvx(request_0):
 def test_accepted_rollout_warm_starts_scp(request_0):
     scenario, req = request_0
     wide = PosthocThresholds(e_r_pct_min=-100.0, e_r_pct_max=100.0, e_c_max=1000.0)
-    result = GuidancePipeline(scenario, provider=ScaledCvx(1.01), posthoc=wide).plan(req)
+    result = GuidancePipeline(_config(scenario, wide), provider=ScaledCvx(1.01)).plan(req)
     assert result.posthoc.accepted and result.warm_start == "art"
     assert result.scp.feasible
     assert np.abs(result.rtn[-1, :3] - req.target_rtn[:3]).max() < 100.0  # pre-burn, near it
@@ -70,11 +80,12 @@ def test_accepted_rollout_warm_starts_scp(request_0):
 def test_forced_art_uses_the_rollout_even_if_rejected(request_0):
     scenario, req = request_0
     forced = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start="art")
-    result = GuidancePipeline(scenario, provider=ScaledCvx(0.5)).plan(forced)
+    result = GuidancePipeline(_config(scenario), provider=ScaledCvx(0.5)).plan(forced)
     assert not result.posthoc.accepted and result.warm_start == "art"
     cvx_only = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start="cvx")
     provider = ScaledCvx(1.0)
-    assert GuidancePipeline(scenario, provider=provider).plan(cvx_only).warm_start == "cvx"
+    pipeline = GuidancePipeline(_config(scenario), provider=provider)
+    assert pipeline.plan(cvx_only).warm_start == "cvx"
     assert provider.calls == 0
 
 
@@ -87,18 +98,18 @@ def test_broken_provider_output_falls_back_to_cvx(request_0):
 
     for warm_start in ("auto", "art"):
         forced = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start)
-        result = GuidancePipeline(scenario, provider=Broken()).plan(forced)
+        result = GuidancePipeline(_config(scenario), provider=Broken()).plan(forced)
         assert result.warm_start == "cvx" and not result.posthoc.accepted
         assert result.scp.feasible
 
 
 def test_posthoc_check_on_an_unsafe_rollout(request_0):
     scenario, req = request_0
-    pipeline = GuidancePipeline(scenario)
+    pipeline = GuidancePipeline(_config(scenario))
     horizon, safety = pipeline._setup(req)
     dv = np.zeros((horizon.n_nodes, 3))
     roe = horizon.propagate(req.roe0_m, dv)
     decision = posthoc_check(dv, roe, 1.0, safety, PosthocThresholds())
     assert decision.e_r == pytest.approx(-1.0) and not decision.accepted
-    with pytest.raises(InputError):
+    with pytest.raises(ConfigError, match="min <= max"):
         PosthocThresholds(e_r_pct_min=5.0, e_r_pct_max=1.0)

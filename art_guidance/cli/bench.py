@@ -1,0 +1,47 @@
+"""`art-guidance bench`: the benchmarks in benchmarks/."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from art_guidance.errors import InputError
+from art_guidance.files import write_json_atomic
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run benchmarks from benchmarks/ and print medians and ratios against references."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2] / "benchmarks"
+    names = sorted(p.stem[len("bench_"):] for p in root.glob("bench_*.py"))
+    if not names:
+        raise InputError("bench", "benchmarks/ not found (run from a source checkout)")
+    chosen = names if args.name == "all" else [args.name]
+    if str(root) not in sys.path:  # benchmarks share modules (e.g. the cvxpy reference)
+        sys.path.insert(0, str(root))
+    report = {}
+    for name in chosen:
+        path = root / f"bench_{name}.py"
+        if not path.is_file():
+            raise InputError("bench", f"unknown benchmark; choose from {names + ['all']}", name)
+        spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        kwargs = {"repeats": args.repeats} if args.repeats else {}
+        print(f"== {name}")
+        report[name] = module.run(**kwargs)
+        for key, value in report[name].items():
+            print(f"  {key}: {value:.4g}" if isinstance(value, float) else f"  {key}: {value}")
+    if args.json:
+        write_json_atomic(args.json, report)
+    return 0
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the subcommand."""
+    p = sub.add_parser("bench", help="run benchmarks", description=run.__doc__)
+    p.add_argument("name", nargs="?", default="all", help="benchmark name or 'all'")
+    p.add_argument("--repeats", type=int, default=None, help="samples per benchmark")
+    p.add_argument("--json", default=None, help="also write the numbers as JSON")
+    p.set_defaults(func=run)

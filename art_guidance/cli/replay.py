@@ -1,0 +1,32 @@
+"""`art-guidance replay`: re-solve a recorded log and compare."""
+from __future__ import annotations
+
+import argparse
+from art_guidance.files import write_json_atomic
+
+
+def run(args: argparse.Namespace) -> int:
+    """Re-solve every request recorded in an MCAP log (file or bag folder) and compare plans."""
+    from art_guidance.record.replay import replay
+
+    report = replay(args.log)
+    if args.json:
+        write_json_atomic(args.json, report)
+    for row in report["per_solve"]:
+        verdict = {True: "match", False: "MISMATCH", None: "skipped"}[row["match"]]
+        extra = (f"cost diff {row['cost_rel_diff']:.1e}, dv diff {row['dv_max_abs_diff_mps']:.1e}"
+                 if row["match"] is not None else row.get("reason", ""))
+        print(f"{row['plan_id']:>12} {row['status']:<15} {verdict:<8} {extra}")
+    print(f"{report['matched']}/{report['compared']} matched "
+          f"({report['solves']} solves, {len(report['truncated'])} truncated file(s))")
+    return 0 if report["mismatched"] == 0 else 1
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the subcommand."""
+    p = sub.add_parser("replay", help="re-solve a recorded MCAP log and compare",
+                       description=run.__doc__ + " Exit 0 when every compared solve "
+                       "matches (cost to 1e-6 relative, delta-v to 1e-5 m/s), 1 otherwise.")
+    p.add_argument("log", help="an .mcap file or a bag folder of them")
+    p.add_argument("--json", default=None, help="also write the report as JSON")
+    p.set_defaults(func=run)

@@ -1,0 +1,66 @@
+"""One configuration: the YAML files are the source; code defaults and tables agree with them."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+import pytest
+
+from art_guidance.config import (
+    GuidanceConfig, PlanningConfig, PosthocThresholds, ScenarioConfig, ScpConfig,
+    UncertaintyConfig, node_parameter_defaults,
+)
+from art_guidance.errors import ConfigError
+
+
+def test_dataclass_defaults_equal_the_packaged_yaml():
+    loaded = GuidanceConfig.load()
+    assert loaded == GuidanceConfig()
+    assert loaded.scenario == ScenarioConfig() and loaded.scp == ScpConfig()
+    assert loaded.uncertainty == UncertaintyConfig() and loaded.planning == PlanningConfig()
+
+
+def test_bundle_round_trips_and_fingerprints():
+    cfg = GuidanceConfig.load()
+    assert GuidanceConfig.from_json(cfg.to_json()) == cfg
+    assert len(cfg.sha256()) == 64 and cfg.sha256() == GuidanceConfig.load().sha256()
+    changed = cfg.replace(planning=dataclasses.replace(cfg.planning, samples_per_node=2))
+    assert changed.sha256() != cfg.sha256()
+
+
+@pytest.mark.parametrize("bad", [{"samples_per_node": 0}, {"samples_per_node": True},
+                                 {"posthoc": {"e_c_min": 3.0, "e_c_max": 2.0}},
+                                 {"posthoc": {"e_r_pct_max": float("nan")}},
+                                 {"posthoc": {"bogus": 1.0}}])
+def test_bad_planning_config_is_refused(bad):
+    with pytest.raises(ConfigError):
+        PlanningConfig(**bad)
+
+
+def test_planning_yaml_holds_the_papers_posthoc_region():
+    assert PlanningConfig.from_yaml().posthoc == PosthocThresholds(-1.5, 3.5, 0.0, 2.0)
+
+
+def test_node_parameter_table_is_the_params_file():
+    params = node_parameter_defaults()
+    assert params["default_waypoint"] == "plus_vbar" and params["stamp_check"] == "wallclock"
+    assert "samples_per_node" not in params  # one default: planning.yaml's
+    from art_guidance.planning.replan import ReplanSettings
+
+    names = {f.name for f in dataclasses.fields(ReplanSettings)} - {"ae_to_koz_node"}
+    settings = ReplanSettings(**{k: params[k] for k in names})
+    assert settings == ReplanSettings(ae_to_koz_node=settings.ae_to_koz_node)
+
+
+def test_simulator_cli_defaults_match_its_parameters():
+    from art_guidance.cli.sim import add_parser
+    from art_guidance.sim.closed_loop import PARAMETERS
+
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    args = parser.parse_args(["sim"])
+    assert args.waypoint == PARAMETERS["waypoint"] and args.seed == PARAMETERS["seed"]
+    assert args.step_timeout == PARAMETERS["step_timeout_s"]
+    assert args.max_steps == PARAMETERS["max_steps"]
+    assert args.miss_tolerance == PARAMETERS["miss_tolerance_m"]
+    assert args.png == PARAMETERS["png_path"] and args.summary_json == PARAMETERS["summary_path"]
