@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from mcap.records import Message, Metadata
 from mcap.stream_reader import StreamReader
-from mcap_ros2._dynamic import generate_dynamic
+from mcap_ros2.decoder import DecoderFactory
 
 from art_guidance.errors import InputError
 from art_guidance.planning import GuidancePipeline, PlanRequest
@@ -59,22 +59,24 @@ def read_log(path: str | Path) -> RecordedLog:
     """
     log = RecordedLog()
     for file in _files(Path(path)):
-        channels, schemas, decoders = {}, {}, {}
+        channels, schemas, factory = {}, {}, DecoderFactory()
         with open(file, "rb") as fh:
             try:
                 for record in StreamReader(fh).records:
                     kind = type(record).__name__
                     if kind == "Schema":
-                        schemas[record.id] = record.name
-                        decoders[record.name] = generate_dynamic(
-                            record.name, record.data.decode())[record.name]
+                        schemas[record.id] = record
                     elif kind == "Channel":
-                        channels[record.id] = (record.topic, schemas.get(record.schema_id))
+                        decoder = factory.decoder_for(record.message_encoding,
+                                                      schemas.get(record.schema_id))
+                        channels[record.id] = (record.topic, decoder)
                     elif isinstance(record, Metadata) and record.name == "art_guidance":
                         log.metadata = dict(record.metadata)
                     elif isinstance(record, Message) and record.channel_id in channels:
-                        topic, type_name = channels[record.channel_id]
-                        msg = decoders[type_name](record.data)
+                        topic, decoder = channels[record.channel_id]
+                        if decoder is None:
+                            continue  # not a cdr/ros2msg channel: not ours
+                        msg = decoder(record.data)
                         log.messages.append((topic, msg, record.log_time))
             except Exception as exc:  # torn tail after a crash: keep what was complete
                 log.truncated.append(f"{file.name}: {type(exc).__name__}: {exc}")
