@@ -26,10 +26,8 @@ from types import SimpleNamespace
 from typing import Iterable
 
 from mcap.writer import CompressionType, Writer
-# mcap_ros2's public Writer owns the file (no per-solve flush + fsync), and rclpy's
-# serialize_message leaves trailing uninitialised bytes that strict readers (rosbags) refuse as
-# a size mismatch (measured: 116 vs 100 bytes for an empty SolveRecord), so the cdr encoder that
-# mcap_ros2's Writer uses internally is called directly.
+# The encoder mcap_ros2's own Writer uses (see the module docstring for why not Fast-CDR); its
+# public Writer owns the file and cannot flush and fsync per solve.
 from mcap_ros2._dynamic import serialize_dynamic
 
 from art_guidance.files import write_atomic
