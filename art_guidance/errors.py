@@ -55,5 +55,8 @@ class CheckpointError(ModelError):
 
 
 def _short(value: Any, limit: int = 120) -> str:
+    """A short, human-readable rendering (numpy scalars and arrays as plain numbers)."""
+    if hasattr(value, "tolist"):  # numpy scalar or array: np.float64(0.0) -> 0.0
+        value = value.tolist()
     text = repr(value)
     return text if len(text) <= limit else text[: limit - 3] + "..."

@@ -8,7 +8,7 @@ import numpy as np
 
 
 class ScpStatus(enum.Enum):
-    """Outcome of a solve. Values match `ManeuverPlan.STATUS_*`."""
+    """Outcome of a solve (mapped to `ManeuverPlan.STATUS_*` in `ros.adapters.MSG_STATUS`)."""
 
     CONVERGED = 0
     MAX_ITERATIONS = 1

@@ -6,6 +6,7 @@ Only this module and `node`/`sim_node` import ROS message types. Every check rai
 from __future__ import annotations
 
 import json
+import math
 import numpy as np
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest, SolveRecord
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -96,28 +97,36 @@ def plan_to_msg(result: PlanResult, stamp_ns: int, plan_id: str) -> ManeuverPlan
     msg.header.frame_id = "chief_rtn"
     msg.plan_id = plan_id
     msg.status = MSG_STATUS[result.status]
-    msg.status_text = result.status.name
+    msg.status_text = (f"{result.status.name}: {result.cost_mps:.4f} m/s after "
+                       f"{result.scp.iterations} SCP iterations from the "
+                       f"{result.warm_start.upper()} warm start, passive-safety margin "
+                       f"{result.constraint_margin_m:.2f} m")
     msg.epochs_s = result.epochs_s.astype(float).tolist()
     msg.dv_rtn_mps = result.dv_rtn_mps.reshape(-1).tolist()
     msg.roe_m = result.roe_m.reshape(-1).tolist()
     msg.rtn = result.rtn.reshape(-1).tolist()
     msg.cost_mps = float(result.cost_mps)
     msg.warm_start = result.warm_start
+    msg.posthoc_e_r = msg.posthoc_e_c = math.nan
+    msg.posthoc = ManeuverPlan.POSTHOC_NOT_RUN
     if result.posthoc is not None:
         msg.posthoc_e_r = float(result.posthoc.e_r)
         msg.posthoc_e_c = float(result.posthoc.e_c)
-        msg.posthoc_accepted = bool(result.posthoc.accepted)
+        msg.posthoc = (ManeuverPlan.POSTHOC_ACCEPTED if result.posthoc.accepted
+                       else ManeuverPlan.POSTHOC_REJECTED)
     msg.scp_iterations = int(result.scp.iterations)
     msg.solve_time_ms = float(result.timings_ms.get("total", 0.0))
     msg.constraint_margin_m = float(result.constraint_margin_m)
     return msg
 
 
-def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str,
-                     trigger: str) -> SolveRecord:
-    """Everything needed to replay one solve: request, warm starts, SCP history, timings."""
+def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str, trigger: str,
+                     request_stamp_ns: int = 0) -> SolveRecord:
+    """Everything needed to replay one solve: request, warm starts, SCP history, timings, and
+    the header stamp of the ReplanRequest in force (0 = none)."""
     msg = SolveRecord()
     ns_to_stamp(msg.header.stamp, stamp_ns)
+    ns_to_stamp(msg.request_stamp, request_stamp_ns)
     msg.plan_id, msg.trigger = plan_id, trigger
     if result.art_dv_rtn_mps is not None:
         msg.warm_start_art_dv_rtn_mps = np.asarray(result.art_dv_rtn_mps).reshape(-1).tolist()
@@ -141,6 +150,7 @@ def status_plan_msg(stamp_ns: int, plan_id: str, status: int, text: str,
     ns_to_stamp(msg.header.stamp, stamp_ns)
     msg.header.frame_id = "chief_rtn"
     msg.plan_id, msg.status, msg.status_text = plan_id, int(status), text[:500]
+    msg.posthoc_e_r = msg.posthoc_e_c = math.nan  # no solve, no post hoc check
     msg.active_plan_id = active_plan_id
     return msg
 

@@ -1,7 +1,6 @@
 """The ROS 2 environment the processes and tests run in: loopback discovery, own domain."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 from art_guidance.config import default_config_dir
@@ -14,15 +13,12 @@ def fast_discovery_profile() -> Path:
     return default_config_dir() / "fastdds_localhost.xml"
 
 
-def use_fast_discovery() -> None:
-    """Point Fast DDS at the packaged profile unless the caller chose one (before rclpy.init)."""
-    profile = fast_discovery_profile()
-    if profile.is_file():
-        os.environ.setdefault(PROFILE_VAR, str(profile))
-
-
 def isolated_ros_env(home: str | Path, domain_id: int) -> dict[str, str]:
     """Variables for processes that must talk only to each other on this machine.
+
+    Used by the demo, the tests and the benchmarks (never by the nodes themselves, which run in
+    whatever DDS set-up the user has): own domain, loopback discovery, and the packaged Fast DDS
+    profile with faster discovery.
 
     Args:
         home: ROS_HOME for logs (created by ROS on first use).

@@ -21,6 +21,7 @@ import numpy as np
 import rclpy
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
 from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -28,13 +29,13 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from art_guidance.config import GuidanceConfig, node_parameter_defaults
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.planning import (
-    WARM_STARTS, GuidancePipeline, NavState, PlanRequest, PlanResult, Target,
+    GuidancePipeline, NavState, PlanRequest, PlanResult, Target,
 )
 from art_guidance.planning.replan import (
     Action, Decision, ReplanPolicy, ReplanSettings, request_for, unusable_text,
 )
 from art_guidance.record.recorder import McapRecorder, default_log_dir
-from art_guidance.ros.env import use_fast_discovery
+from art_guidance.ros.parameters import SPECS, check_table, descriptor
 from art_guidance.ros.adapters import (
     diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg, status_plan_msg,
     target_from_msg,
@@ -62,13 +63,14 @@ class GuidanceNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("guidance_node", **kwargs)
+        check_table(PARAMETERS)
         for name, default in PARAMETERS.items():
-            self.declare_parameter(name, default)
+            self.declare_parameter(name, default, descriptor(name))
         config = GuidanceConfig.load(self.get_parameter("config_dir").value or None)
-        self.declare_parameter("samples_per_node", config.planning.samples_per_node)
-        self.p = {name: self.get_parameter(name).value
-                  for name in [*PARAMETERS, "samples_per_node"]}
-        self._validate_parameters()
+        self.declare_parameter("samples_per_node", config.planning.samples_per_node,
+                               descriptor("samples_per_node"))
+        self.p = {name: spec.coerce(name, self.get_parameter(name).value)
+                  for name, spec in SPECS.items()}
         config = config.replace(planning=dataclasses.replace(
             config.planning, samples_per_node=int(self.p["samples_per_node"])))
         self.scenario = config.scenario
@@ -83,10 +85,15 @@ class GuidanceNode(Node):
                              np.asarray(self.scenario.waypoints_rtn[self.p["default_waypoint"]]),
                              self.p["chance_constrained"], self.p["warm_start"], None)
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        nav_qos = QoSProfile(depth=10, reliability=(
+            ReliabilityPolicy.BEST_EFFORT if self.p["nav_qos_reliability"] == "best_effort"
+            else ReliabilityPolicy.RELIABLE))
         self.plan_pub = self.create_publisher(ManeuverPlan, "guidance/maneuver_plan", qos)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos)
-        self.create_subscription(RelativeNavState, "nav/relative_state", self._on_nav, qos)
-        self.create_subscription(ReplanRequest, "guidance/replan_request", self._on_request, qos)
+        self.nav_sub = self.create_subscription(RelativeNavState, "nav/relative_state",
+                                                self._on_nav, nav_qos)
+        self.request_sub = self.create_subscription(ReplanRequest, "guidance/replan_request",
+                                                    self._on_request, qos)
         self._lock = threading.Condition()
         self._job: Job | None = None
         self._busy = False
@@ -97,6 +104,7 @@ class GuidanceNode(Node):
         self._request_msg: ReplanRequest | None = None
         self.recorder = self._make_recorder()
         self.stats = {"nav": 0, "rejected": 0, "plans": 0, "superseded": 0}
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self._worker = threading.Thread(target=self._work, name="guidance_worker", daemon=True)
         self._worker.start()
         self.get_logger().info(f"guidance_node ready (target {self.target.waypoint}, "
@@ -111,17 +119,27 @@ class GuidanceNode(Node):
         self.get_logger().info(f"recording every solve to {directory}")
         return McapRecorder(directory, meta, max_bytes=int(self.p["record_max_bytes"]))
 
-    def _validate_parameters(self) -> None:
-        """Checks of the node's own parameters (the policy's are checked by ReplanSettings)."""
-        if not float(self.p["solve_deadline_s"]) > 0:
-            raise ConfigError(f"parameter solve_deadline_s must be > 0, "
-                              f"got {self.p['solve_deadline_s']}")
-        if self.p["warm_start"] not in WARM_STARTS:
-            raise ConfigError(f"warm_start must be one of {WARM_STARTS}")
-        if int(self.p["samples_per_node"]) < 1:
-            raise ConfigError("samples_per_node must be >= 1")
-        if int(self.p["record_max_bytes"]) < 4096:
-            raise ConfigError("record_max_bytes must be >= 4096")
+    def _on_set_parameters(self, params: list) -> SetParametersResult:
+        """Validate and apply run-time parameter changes (all or none)."""
+        new = dict(self.p)
+        try:
+            for prm in params:
+                spec = SPECS.get(prm.name)
+                if spec is None or not spec.dynamic:
+                    raise ConfigError(f"{prm.name} is read-only (fixed at start-up)")
+                new[prm.name] = spec.coerce(prm.name, prm.value)
+            settings = ReplanSettings(**{n: new[n] for n in POLICY_PARAMETERS},
+                                      ae_to_koz_node=self.scenario.ae_to_koz_node)
+        except ConfigError as exc:
+            self.get_logger().warning(f"parameter change refused: {exc}")
+            return SetParametersResult(successful=False, reason=str(exc))
+        with self._lock:
+            self.p = new
+            self.policy.settings = settings
+            self.pipeline.deadline_s = new["solve_deadline_s"]
+        changed = ", ".join(f"{p.name}={new[p.name]!r}" for p in params)
+        self.get_logger().info(f"parameters changed: {changed}")
+        return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------ callbacks
     def _on_nav(self, msg: RelativeNavState) -> None:
@@ -244,7 +262,7 @@ class GuidanceNode(Node):
     def _reject(self, stamp_ns: int, reason: str) -> None:
         self.stats["rejected"] += 1
         self.get_logger().warning(f"nav message rejected: {reason}")
-        self.plan_pub.publish(status_plan_msg(stamp_ns, "rejected",
+        self.plan_pub.publish(status_plan_msg(stamp_ns, self._next_id(),
                                               ManeuverPlan.STATUS_REJECTED_INPUT, reason,
                                               self._active_id()))
         self._diag(stamp_ns, WARN, "rejected", {"reason": reason})
@@ -264,8 +282,15 @@ class GuidanceNode(Node):
         self._worker.join(timeout=30.0)
         if self.recorder is not None:
             self.recorder.finish()
-            self.get_logger().info(f"recorded {self.recorder.solves} solves to "
-                                   f"{self.recorder.directory}")
+            self._shutdown_logger().info(f"recorded {self.recorder.solves} solves to "
+                                         f"{self.recorder.directory}")
+
+    def _shutdown_logger(self):
+        """The node's logger while its context lives; after SIGINT/SIGTERM (context shut down,
+        rosout gone) a console-only logger, so shutting down logs no rosout error."""
+        if self.context.ok():
+            return self.get_logger()
+        return rclpy.logging.get_logger("art_guidance.shutdown")
 
 
 def _versions() -> dict:
@@ -283,7 +308,6 @@ def _versions() -> dict:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the node until SIGINT/SIGTERM (Jazzy-correct shutdown order)."""
-    use_fast_discovery()
     rclpy.init(args=list(argv) if argv is not None else sys.argv)
     node = None
     executor = SingleThreadedExecutor()

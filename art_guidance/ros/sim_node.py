@@ -54,7 +54,6 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from art_guidance.errors import GuidanceError
 from art_guidance.ros.adapters import link_plan_from_msg, ns_to_stamp, stamp_to_ns
-from art_guidance.ros.env import use_fast_discovery
 from art_guidance.sim.closed_loop import FLOAT_PARAMETERS, PARAMETERS, ClosedLoop
 from art_guidance.sim.link import LinkPlan
 
@@ -198,7 +197,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: full argument vector (program name first), e.g. ``["sim", "--ros-args", "-p",
             "seed:=3"]``; None uses sys.argv.
     """
-    use_fast_discovery()
     try:
         rclpy.init(args=list(argv) if argv is not None else sys.argv)
     except Exception as exc:  # RCLError on unparsable --ros-args (e.g. `-p name:=`)

@@ -6,7 +6,10 @@ import subprocess
 
 import pytest
 
-from art_guidance.record.replay import read_log, replay
+pytest.importorskip("rclpy")
+from art_guidance_msgs.msg import ManeuverPlan  # noqa: E402
+
+from art_guidance.record.replay import read_log, replay  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -32,6 +35,6 @@ def test_demo_reaches_the_waypoint_and_its_log_replays(ros_env, python_exe, tmp_
     in_force = ""
     for _, plan, _ in (m for m in read_log(run / "mcap").messages
                        if m[0] == "/guidance/maneuver_plan"):
-        if plan.status in (0, 1):  # converged or max-iterations: usable, now in force
+        if plan.status in (ManeuverPlan.STATUS_CONVERGED, ManeuverPlan.STATUS_MAX_ITERATIONS):
             in_force = plan.plan_id
         assert plan.active_plan_id == in_force, plan.status_text

@@ -26,6 +26,7 @@ from helpers.spin_main import spin_until_shutdown
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import Horizon, orbital_period_s
 from art_guidance.planning import GuidancePipeline, PlanRequest
+from art_guidance.ros.adapters import MSG_STATUS
 
 HANDMADE_EPOCHS_S = (0.0, 300.0, 600.0)
 HANDMADE_DV_MPS = ((0.0, 1e-3, 0.0), (1e-3, 0.0, 0.0), (0.0, -1e-3, 0.0))
@@ -84,7 +85,7 @@ class FakeGuidance(Node):
                 chief, roe, target, chance_constrained=self.request.chance_constrained,
                 warm_start="cvx", n_nodes=n_nodes, n_orbits=n_orbits, koz_switch_node=switch))
             epochs = res.epochs_s
-            out = self._plan_msg(stamp, int(res.status.value), epochs, res.dv_rtn_mps,
+            out = self._plan_msg(stamp, MSG_STATUS[res.status], epochs, res.dv_rtn_mps,
                                  res.roe_m, res.rtn)
         if self.active is None:
             self.first_t0_ns = stamp

@@ -34,7 +34,7 @@ def _sample_messages() -> dict[str, object]:
     plan.dv_rtn_mps = rng.normal(size=15).tolist()
     plan.roe_m = rng.normal(size=30).tolist()
     plan.rtn = rng.normal(size=30).tolist()
-    plan.cost_mps, plan.warm_start, plan.posthoc_accepted = 1.25, "art", True
+    plan.cost_mps, plan.warm_start, plan.posthoc = 1.25, "art", ManeuverPlan.POSTHOC_ACCEPTED
     plan.scp_iterations, plan.constraint_margin_m = 3, 12.5
     req = ReplanRequest()
     req.waypoint, req.chance_constrained, req.horizon_orbits = "custom", True, 1.29

@@ -1,0 +1,140 @@
+"""The guidance node's ROS parameters: what each means, its constraints, whether it may change.
+
+Defaults come from `config/guidance_node.yaml` (`config.node_parameter_defaults`), plus
+`samples_per_node` from `planning.yaml`; this module adds the descriptors. Importing it loads no
+ROS module (the CLI's `node --help` lists the parameters from here); `descriptor` imports
+rcl_interfaces when the node asks for one.
+
+Dynamic parameters are applied at run time after validation (an invalid value is refused with a
+reason and changes nothing); read-only ones are fixed at start-up and `ros2 param set` on them
+is refused.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from art_guidance.errors import ConfigError
+from art_guidance.planning import WARM_STARTS
+from art_guidance.planning.replan import STAMP_CHECKS
+
+NAV_QOS = ("best_effort", "reliable")
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter's meaning and constraints.
+
+    Attributes:
+        description: what it does, with its unit.
+        kind: "float", "int", "bool" or "str".
+        choices: the allowed strings (kind "str"), or None for any.
+        minimum: the smallest allowed number (kind "float" / "int"), or None.
+        exclusive_minimum: the minimum itself is not allowed (a strict "> minimum").
+        dynamic: may change at run time (applied after validation); else read-only.
+    """
+
+    description: str
+    kind: str
+    choices: tuple[str, ...] | None = None
+    minimum: float | None = None
+    exclusive_minimum: bool = False
+    dynamic: bool = False
+
+    @property
+    def constraints(self) -> str:
+        """The constraints in words (the descriptor's additional_constraints)."""
+        if self.choices is not None:
+            return "one of: " + ", ".join(self.choices)
+        if self.minimum is not None:
+            return f"{'>' if self.exclusive_minimum else '>='} {self.minimum:g}"
+        return ""
+
+    def coerce(self, name: str, value: Any) -> Any:
+        """The value as this parameter's type, validated.
+
+        Raises:
+            ConfigError: naming the parameter, the constraint and the value.
+        """
+        if self.kind in ("float", "int"):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"{name} must be a number, got {value!r}")
+            if self.kind == "int" and float(value) != int(value):
+                raise ConfigError(f"{name} must be a whole number, got {value!r}")
+            value = float(value) if self.kind == "float" else int(value)
+            low = self.minimum
+            if low is not None and (value <= low if self.exclusive_minimum else value < low) \
+                    or value != value:
+                raise ConfigError(f"{name} must be {self.constraints}, got {value!r}")
+            return value
+        if self.kind == "bool":
+            if not isinstance(value, bool):
+                raise ConfigError(f"{name} must be true or false, got {value!r}")
+            return value
+        if not isinstance(value, str):
+            raise ConfigError(f"{name} must be a string, got {value!r}")
+        if self.choices is not None and value not in self.choices:
+            raise ConfigError(f"{name} must be {self.constraints}, got {value!r}")
+        return value
+
+
+SPECS: dict[str, ParamSpec] = {
+    "config_dir": ParamSpec("directory with scenario/uncertainty/scp/planning YAML "
+                            "('' = the packaged config/)", "str"),
+    "default_waypoint": ParamSpec("target until a replan request names one (a waypoint of "
+                                  "scenario.yaml)", "str"),
+    "chance_constrained": ParamSpec("plan chance-constrained passive safety until a replan "
+                                    "request says otherwise (false: deterministic)", "bool"),
+    "warm_start": ParamSpec("SCP warm start until a replan request says otherwise", "str",
+                            WARM_STARTS),
+    "replan_sigma_threshold": ParamSpec("replan when any ROE axis deviates from the plan by "
+                                        "more than this [navigation sigma]", "float",
+                                        minimum=0.0, exclusive_minimum=True, dynamic=True),
+    "replan_period_s": ParamSpec("also replan this often in stamp time [s]; 0 = off",
+                                 "float", minimum=0.0, dynamic=True),
+    "stamp_check": ParamSpec("wallclock: age/future limits and order; order: monotonic only "
+                             "(simulated time); off", "str", STAMP_CHECKS, dynamic=True),
+    "max_nav_age_s": ParamSpec("refuse a fix older than this (stamp_check wallclock) [s]",
+                               "float", minimum=0.0, exclusive_minimum=True, dynamic=True),
+    "max_nav_future_s": ParamSpec("refuse a fix stamped further ahead than this [s]", "float",
+                                  minimum=0.0, exclusive_minimum=True, dynamic=True),
+    "solve_deadline_s": ParamSpec("SCP wall-clock budget per plan; the best feasible iterate "
+                                  "is returned on expiry [s]", "float", minimum=0.0,
+                                  exclusive_minimum=True, dynamic=True),
+    "min_remaining_nodes": ParamSpec("below this many nodes left the plan in force is flown "
+                                     "out, not replanned", "int", minimum=2, dynamic=True),
+    "nav_qos_reliability": ParamSpec("reliability of the nav subscription: best_effort matches "
+                                     "both best-effort (sensor data) and reliable publishers",
+                                     "str", NAV_QOS),
+    "record": ParamSpec("write every solve to MCAP (a rosbag2 bag folder)", "bool"),
+    "record_dir": ParamSpec("bag folder ('' = <ROS_HOME>/art_guidance_logs/<run>)", "str"),
+    "record_max_bytes": ParamSpec("rotate MCAP files at this size [bytes]", "int",
+                                  minimum=4096),
+    "samples_per_node": ParamSpec("drift samples linearised per node in SCP (default: "
+                                  "planning.yaml)", "int", minimum=1),
+}
+
+
+def descriptor(name: str) -> Any:
+    """The rcl_interfaces ParameterDescriptor of a parameter (floats accept whole numbers)."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    spec = SPECS[name]
+    return ParameterDescriptor(description=spec.description,
+                               additional_constraints=spec.constraints,
+                               read_only=not spec.dynamic,
+                               dynamic_typing=spec.kind == "float")
+
+
+def check_table(defaults: dict[str, Any]) -> None:
+    """Every parameter of the YAML table has a spec and a valid default, and vice versa.
+
+    Raises:
+        ConfigError: on a missing, unknown or invalid parameter.
+    """
+    names = set(defaults) | {"samples_per_node"}
+    if names != set(SPECS):
+        raise ConfigError(f"guidance_node.yaml and the parameter specs differ: "
+                          f"{sorted(names ^ set(SPECS))}")
+    for name, value in defaults.items():
+        SPECS[name].coerce(name, value)
