@@ -40,6 +40,7 @@ setup(
     entry_points={
         "console_scripts": [
             f"guidance_node = {PACKAGE}.ros.guidance_node:main",
+            f"guidance_managed_node = {PACKAGE}.ros.guidance_node:main_managed",
             f"sim_node = {PACKAGE}.ros.sim_node:main",
             f"art-guidance = {PACKAGE}.cli:main",
         ],

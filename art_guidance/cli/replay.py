@@ -19,6 +19,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"{row['plan_id']:>12} {row['status']:<15} {verdict:<8} {extra}")
     print(f"{report['matched']}/{report['compared']} matched "
           f"({report['solves']} solves, {len(report['truncated'])} truncated file(s))")
+    if report["truncated"]:  # read as it is; other readers need the files repaired
+        print(f"a file ends torn (crash during a write): `art-guidance bag reindex {args.log}` "
+              "makes the folder readable by rosbag2 and rosbags")
     return 0 if report["mismatched"] == 0 else 1
 
 

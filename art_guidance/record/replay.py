@@ -1,8 +1,11 @@
 """Read recorded solves back (also from files cut short by a crash) and re-solve them.
 
 `read_log` walks the MCAP records sequentially, so a file whose writer was killed (no summary,
-a torn last record) yields every solve whose chunk was completed. `replay` rebuilds the pipeline
-from the recorded configuration, solves each recorded request again and compares the plan.
+a torn last record) yields every solve whose chunk was completed; it never modifies the files.
+Messages are found by their type (the schema name), not by topic, so a node started in a
+namespace or with remapped topics replays the same. `replay` rebuilds the pipeline from the
+recorded configuration, solves each recorded request again (the request JSON in the
+SolveRecord) and compares the plan.
 """
 from __future__ import annotations
 
@@ -17,9 +20,21 @@ from mcap_ros2.decoder import DecoderFactory
 
 from art_guidance.errors import InputError
 from art_guidance.planning import GuidancePipeline, PlanRequest
+from art_guidance.record.bag_metadata import bag_files
+from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE
 
 COST_REL_TOL = 1e-6     # relative cost agreement of a re-solve
 DV_ABS_TOL_MPS = 1e-5   # largest delta-v component difference [m/s]
+
+
+def _stamp_ns(stamp: object) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def request_stamp_ns(record: object) -> int:
+    """SolveRecord.request_stamp in ns (0 = no request; logs older than the field give 0)."""
+    stamp = getattr(record, "request_stamp", None)
+    return 0 if stamp is None else _stamp_ns(stamp)
 
 
 @dataclass
@@ -28,22 +43,39 @@ class RecordedLog:
 
     metadata: dict = field(default_factory=dict)
     messages: list[tuple[str, object, int]] = field(default_factory=list)  # topic, msg, t_ns
+    types: dict[str, str] = field(default_factory=dict)  # topic -> 'pkg/msg/Type'
     truncated: list[str] = field(default_factory=list)
+
+    def of_type(self, msg_type: str) -> list[object]:
+        """Every message of `msg_type` ('pkg/msg/Type'), whatever its topic, in file order."""
+        return [msg for topic, msg, _ in self.messages if self.types.get(topic) == msg_type]
 
     def solves(self) -> list[tuple[object, object]]:
         """(SolveRecord, ManeuverPlan) pairs matched by plan id."""
-        records, plans = {}, {}
-        for topic, msg, _ in self.messages:
-            if topic == "/guidance/solve_record":
-                records[msg.plan_id] = msg
-            elif topic == "/guidance/maneuver_plan":
-                plans[msg.plan_id] = msg
+        plans = {msg.plan_id: msg for msg in self.of_type(PLAN_TYPE)}
+        records = {msg.plan_id: msg for msg in self.of_type(SOLVE_RECORD_TYPE)}
         return [(records[k], plans[k]) for k in records if k in plans]
+
+    def request_for(self, record: object) -> object | None:
+        """The ReplanRequest in force for a SolveRecord (matched by its header stamp), if any.
+
+        Each request is recorded once, with the first solve made under it; later solves refer
+        to it through `SolveRecord.request_stamp` (zero: no request, the node's default target).
+        """
+        stamp, latest = request_stamp_ns(record), None
+        if stamp == 0:
+            return None
+        for topic, msg, _ in self.messages:  # the last such request recorded before the solve
+            if msg is record:
+                break
+            if self.types.get(topic) == REQUEST_TYPE and _stamp_ns(msg.header.stamp) == stamp:
+                latest = msg
+        return latest
 
 
 def _files(path: Path) -> list[Path]:
     if path.is_dir():
-        files = sorted(path.glob("*.mcap"), key=lambda p: (len(p.name), p.name))
+        files = bag_files(path)
         if not files:
             raise InputError("log", "no .mcap files in the directory", str(path))
         return files
@@ -67,9 +99,11 @@ def read_log(path: str | Path) -> RecordedLog:
                     if kind == "Schema":
                         schemas[record.id] = record
                     elif kind == "Channel":
-                        decoder = factory.decoder_for(record.message_encoding,
-                                                      schemas.get(record.schema_id))
+                        schema = schemas.get(record.schema_id)
+                        decoder = factory.decoder_for(record.message_encoding, schema)
                         channels[record.id] = (record.topic, decoder)
+                        if schema is not None:
+                            log.types[record.topic] = schema.name
                     elif isinstance(record, Metadata) and record.name == "art_guidance":
                         log.metadata = dict(record.metadata)
                     elif isinstance(record, Message) and record.channel_id in channels:
@@ -97,7 +131,8 @@ def replay(path: str | Path) -> dict:
     rows = []
     for record, plan in log.solves():
         cost, dv = _plan_arrays(plan)
-        row = {"plan_id": plan.plan_id, "status": plan.status_text, "cost_mps": cost}
+        row = {"plan_id": plan.plan_id, "status": plan.status_text, "cost_mps": cost,
+               "request_stamp_ns": request_stamp_ns(record)}
         if plan.status_text == "TIMEOUT":
             row.update(match=None, reason="recorded solve hit its deadline")
             rows.append(row)

@@ -15,7 +15,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import rclpy
@@ -23,6 +23,7 @@ from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
@@ -34,10 +35,13 @@ from art_guidance.planning import (
 from art_guidance.planning.replan import (
     Action, Decision, ReplanPolicy, ReplanSettings, request_for, unusable_text,
 )
-from art_guidance.record.recorder import McapRecorder, default_log_dir
+from art_guidance.record.recorder import (
+    NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TOPIC, SOLVE_RECORD_TYPE, McapRecorder,
+    default_log_dir,
+)
 from art_guidance.ros.parameters import SPECS, check_table, descriptor
 from art_guidance.ros.adapters import (
-    diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg, status_plan_msg,
+    diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg, stamp_to_ns, status_plan_msg,
     target_from_msg,
 )
 
@@ -58,11 +62,11 @@ class Job:
     request_msg: ReplanRequest | None
 
 
-class GuidanceNode(Node):
-    """Thin rclpy shell around `GuidancePipeline`."""
+class GuidanceCore:
+    """The guidance node's behaviour, mixed into an rclpy `Node` (`GuidanceNode`) or a
+    `LifecycleNode` (`ManagedGuidanceNode`): parameters, planning state, endpoints, worker."""
 
-    def __init__(self, **kwargs) -> None:
-        super().__init__("guidance_node", **kwargs)
+    def _declare_parameters(self) -> None:
         check_table(PARAMETERS)
         for name, default in PARAMETERS.items():
             self.declare_parameter(name, default, descriptor(name))
@@ -71,53 +75,94 @@ class GuidanceNode(Node):
                                descriptor("samples_per_node"))
         self.p = {name: spec.coerce(name, self.get_parameter(name).value)
                   for name, spec in SPECS.items()}
+        self.policy: ReplanPolicy | None = None
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def _configure(self) -> None:
+        """Load the configuration (and, with the learned warm start, the model); build the
+        pipeline, the replan policy and the recorder. Raises GuidanceError on bad config."""
+        config = GuidanceConfig.load(self.p["config_dir"] or None)
         config = config.replace(planning=dataclasses.replace(
             config.planning, samples_per_node=int(self.p["samples_per_node"])))
         self.scenario = config.scenario
-        self.pipeline = GuidancePipeline(config, deadline_s=self.p["solve_deadline_s"])
-        settings = {name: self.p[name] for name in POLICY_PARAMETERS}
         if self.p["default_waypoint"] not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {self.p['default_waypoint']!r} is not one of "
                               f"{sorted(self.scenario.waypoints_rtn)}")
+        self.pipeline = GuidancePipeline(config, deadline_s=self.p["solve_deadline_s"])
+        settings = {name: self.p[name] for name in POLICY_PARAMETERS}
         self.policy = ReplanPolicy(ReplanSettings(
             **settings, ae_to_koz_node=self.scenario.ae_to_koz_node))
         self.target = Target(self.p["default_waypoint"],
                              np.asarray(self.scenario.waypoints_rtn[self.p["default_waypoint"]]),
                              self.p["chance_constrained"], self.p["warm_start"], None)
-        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        nav_qos = QoSProfile(depth=10, reliability=(
-            ReliabilityPolicy.BEST_EFFORT if self.p["nav_qos_reliability"] == "best_effort"
-            else ReliabilityPolicy.RELIABLE))
-        self.plan_pub = self.create_publisher(ManeuverPlan, "guidance/maneuver_plan", qos)
-        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos)
-        self.nav_sub = self.create_subscription(RelativeNavState, "nav/relative_state",
-                                                self._on_nav, nav_qos)
-        self.request_sub = self.create_subscription(ReplanRequest, "guidance/replan_request",
-                                                    self._on_request, qos)
         self._lock = threading.Condition()
         self._job: Job | None = None
         self._busy = False
         self._stop = False
+        self._worker: threading.Thread | None = None
         self._latest_nav: NavState | None = None
         self._latest_nav_msg: RelativeNavState | None = None
         self._ids = itertools.count(1)
         self._request_msg: ReplanRequest | None = None
         self.recorder = self._make_recorder()
         self.stats = {"nav": 0, "rejected": 0, "plans": 0, "superseded": 0}
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def _create_publishers(self, create: Callable) -> None:
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.plan_pub = create(ManeuverPlan, "guidance/maneuver_plan", qos)
+        self.diag_pub = create(DiagnosticArray, "/diagnostics", qos)
+
+    def _create_subscriptions(self) -> None:
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        nav_qos = QoSProfile(depth=10, reliability=(
+            ReliabilityPolicy.BEST_EFFORT if self.p["nav_qos_reliability"] == "best_effort"
+            else ReliabilityPolicy.RELIABLE))
+        self.nav_sub = self.create_subscription(RelativeNavState, "nav/relative_state",
+                                                self._on_nav, nav_qos)
+        self.request_sub = self.create_subscription(ReplanRequest, "guidance/replan_request",
+                                                    self._on_request, qos)
+
+    def _destroy_subscriptions(self) -> None:
+        for sub in (self.nav_sub, self.request_sub):
+            self.destroy_subscription(sub)
+
+    def _start_worker(self) -> None:
+        with self._lock:
+            self._stop = False
         self._worker = threading.Thread(target=self._work, name="guidance_worker", daemon=True)
         self._worker.start()
-        self.get_logger().info(f"guidance_node ready (target {self.target.waypoint}, "
+        self.get_logger().info(f"guidance_node planning (target {self.target.waypoint}, "
                                f"stamp_check {self.p['stamp_check']})")
 
+    def _stop_worker(self) -> None:
+        """Stop taking jobs; the running solve finishes (and is recorded and published)."""
+        if self._worker is None:
+            return
+        with self._lock:
+            self._stop = True
+            self._job = None
+            self._lock.notify()
+        self._worker.join(timeout=30.0)
+        self._worker = None
+
     def _make_recorder(self) -> McapRecorder | None:
+        # message type -> resolved topic (namespace and remapping applied); the solve record
+        # is recorded only, under the node's own namespace
+        # (resolved from the names, so it works before the endpoints exist: lifecycle)
+        self._record_topics = {
+            NAV_TYPE: self.resolve_topic_name("nav/relative_state"),
+            REQUEST_TYPE: self.resolve_topic_name("guidance/replan_request"),
+            SOLVE_RECORD_TYPE: self.resolve_topic_name(SOLVE_RECORD_TOPIC),
+            PLAN_TYPE: self.resolve_topic_name("guidance/maneuver_plan")}
+        self._recorded_request: ReplanRequest | None = None  # last one written (worker only)
         if not self.p["record"]:
             return None
         directory = self.p["record_dir"] or str(default_log_dir())
         meta = {"config": self.pipeline.config_json(), "versions": _versions(),
                 "model_checksum": "none", "parameters": self.p}
         self.get_logger().info(f"recording every solve to {directory}")
-        return McapRecorder(directory, meta, max_bytes=int(self.p["record_max_bytes"]))
+        return McapRecorder(directory, meta, max_bytes=int(self.p["record_max_bytes"]),
+                            topics={t: msg_type for msg_type, t in self._record_topics.items()})
 
     def _on_set_parameters(self, params: list) -> SetParametersResult:
         """Validate and apply run-time parameter changes (all or none)."""
@@ -128,14 +173,17 @@ class GuidanceNode(Node):
                 if spec is None or not spec.dynamic:
                     raise ConfigError(f"{prm.name} is read-only (fixed at start-up)")
                 new[prm.name] = spec.coerce(prm.name, prm.value)
-            settings = ReplanSettings(**{n: new[n] for n in POLICY_PARAMETERS},
-                                      ae_to_koz_node=self.scenario.ae_to_koz_node)
+            settings = ReplanSettings(**{n: new[n] for n in POLICY_PARAMETERS})
         except ConfigError as exc:
             self.get_logger().warning(f"parameter change refused: {exc}")
             return SetParametersResult(successful=False, reason=str(exc))
+        if self.policy is None:  # not configured yet: the values are used at configure
+            self.p = new
+            return SetParametersResult(successful=True)
         with self._lock:
             self.p = new
-            self.policy.settings = settings
+            self.policy.settings = dataclasses.replace(
+                settings, ae_to_koz_node=self.policy.settings.ae_to_koz_node)
             self.pipeline.deadline_s = new["solve_deadline_s"]
         changed = ", ".join(f"{p.name}={new[p.name]!r}" for p in params)
         self.get_logger().info(f"parameters changed: {changed}")
@@ -238,13 +286,21 @@ class GuidanceNode(Node):
     def _record(self, job: Job, result: PlanResult, plan_id: str, plan_msg: ManeuverPlan) -> None:
         if self.recorder is None:
             return
-        msgs = [("/nav/relative_state", job.nav_msg)]
-        if job.request_msg is not None:
-            msgs.append(("/guidance/replan_request", job.request_msg))
-        msgs += [("/guidance/solve_record",
-                  solve_record_msg(result, job.nav.stamp_ns, plan_id, job.trigger)),
-                 ("/guidance/maneuver_plan", plan_msg)]
-        if not self.recorder.record_solve(msgs, time.time_ns()):
+        topic, request = self._record_topics, job.request_msg
+        msgs = [(topic[NAV_TYPE], job.nav_msg)]
+        # each request once (same stamp and content = same request): played back, every copy
+        # would reset a live node's plan; the solve record links to it by stamp
+        new_request = request is not None and request != self._recorded_request
+        if new_request:
+            msgs.append((topic[REQUEST_TYPE], request))
+        request_ns = 0 if request is None else stamp_to_ns(request.header.stamp)
+        msgs += [(topic[SOLVE_RECORD_TYPE], solve_record_msg(
+                     result, job.nav.stamp_ns, plan_id, job.trigger, request_ns)),
+                 (topic[PLAN_TYPE], plan_msg)]
+        if self.recorder.record_solve(msgs, time.time_ns()):
+            if new_request:
+                self._recorded_request = request
+        else:
             self.get_logger().error(f"recording failed, guidance continues: "
                                     f"{self.recorder.last_error}")
             self._publish_diag("art_guidance/recorder", ERROR, self.recorder.last_error,
@@ -275,11 +331,10 @@ class GuidanceNode(Node):
         self.diag_pub.publish(diagnostics_msg(time.time_ns(), name, level, message, values))
 
     def shutdown_worker(self) -> None:
-        """Stop the worker thread (after the running solve)."""
-        with self._lock:
-            self._stop = True
-            self._lock.notify()
-        self._worker.join(timeout=30.0)
+        """Stop the worker thread (after the running solve) and finish the recording."""
+        if self.policy is None:  # never configured
+            return
+        self._stop_worker()
         if self.recorder is not None:
             self.recorder.finish()
             self._shutdown_logger().info(f"recorded {self.recorder.solves} solves to "
@@ -291,6 +346,64 @@ class GuidanceNode(Node):
         if self.context.ok():
             return self.get_logger()
         return rclpy.logging.get_logger("art_guidance.shutdown")
+
+
+class GuidanceNode(GuidanceCore, Node):
+    """The guidance node: configured and planning as soon as it is constructed."""
+
+    def __init__(self, **kwargs) -> None:
+        Node.__init__(self, "guidance_node", **kwargs)
+        self._declare_parameters()
+        self._configure()
+        self._create_publishers(self.create_publisher)
+        self._create_subscriptions()
+        self._start_worker()
+
+
+class ManagedGuidanceNode(GuidanceCore, LifecycleNode):
+    """The guidance node as a managed (lifecycle) node, for deterministic bring-up.
+
+    unconfigured --configure--> inactive (configuration and model loaded, recorder open,
+    publishers created but silent) --activate--> active (subscribed, planning)
+    --deactivate--> inactive (unsubscribed; the running solve finishes) --cleanup-->
+    unconfigured (recording finished) --shutdown--> finalized.
+    """
+
+    def __init__(self, **kwargs) -> None:
+        LifecycleNode.__init__(self, "guidance_node", **kwargs)
+        self._declare_parameters()
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            self._configure()
+        except GuidanceError as exc:
+            self.get_logger().error(f"configure failed: {exc}")
+            self.policy = None
+            return TransitionCallbackReturn.FAILURE
+        self._create_publishers(self.create_lifecycle_publisher)
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._create_subscriptions()
+        self._start_worker()
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._destroy_subscriptions()
+        self._stop_worker()
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.shutdown_worker()
+        for pub in (self.plan_pub, self.diag_pub):
+            self.destroy_lifecycle_publisher(pub)
+        self.policy = None
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.shutdown_worker()
+        self.policy = None
+        return TransitionCallbackReturn.SUCCESS
 
 
 def _versions() -> dict:
@@ -306,13 +419,18 @@ def _versions() -> dict:
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the node until SIGINT/SIGTERM (Jazzy-correct shutdown order)."""
+def main(argv: Sequence[str] | None = None, managed: bool = False) -> int:
+    """Run the node until SIGINT/SIGTERM (Jazzy-correct shutdown order).
+
+    Args:
+        argv: full argument vector (program name first); None uses sys.argv.
+        managed: run the lifecycle node (starts unconfigured) instead of the plain one.
+    """
     rclpy.init(args=list(argv) if argv is not None else sys.argv)
     node = None
     executor = SingleThreadedExecutor()
     try:
-        node = GuidanceNode()
+        node = ManagedGuidanceNode() if managed else GuidanceNode()
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -329,5 +447,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def main_managed(argv: Sequence[str] | None = None) -> int:
+    """`ros2 run art_guidance guidance_managed_node`: the lifecycle guidance node."""
+    return main(argv, managed=True)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(managed="--managed" in sys.argv))

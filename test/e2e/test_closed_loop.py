@@ -9,6 +9,7 @@ import pytest
 pytest.importorskip("rclpy")
 from art_guidance_msgs.msg import ManeuverPlan  # noqa: E402
 
+from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE  # noqa: E402
 from art_guidance.record.replay import read_log, replay  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -33,8 +34,9 @@ def test_demo_reaches_the_waypoint_and_its_log_replays(ros_env, python_exe, tmp_
     assert report["solves"] == summary["n_plans_received"]
     assert report["mismatched"] == 0 and report["matched"] == report["compared"]
     in_force = ""
-    for _, plan, _ in (m for m in read_log(run / "mcap").messages
-                       if m[0] == "/guidance/maneuver_plan"):
+    log = read_log(run / "mcap")
+    assert len(log.of_type(REQUEST_TYPE)) == 1  # one request, however many solves under it
+    for plan in log.of_type(PLAN_TYPE):
         if plan.status in (ManeuverPlan.STATUS_CONVERGED, ManeuverPlan.STATUS_MAX_ITERATIONS):
             in_force = plan.plan_id
         assert plan.active_plan_id == in_force, plan.status_text

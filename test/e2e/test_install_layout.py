@@ -30,7 +30,7 @@ def prefix(tmp_path_factory) -> Path:
 
 
 def test_console_scripts_under_lib_package(prefix):
-    for script in ("guidance_node", "sim_node", "art-guidance"):
+    for script in ("guidance_node", "guidance_managed_node", "sim_node", "art-guidance"):
         path = prefix / "lib" / "art_guidance" / script
         assert path.is_file(), f"missing {path}"
         assert os.access(path, os.X_OK)
@@ -39,7 +39,8 @@ def test_console_scripts_under_lib_package(prefix):
 def test_ament_index_marker_and_share(prefix):
     assert (prefix / "share/ament_index/resource_index/packages/art_guidance").is_file()
     assert (prefix / "share/art_guidance/package.xml").is_file()
-    for name in ("scenario.yaml", "uncertainty.yaml", "scp.yaml", "fastdds_localhost.xml"):
+    for name in ("scenario.yaml", "uncertainty.yaml", "scp.yaml", "planning.yaml",
+                 "guidance_node.yaml", "fastdds_localhost.xml"):
         assert (prefix / "share/art_guidance/config" / name).is_file(), name
 
 
@@ -84,4 +85,4 @@ def test_installed_guidance_node_starts_and_stops_on_sigint(prefix, ros_env):
     proc.send_signal(signal.SIGINT)
     out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, out
-    assert "guidance_node ready" in out
+    assert "guidance_node planning" in out

@@ -33,10 +33,10 @@ def nav_msg(stamp_ns: int, rtn: np.ndarray, chief_oe=None, cov=None,
 class Client:
     """Spins its own executor thread; thread-safe accessors for what arrived."""
 
-    def __init__(self, name: str = "art_guidance_test_client") -> None:
+    def __init__(self, name: str = "art_guidance_test_client", namespace: str = "") -> None:
         if not rclpy.ok():
             rclpy.init()
-        self.node = rclpy.create_node(name)
+        self.node = rclpy.create_node(name, namespace=namespace)  # relative topics under it
         qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         self.nav_pub = self.node.create_publisher(RelativeNavState, "nav/relative_state", qos)
         self.req_pub = self.node.create_publisher(ReplanRequest, "guidance/replan_request", qos)

@@ -1,4 +1,6 @@
-"""The node records every solve: a real kill -9 loses no published plan; SIGTERM finishes."""
+"""The node records every solve: a real kill -9 loses no published plan and leaves a bag that
+rosbags opens; SIGTERM finishes; a namespaced node records its resolved topics; each replan
+request is recorded once."""
 from __future__ import annotations
 
 import signal
@@ -8,31 +10,38 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
+import yaml
 
 pytest.importorskip("rclpy")
+from art_guidance_msgs.msg import ReplanRequest  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from helpers.ros_client import Client, nav_msg  # noqa: E402
+from helpers.rosbag2_metadata import consistency_problems, metadata_problems  # noqa: E402
 
+from art_guidance.cli import main as cli_main  # noqa: E402
 from art_guidance.config import ScenarioConfig  # noqa: E402
-from art_guidance.record.replay import read_log, replay  # noqa: E402
+from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE  # noqa: E402
+from art_guidance.record.replay import read_log, replay, request_stamp_ns  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
 
 
 @contextmanager
-def _node_with_client(ros_env, python_exe, record_dir, name):
-    """A recording guidance node (replanning on every fix) and a matched client.
+def _node_with_client(ros_env, python_exe, record_dir, name, namespace=""):
+    """A recording guidance node (replanning on every fix) and a matched client, both in
+    `namespace` when given.
 
     The client is closed on exit and a node still running is killed; stopping it properly is
     the test's business.
     """
+    remap = ["-r", f"__ns:={namespace}"] if namespace else []
     proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "-p", f"record_dir:={record_dir}",
-                             "-p", "replan_sigma_threshold:=1e-9"],
+                             "-p", "replan_sigma_threshold:=1e-9", *remap],
                             env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
-    client = Client(name)
+    client = Client(name, namespace)
     try:
         assert client.wait_matched(20.0)
         yield proc, client
@@ -54,22 +63,44 @@ def _plan_ids(client, n, rng):
     return ids
 
 
-def test_kill9_keeps_every_published_plan_and_replays(ros_env, python_exe, tmp_path):
-    with _node_with_client(ros_env, python_exe, tmp_path / "bag", "recording_client") as (
-            proc, client):
+def _metadata(bag) -> dict:
+    doc = yaml.safe_load((bag / "metadata.yaml").read_text())
+    assert metadata_problems(doc) == [] and consistency_problems(bag) == []
+    return doc["rosbag2_bagfile_information"]
+
+
+def _rosbags_plans(bag) -> list:
+    """Every ManeuverPlan rosbags reads from the bag folder (metadata.yaml and files)."""
+    with AnyReader([bag]) as reader:
+        return [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
+                if c.msgtype == PLAN_TYPE]
+
+
+def test_kill9_keeps_every_published_plan_and_replays(ros_env, python_exe, tmp_path, capsys):
+    bag = tmp_path / "bag"
+    with _node_with_client(ros_env, python_exe, bag, "recording_client") as (proc, client):
         published = _plan_ids(client, 4, np.random.default_rng(5))
-        client.nav_pub.publish(nav_msg(time.time_ns(), NOMINAL_RTN))  # a solve in flight
+        # a solve in flight (solves take hundreds of ms): the kill lands between two writes
+        client.nav_pub.publish(nav_msg(time.time_ns(), NOMINAL_RTN))
         time.sleep(0.05)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
         received = {p.plan_id for _, p in client.plans}
-    log = read_log(tmp_path / "bag")
+    assert proc.returncode == -signal.SIGKILL
+    log = read_log(bag)
     recorded = {plan.plan_id for _, plan in log.solves()}
     assert set(published) <= recorded
     assert received <= recorded  # recorded before published: nothing published is lost
-    assert not (tmp_path / "bag" / "metadata.yaml").exists()  # it really died
-    report = replay(tmp_path / "bag")
+    assert _metadata(bag)["custom_data"]["art_guidance.state"] == "recording"  # it died
+    # the crashed folder opens in rosbags as it is: each solve sealed the file and rewrote
+    # metadata.yaml
+    assert received <= {p.plan_id for p in _rosbags_plans(bag)}
+    report = replay(bag)
     assert report["compared"] >= 4 and report["mismatched"] == 0, report
+    assert cli_main(["bag", "reindex", str(bag)]) == 0  # adds the missing summary
+    assert "rewrote guidance_0.mcap with a summary" in capsys.readouterr().out
+    assert _metadata(bag)["custom_data"]["art_guidance.state"] == "reindexed"
+    assert {p.plan_id for p in _rosbags_plans(bag)} == recorded
 
 
 def test_sigterm_finishes_the_bag(ros_env, python_exe, tmp_path):
@@ -79,11 +110,38 @@ def test_sigterm_finishes_the_bag(ros_env, python_exe, tmp_path):
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, out
-    assert (tmp_path / "bag" / "metadata.yaml").is_file()
-    with AnyReader([tmp_path / "bag"]) as reader:
-        plans = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
-                 if c.topic == "/guidance/maneuver_plan"]
-    assert [p.plan_id for p in plans] == ids
+    assert _metadata(tmp_path / "bag")["custom_data"]["art_guidance.state"] == "finished"
+    assert [p.plan_id for p in _rosbags_plans(tmp_path / "bag")] == ids
+
+
+def test_namespaced_node_records_resolved_topics_and_each_request_once(
+        ros_env, python_exe, tmp_path):
+    bag, rng = tmp_path / "bag", np.random.default_rng(8)
+    with _node_with_client(ros_env, python_exe, bag, "recording_client4", "/chaser") as (
+            proc, client):
+        before = _plan_ids(client, 1, rng)  # no request yet
+        request = ReplanRequest(waypoint="plus_vbar", chance_constrained=True)
+        request_ns = time.time_ns()
+        request.header.stamp.sec, request.header.stamp.nanosec = divmod(request_ns, 10**9)
+        client.req_pub.publish(request)  # replans from the latest fix
+        assert client.wait_for(lambda plans, _: len(plans) >= 2, 30.0)
+        under = [client.plans[1][1].plan_id] + _plan_ids(client, 3, rng)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert {t["topic_metadata"]["name"] for t in _metadata(bag)["topics_with_message_count"]} \
+        == {"/chaser/nav/relative_state", "/chaser/guidance/replan_request",
+            "/chaser/guidance/solve_record", "/chaser/guidance/maneuver_plan"}
+    assert [p.plan_id for p in _rosbags_plans(bag)] == before + under
+    log = read_log(bag)
+    assert len(log.of_type(REQUEST_TYPE)) == 1  # four solves under it, one copy
+    records = {r.plan_id: r for r, _ in log.solves()}
+    assert request_stamp_ns(records[before[0]]) == 0
+    assert {request_stamp_ns(records[i]) for i in under} == {request_ns}
+    assert {log.request_for(records[i]).waypoint for i in under} == {"plus_vbar"}
+    report = replay(bag)
+    assert report["solves"] == 5 and report["mismatched"] == 0, report  # a solve slowed
+    # past its deadline by a busy machine is skipped, not compared
 
 
 def test_unwritable_log_directory_does_not_stop_guidance(ros_env, python_exe):

@@ -1,4 +1,5 @@
-"""MCAP recording: independent reader (rosbags), rotation, bag metadata, failures, replay."""
+"""MCAP recording: independent reader (rosbags), rotation, bag metadata, failures, replay,
+crash consistency and repair."""
 from __future__ import annotations
 
 import json
@@ -6,18 +7,27 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
+from art_guidance_msgs.msg import ReplanRequest
 from helpers.ros_client import nav_msg
+from helpers.rosbag2_metadata import consistency_problems, metadata_problems
 
 from art_guidance.cli import main as cli_main
 from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.data.stages import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import GuidancePipeline, PlanRequest
-from art_guidance.record.recorder import TOPICS, McapRecorder, ros2msg_schema
+from art_guidance.errors import ConfigError, InputError
+from art_guidance.record.bag_metadata import METADATA_VERSION
+from art_guidance.record.recorder import (
+    PLAN_TYPE, REQUEST_TYPE, TOPICS, McapRecorder, ros2msg_schema,
+)
+from art_guidance.record.reindex import has_summary, reindex_bag
 from art_guidance.record.replay import read_log, replay
 from art_guidance.ros.adapters import plan_to_msg, solve_record_msg
 
 AnyReader = pytest.importorskip("rosbags.highlevel").AnyReader
+AnyReaderError = pytest.importorskip("rosbags.highlevel").AnyReaderError
 
 
 @pytest.fixture(scope="module")
@@ -73,19 +83,88 @@ def test_rosbags_reads_every_message_with_embedded_schemas(tmp_path, solves):
     assert json.loads(seen["/guidance/solve_record"][0].request_json)["chance_constrained"]
 
 
+def _info(bag: Path) -> dict:
+    return yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+
+
+def _plan_ids(bag: Path) -> list[str]:
+    """Plan ids read by rosbags from the bag folder (metadata.yaml + files)."""
+    with AnyReader([bag]) as reader:
+        return [reader.deserialize(raw, c.msgtype).plan_id for c, _, raw in reader.messages()
+                if c.msgtype == PLAN_TYPE]
+
+
+def _rosbags_v9_metadata(directory: Path) -> dict:
+    """metadata.yaml as rosbags writes it in version 9 (one topic with a QoS profile)."""
+    from rosbags.interfaces import (
+        Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime,
+    )
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store, never = get_typestore(Stores.ROS2_JAZZY), QosTime(0, 0)
+    qos = Qos(QosHistory.KEEP_LAST, 10, QosReliability.RELIABLE, QosDurability.VOLATILE,
+              never, never, QosLiveliness.AUTOMATIC, never, False)
+    with Writer(directory, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=store,
+                                     offered_qos_profiles=[qos])
+        msg = store.types["std_msgs/msg/String"](data="hi")
+        writer.write(conn, 42, store.serialize_cdr(msg, "std_msgs/msg/String"))
+    return yaml.safe_load((directory / "metadata.yaml").read_text())
+
+
+def test_metadata_validator_follows_rosbag2(tmp_path):
+    """The test's validator refuses what Jazzy refuses and accepts what rosbags writes (v9)."""
+    old = yaml.safe_load(
+        "rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: mcap\n"
+        "  relative_file_paths: [a.mcap]\n  duration: {nanoseconds: 1}\n"
+        "  starting_time: {nanoseconds_since_epoch: 2}\n  message_count: 0\n"
+        "  topics_with_message_count: []\n  compression_format: ''\n  compression_mode: ''\n")
+    assert metadata_problems(old) == ["info.files: missing"]
+    v9 = _rosbags_v9_metadata(tmp_path / "rosbags_bag")
+    assert metadata_problems(v9) == []
+    v9["rosbag2_bagfile_information"]["topics_with_message_count"][0]["topic_metadata"][
+        "offered_qos_profiles"] = ""  # the pre-9 string form
+    assert metadata_problems(v9) == [
+        "info.topics_with_message_count[0].topic_metadata.offered_qos_profiles: "
+        "must be a list from version 9"]
+
+
 def test_rotation_and_rosbag2_metadata(tmp_path, solves):
     pipeline, data = solves
     bag = tmp_path / "bag"
     _record(bag, pipeline, data, max_bytes=20_000)
     files = sorted(bag.glob("*.mcap"))
     assert len(files) >= 2
-    meta = (bag / "metadata.yaml").read_text()
-    assert "storage_identifier: mcap" in meta and "message_count: 9" in meta
-    for f in files:
-        assert f.name in meta
+    info = _info(bag)
+    assert metadata_problems({"rosbag2_bagfile_information": info}) == []
+    assert consistency_problems(bag) == []
+    assert info["version"] == METADATA_VERSION == 9 and info["message_count"] == 9
+    assert sorted(info["relative_file_paths"]) == [f.name for f in files]
+    assert info["custom_data"]["art_guidance.state"] == "finished"
+    assert all(has_summary(f) for f in files)
     with AnyReader([bag]) as reader:  # the folder opens as a rosbag2 bag
         assert sum(1 for _ in reader.messages()) == 9
         assert {c.topic for c in reader.connections} <= set(TOPICS)
+        assert all(c.digest.startswith("RIHS01_") for c in reader.connections)
+
+
+def test_folder_is_a_valid_bag_after_every_solve(tmp_path, solves):
+    """No finish(): what a kill -9 between solves leaves behind opens in rosbags as it is."""
+    pipeline, data = solves
+    bag = tmp_path / "bag"
+    rec = McapRecorder(bag, {"config": pipeline.config_json()}, max_bytes=20_000)
+    for k, (stamp, msgs) in enumerate(data, start=1):
+        assert rec.record_solve(msgs, stamp)
+        info = _info(bag)
+        assert metadata_problems({"rosbag2_bagfile_information": info}) == []
+        assert consistency_problems(bag) == []
+        assert info["message_count"] == 3 * k
+        assert info["custom_data"]["art_guidance.state"] == "recording"
+        assert _plan_ids(bag) == [f"plan-{i}" for i in range(k)]
+    assert not has_summary(rec.files[-1])  # sealed, not finished
+    rec.finish()
+    assert _plan_ids(bag) == ["plan-0", "plan-1", "plan-2"]
 
 
 def test_replay_matches_and_detects_tampering(tmp_path, solves, capsys):
@@ -122,15 +201,83 @@ def test_unwritable_directory_logs_and_keeps_going(tmp_path, solves):
     rec.finish()  # idempotent
 
 
-def test_truncated_file_keeps_complete_solves(tmp_path, solves):
+def test_torn_write_keeps_complete_solves_and_reindex_repairs(tmp_path, solves, capsys):
+    """A kill inside the third solve's write: readers keep two solves, `bag reindex` repairs."""
     pipeline, data = solves
-    rec = McapRecorder(tmp_path / "bag", {"config": pipeline.config_json()})
-    for stamp, msgs in data:
-        rec.record_solve(msgs, stamp)
+    bag = tmp_path / "bag"
+    rec = McapRecorder(bag, {"config": pipeline.config_json()})
+    for stamp, msgs in data[:2]:
+        assert rec.record_solve(msgs, stamp)
     path = rec.files[0]
-    size = path.stat().st_size
-    with open(path, "ab") as fh:  # a torn record after the last complete solve
-        fh.write(b"\x05\xff\xff\x00")
-    log = read_log(path)
-    assert len(log.solves()) == 3
-    assert log.truncated and path.stat().st_size == size + 4
+    two_solves = path.read_bytes()
+    assert rec.record_solve(data[2][1], data[2][0])
+    torn = path.read_bytes()[:len(two_solves) + 100]  # half of the third chunk, no ending
+    metadata = (bag / "metadata.yaml").read_bytes()
+    rec.finish()  # releases the file lock; then the crashed state is put back
+    path.write_bytes(torn)
+    (bag / "metadata.yaml").write_bytes(metadata)
+    log = read_log(bag)
+    assert [r.plan_id for r, _ in log.solves()] == ["plan-0", "plan-1"] and log.truncated
+    with pytest.raises(AnyReaderError, match="end magic"):
+        _plan_ids(bag)  # rosbags needs a valid file ending
+    assert cli_main(["replay", str(bag)]) == 0  # replays as it is, and says how to repair
+    assert "2/2 matched" in (out := capsys.readouterr().out) and "bag reindex" in out
+    assert path.read_bytes() == torn  # reading and replaying never modify the folder
+    assert cli_main(["bag", "reindex", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "rewrote guidance_0.mcap" in out and "6 messages kept" in out
+    assert "metadata.yaml" in out
+    assert _plan_ids(bag) == ["plan-0", "plan-1"] and has_summary(path)
+    assert metadata_problems(yaml.safe_load((bag / "metadata.yaml").read_text())) == []
+    assert consistency_problems(bag) == [] and _info(bag)["message_count"] == 6
+    assert sorted(p.name for p in bag.iterdir()) == ["guidance_0.mcap", "metadata.yaml"]
+    assert reindex_bag(bag, say=lambda _: None) == 0  # nothing left to rebuild
+
+
+def test_reindex_leaves_a_live_recording_alone(tmp_path, solves, capsys):
+    pipeline, data = solves
+    with McapRecorder(tmp_path / "bag", {"config": pipeline.config_json()}) as rec:
+        assert rec.record_solve(data[0][1], data[0][0])
+        before = rec.files[0].read_bytes()
+        with pytest.raises(InputError, match="running recorder"):
+            reindex_bag(tmp_path / "bag")
+        assert cli_main(["bag", "reindex", str(tmp_path / "bag")]) == 2
+        assert rec.files[0].read_bytes() == before
+    assert capsys.readouterr().out == ""
+
+
+def test_resolved_topics_and_the_request_link(tmp_path, solves):
+    """Topics as the node resolved them (a namespace); replay finds messages by type; the
+    request is recorded once and every solve under it links to it by stamp."""
+    pipeline, data = solves
+    topics = {f"/chaser{t}": msg_type for t, msg_type in TOPICS.items()}
+    request = ReplanRequest(waypoint="plus_vbar")
+    request.header.stamp.sec = 1_700_000_000
+    rec = McapRecorder(tmp_path / "bag", {"config": pipeline.config_json()}, topics=topics)
+    for k, (stamp, msgs) in enumerate(data):
+        msgs = [(f"/chaser{t}", m) for t, m in msgs]
+        msgs[1][1].request_stamp.sec = 1_700_000_000 if k else 0
+        if k == 1:
+            msgs.insert(1, ("/chaser/guidance/replan_request", request))
+        assert rec.record_solve(msgs, stamp)
+    rec.finish()
+    for _, msgs in data:  # the fixture is shared
+        msgs[1][1].request_stamp.sec = 0
+    with AnyReader([tmp_path / "bag"]) as reader:
+        assert {c.topic for c in reader.connections} == set(topics)
+    log = read_log(tmp_path / "bag")
+    assert len(log.of_type(REQUEST_TYPE)) == 1
+    requests = [log.request_for(r) for r, _ in log.solves()]
+    assert requests[0] is None and requests[1] is requests[2] is log.of_type(REQUEST_TYPE)[0]
+    report = replay(tmp_path / "bag")
+    assert report["matched"] == 3
+    assert report["per_solve"][2]["request_stamp_ns"] == 1_700_000_000 * 10**9
+
+
+def test_an_existing_recording_is_never_overwritten(tmp_path, solves):
+    pipeline, msgs = solves
+    _record(tmp_path / "bag", pipeline, msgs[:1])
+    before = {p.name: p.read_bytes() for p in (tmp_path / "bag").iterdir()}
+    with pytest.raises(ConfigError, match="already holds a recording"):
+        McapRecorder(tmp_path / "bag", {"config": pipeline.config_json()})
+    assert {p.name: p.read_bytes() for p in (tmp_path / "bag").iterdir()} == before
