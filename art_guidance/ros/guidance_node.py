@@ -438,6 +438,10 @@ def main(argv: Sequence[str] | None = None, managed: bool = False) -> int:
     except (GuidanceError, ValueError) as exc:
         print(f"guidance_node: {exc}", file=sys.stderr)
         return 2
+    except Exception:
+        if rclpy.ok():
+            raise
+        # SIGINT/SIGTERM while still starting up: rclpy invalidated the context under us
     finally:
         executor.shutdown()
         if node is not None:
