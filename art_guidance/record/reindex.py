@@ -28,6 +28,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from art_guidance.errors import InputError
+from art_guidance.files import fsync_dir
 from art_guidance.record.bag_metadata import (
     METADATA_FILE, FileInfo, TopicInfo, bag_files, write_bag_metadata,
 )
@@ -98,14 +99,6 @@ def _copy_records(src: io.BufferedReader, writer: Writer) -> tuple[int, str]:
     return messages, ""
 
 
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def rebuild(path: Path) -> Rebuilt:
     """Rewrite `path` from its complete records, with a summary; atomic (see the module)."""
     tmp = path.with_name(f"{path.name}.{os.getpid()}.reindex.tmp")
@@ -120,9 +113,9 @@ def rebuild(path: Path) -> Rebuilt:
         orig.unlink(missing_ok=True)
         os.link(path, orig)
         os.replace(tmp, path)
-        _fsync_dir(path.parent)
+        fsync_dir(path.parent)
         orig.unlink()
-        _fsync_dir(path.parent)
+        fsync_dir(path.parent)
     finally:
         tmp.unlink(missing_ok=True)
     return Rebuilt(path, messages, torn)
