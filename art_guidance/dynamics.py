@@ -257,6 +257,86 @@ def roe_from_rtn_exact(chief_oe: object, rtn: object) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- STM and B
+def stm_basis(wdot_rad_s: float | np.ndarray, tau_s: float | np.ndarray,
+              order: int = 0, axis: int = -1) -> np.ndarray:
+    """Time functions of the J2 STM, ``s(tau) = (1, tau, c, s, tau c, tau s)``, or a derivative.
+
+    ``c = cos(wdot tau)``, ``s = sin(wdot tau)`` with wdot the perigee rate [rad/s];
+    ``Phi(t0 + tau, t0) = sum_b s_b(tau) terms[b]`` (`stm_j2_terms`).
+
+    Args:
+        wdot_rad_s: perigee rate [rad/s], broadcast against `tau_s`.
+        tau_s: elapsed time [s], any shape (...).
+        order: 0, 1 or 2: the value or its first/second derivative with respect to tau.
+        axis: where the function index goes (-1: (..., 6); 0: (6, ...)).
+
+    Returns:
+        (..., 6) [-, s, -, -, s, s] divided by s^order.
+    """
+    w, tau = np.broadcast_arrays(np.asarray(wdot_rad_s, float), np.asarray(tau_s, float))
+    c, s = np.cos(w * tau), np.sin(w * tau)
+    one, zero = np.ones_like(tau), np.zeros_like(tau)
+    if order == 0:
+        cols = (one, tau, c, s, tau * c, tau * s)
+    elif order == 1:
+        cols = (zero, one, -w * s, w * c, c - w * tau * s, s + w * tau * c)
+    elif order == 2:
+        cols = (zero, zero, -w * w * c, -w * w * s, -2 * w * s - w * w * tau * c,
+                2 * w * c - w * w * tau * s)
+    else:
+        raise InputError("order", "must be 0, 1 or 2", order)
+    return np.stack(cols, axis=axis)
+
+
+def stm_j2_terms(chief_oe: object) -> tuple[np.ndarray, float]:
+    """Constant matrices of the J2 ROE STM: ``Phi(t0 + tau, t0) = sum_b s_b(tau) terms[b]``.
+
+    With ``c = cos(wdot tau)``, ``s = sin(wdot tau)`` and the final eccentricity vector
+    ``(exf, eyf) = (exi c - eyi s, eyi c + exi s)``, every entry of the PHYSICS.md STM is a
+    combination of the six time functions of `stm_basis`, so this decomposition is exact.
+
+    Args:
+        chief_oe: (6,) mean chief elements at t0.
+
+    Returns:
+        terms (6, 6, 6) [basis b, row, col] (units 1/s^k for the tau^k functions) and the
+        perigee rate wdot [rad/s].
+    """
+    c = check_oe(chief_oe)
+    a, e, i, _, w, _ = c
+    n = mean_motion(a)
+    eta = np.sqrt(1.0 - e * e)
+    kappa = 0.75 * J2 * R_EARTH_M**2 * np.sqrt(MU_M3PS2) / (a**3.5 * eta**4)
+    big_e, big_f, big_g = 1.0 + eta, 4.0 + 3.0 * eta, 1.0 / eta**2
+    cos_i = np.cos(i)
+    big_p, big_q = 3 * cos_i**2 - 1, 5 * cos_i**2 - 1
+    big_s, big_t = np.sin(2 * i), np.sin(i) ** 2
+    ex, ey = e * np.cos(w), e * np.sin(w)
+    kq, kgq = kappa * big_q, 4 * kappa * big_g * big_q
+    one, tau, cos_, sin_, tcos, tsin = range(6)
+    t = np.zeros((6, 6, 6))
+    t[one, 0, 0] = t[one, 1, 1] = t[one, 4, 4] = t[one, 5, 5] = 1.0
+    t[tau, 1, 0] = -(3.5 * kappa * big_e * big_p + 1.5 * n)
+    t[tau, 1, 2] = kappa * ex * big_f * big_g * big_p
+    t[tau, 1, 3] = kappa * ey * big_f * big_g * big_p
+    t[tau, 1, 4] = -kappa * big_f * big_s
+    t[tau, 5, 0] = 3.5 * kappa * big_s
+    t[tau, 5, 2] = -4 * kappa * ex * big_g * big_s
+    t[tau, 5, 3] = -4 * kappa * ey * big_g * big_s
+    t[tau, 5, 4] = 2 * kappa * big_t
+    t[cos_, 2, 2] = t[cos_, 3, 3] = 1.0
+    t[sin_, 2, 3], t[sin_, 3, 2] = -1.0, 1.0
+    # rows 2 and 3 multiply eyf = ey c + ex s and exf = ex c - ey s respectively
+    for f_row, (fc, fs) in ((2, (ey, ex)), (3, (ex, -ey))):
+        sign = 1.0 if f_row == 2 else -1.0
+        for basis, f in ((tcos, fc), (tsin, fs)):
+            t[basis, f_row, 0] = sign * 3.5 * kq * f
+            t[basis, f_row, 2] = -sign * kgq * ex * f
+            t[basis, f_row, 3] = -sign * kgq * ey * f
+            t[basis, f_row, 4] = sign * 5 * kappa * big_s * f
+    return t, float(kappa * big_q)
+
+
 def stm_j2(chief_oe: object, tau_s: float | np.ndarray) -> np.ndarray:
     """J2 ROE state transition matrix Phi(t0 + tau, t0) for mean chief elements at t0.
 
@@ -267,41 +347,8 @@ def stm_j2(chief_oe: object, tau_s: float | np.ndarray) -> np.ndarray:
     Returns:
         (6, 6) for a scalar `tau_s`, else (..., 6, 6).
     """
-    c = check_oe(chief_oe)
-    tau = np.asarray(tau_s, dtype=float)
-    a, e, i, _, w, _ = c
-    n = mean_motion(a)
-    eta = np.sqrt(1.0 - e * e)
-    kappa = 0.75 * J2 * R_EARTH_M**2 * np.sqrt(MU_M3PS2) / (a**3.5 * eta**4)
-    big_e, big_f, big_g = 1.0 + eta, 4.0 + 3.0 * eta, 1.0 / eta**2
-    cos_i = np.cos(i)
-    big_p, big_q = 3 * cos_i**2 - 1, 5 * cos_i**2 - 1
-    big_s, big_t = np.sin(2 * i), np.sin(i) ** 2
-    wdot = kappa * big_q
-    wf = w + wdot * tau
-    exi, eyi = e * np.cos(w), e * np.sin(w)
-    exf, eyf = e * np.cos(wf), e * np.sin(wf)
-    ct, st = np.cos(wdot * tau), np.sin(wdot * tau)
-    kt = kappa * tau
-    phi = np.zeros(tau.shape + (6, 6))
-    phi[..., 0, 0] = phi[..., 1, 1] = phi[..., 4, 4] = phi[..., 5, 5] = 1.0
-    phi[..., 1, 0] = -(3.5 * kappa * big_e * big_p + 1.5 * n) * tau
-    phi[..., 1, 2] = kt * exi * big_f * big_g * big_p
-    phi[..., 1, 3] = kt * eyi * big_f * big_g * big_p
-    phi[..., 1, 4] = -kt * big_f * big_s
-    phi[..., 2, 0] = 3.5 * kt * eyf * big_q
-    phi[..., 2, 2] = ct - 4 * kt * exi * eyf * big_g * big_q
-    phi[..., 2, 3] = -st - 4 * kt * eyi * eyf * big_g * big_q
-    phi[..., 2, 4] = 5 * kt * eyf * big_s
-    phi[..., 3, 0] = -3.5 * kt * exf * big_q
-    phi[..., 3, 2] = st + 4 * kt * exi * exf * big_g * big_q
-    phi[..., 3, 3] = ct + 4 * kt * eyi * exf * big_g * big_q
-    phi[..., 3, 4] = -5 * kt * exf * big_s
-    phi[..., 5, 0] = 3.5 * kt * big_s
-    phi[..., 5, 2] = -4 * kt * exi * big_g * big_s
-    phi[..., 5, 3] = -4 * kt * eyi * big_g * big_s
-    phi[..., 5, 4] = 2 * kt * big_t
-    return phi
+    terms, wdot = stm_j2_terms(chief_oe)
+    return np.einsum("...b,bij->...ij", stm_basis(wdot, tau_s), terms)
 
 
 def control_matrix(chief_oe: object) -> np.ndarray:
@@ -320,6 +367,59 @@ def _control(u: float, n: float) -> np.ndarray:
         [0.0, 0.0, cu],
         [0.0, 0.0, su],
     ]) / n
+
+
+def control_matrix_deputy(chief_oe: object, roe_m: object) -> np.ndarray:
+    """Control matrix of a burn *at the deputy*: d(roe_m) = B @ dv_rtn_mps, (6, 3) or (K, 6, 3).
+
+    `control_matrix` is the Gauss variational equations (GVE) of a near-circular orbit evaluated
+    at the chief (zero separation). A burn acts on the deputy's own elements: with
+    ``x = roe_m / a``, ``rho = a / a_d = 1 / (1 + x_0)``, the deputy's mean motion
+    ``n_d = n rho^1.5`` and argument of latitude ``u_d = u + du``, ``du = x_1 - x_5 cot i``
+    (``dlambda - dRAAN cos i``), the near-circular GVE in chief-a-scaled ROE read
+
+        d(a dda)  = 2 dv_T / n_d                       (da_d = 2 dv_T / n_d)
+        d(a ddl)  = -2 rho dv_R / n_d                  (du_d = -2 dv_R / (n_d a_d); O(di) dropped)
+        d(a dde)  = rho / n_d (sin u_d dv_R + 2 cos u_d dv_T, -cos u_d dv_R + 2 sin u_d dv_T)
+        d(a ddi)  = rho / n_d (cos u_d, sin u_d sin i / sin i_d) dv_N
+
+    with (dv_R, dv_T, dv_N) in the *deputy's* RTN frame, rotated by ``du`` about N from the
+    chief's frame in which burns are commanded. At zero separation this is `control_matrix`.
+    The difference is first order in the separation: the da response of a 2.2 m/s burn at
+    a dda = -10 km changes by 0.2 % (9 m), the frame rotation mixes dv_R and dv_T by du. Terms of
+    order e (chief and deputy eccentricity) are neglected as in `control_matrix`.
+
+    Args:
+        chief_oe: (6,) mean chief elements at the burn.
+        roe_m: (6,) or (K, 6) pre-burn a-scaled ROE of the deputy [m].
+
+    Returns:
+        (6, 3) or (K, 6, 3) [s].
+    """
+    c = check_oe(chief_oe)
+    x = np.asarray(roe_m, dtype=float)
+    if x.shape[-1:] != (6,) or x.ndim > 2 or not np.all(np.isfinite(x)):
+        raise InputError("roe_m", "must be a finite (6,) or (K, 6) array [m]", x.shape)
+    a, i = c[0], c[2]
+    x = x / a
+    rho = 1.0 / (1.0 + x[..., 0])
+    n_d = mean_motion(a) * rho**1.5
+    du = x[..., 1] - x[..., 5] / np.tan(i)
+    u_d = mean_arg_latitude(c) + du
+    su, cu = np.sin(u_d), np.cos(u_d)
+    b = np.zeros(x.shape[:-1] + (6, 3))
+    b[..., 0, 1] = 2.0
+    b[..., 1, 0] = -2.0 * rho
+    b[..., 2, 0], b[..., 2, 1] = rho * su, 2.0 * rho * cu
+    b[..., 3, 0], b[..., 3, 1] = -rho * cu, 2.0 * rho * su
+    b[..., 4, 2] = rho * cu
+    b[..., 5, 2] = rho * su * np.sin(i) / np.sin(i + x[..., 4])
+    b /= n_d[..., None, None]
+    rot = np.zeros(x.shape[:-1] + (3, 3))  # chief RTN -> deputy RTN
+    cd, sd = np.cos(du), np.sin(du)
+    rot[..., 0, 0], rot[..., 0, 1], rot[..., 1, 0], rot[..., 1, 1] = cd, sd, -sd, cd
+    rot[..., 2, 2] = 1.0
+    return b @ rot
 
 
 # --------------------------------------------------------------------------- horizon

@@ -2,26 +2,33 @@
 
 Paper Sec. "Safety Constraints with State Uncertainty" (after Guffanti & D'Amico, JGCD 2023).
 A contingency at node ``t_i`` leaves the servicer drifting from its post-burn state
-``z_i = x_i + B_i u_i`` (a-scaled ROE [m]). The drift is sampled at ``tau_j = linspace(0,
-T_safety, n_safety)`` (``tau_0 = 0`` is the node itself) and the RTN position there is
-``p_ij = M_ij z_i`` with ``M_ij = D Psi(t_i + tau_j) Phi(t_i + tau_j, t_i)``, (3, 6). The
-servicer must stay outside the active ellipsoid ``P_i = Diag(1/r^2)`` (approach ellipsoid before
-node ``ae_to_koz_node``, keep-out zone from it on), i.e. the ellipsoidal distance
-``d_ij = sqrt(p_ij^T P_i p_ij)`` must be >= 1.
+``z_i = x_i + B_i u_i`` (a-scaled ROE [m]) for ``T_safety``. Its RTN position at
+``t_i + tau`` is ``p_i(tau) = M_i(tau) z_i`` with ``M_i(tau) = D Psi(t_i + tau) Phi(t_i + tau,
+t_i)``, (3, 6). The servicer must stay outside the active ellipsoid ``P_i = Diag(1/r^2)``
+(approach ellipsoid before node ``ae_to_koz_node``, keep-out zone from it on), i.e. the
+ellipsoidal distance ``d_i(tau) = sqrt(p^T P_i p)`` must be >= 1 for *every* tau in
+``[0, T_safety]``, not only at the ``n_safety`` samples ``tau_j = linspace(0, T_safety,
+n_safety)`` (a 1.2 m/s fly-by passes a 200 m zone between two samples 290 s apart).
 
 Uncertainty: with the post-burn covariance ``X_i`` (`uncertainty.state_covariance_history`) the
 q-sigma margin uses the standard deviation of the linearised distance,
-``sigma_ij = sqrt(g_ij^T X_i g_ij)`` with ``g_ij = M_ij^T P_i p_ij / d_ij`` the gradient of
-``d_ij`` with respect to ``z_i``. This is exactly the paper's ``||X(t*)^{1/2} a||`` written
-frame-consistently: with ``X_ij = Phi_ij X_i Phi_ij^T`` the drift covariance at the sample and
-``h_ij = Psi^T D^T P_i p_ij / d_ij`` the gradient with respect to the ROE *at the sample time*,
-``g_ij = Phi_ij^T h_ij`` and ``g_ij^T X_i g_ij = h_ij^T X_ij h_ij``. (Pairing ``X_ij`` with the
-t_i-gradient ``g_ij`` would apply the drift STM twice.)
+``sigma_i(tau) = sqrt(g^T X_i g)`` with ``g = M_i(tau)^T P_i p / d`` the gradient of ``d_i(tau)``
+with respect to ``z_i``. This is the paper's ``||X(t*)^{1/2} a||`` written frame-consistently:
+with ``X(tau) = Phi X_i Phi^T`` the covariance propagated along the drift and ``h = Psi^T D^T
+P p / d`` the gradient with respect to the ROE at ``t_i + tau``, ``g = Phi^T h`` and ``g^T X_i g
+= h^T X(tau) h``. The margin is ``m_i(tau) = d - 1 - q sigma``.
+
+Continuous t*. ``t*_i = t_i + tau*`` minimises ``m_i`` over the whole arc: `drift.DriftArcs`
+writes the drift in closed form and returns the certified minimum (every sample interval is
+either refined or carries a lower bound above it; see that module for why a fast fly-by between
+samples cannot hide). Every public method here uses that one evaluation: the margins of
+`evaluate` and `node_margins` (and hence C(t_i), the dataset's constraint-to-go, the post hoc
+E_C and the plan's `constraint_margin_m`) and the linearisation points of SCVx*.
 
 Linearisation (paper eqs. a_ps, b_ps, beta, divided by b_ps so that it is well scaled): at the
-reference, ``a_i = g_{i,t*} = a_ps / b_ps`` and the convex constraint is
-``a_i @ z_i >= 1 + q sigma_{i,t*}``. Since ``a_i @ z = (P^{1/2} p_ref)^T (P^{1/2} p(z)) / d_ref
-<= d(z)`` (Cauchy-Schwarz), the linear constraint implies ``d_{i,t*}(z) >= 1 + q sigma``: it is
+reference, ``a_i = g_i(tau*) = a_ps / b_ps`` and the convex constraint is
+``a_i @ z_i >= 1 + q sigma_i(tau*)``. Since ``a_i @ z = (P^{1/2} p_ref)^T (P^{1/2} p(z)) / d_ref
+<= d(z)`` (Cauchy-Schwarz), the linear constraint implies ``d_i(tau*)(z) >= 1 + q sigma``: it is
 conservative, and exact (tangent) at the reference since ``d`` is homogeneous of degree one.
 """
 from __future__ import annotations
@@ -32,15 +39,18 @@ import numpy as np
 
 from art_guidance.checks import as_finite_array
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
+from art_guidance.drift import ArcItems, ArcMinimum, DriftArcs
 from art_guidance.dynamics import (
     Horizon, mean_arg_latitude, mean_motion, orbital_period_s, propagate_mean_oe,
     psi_from_latitude, stm_j2,
 )
 from art_guidance.errors import InputError
-from art_guidance.uncertainty import propagate_covariance, state_covariance_history
+from art_guidance.uncertainty import (
+    post_burn_covariance, propagate_covariance, state_covariance_history,
+)
 
-# Ellipsoidal distances below this are treated as zero when normalising the gradient.
-_D_FLOOR = 1e-12
+ROW_DIP = 2.5e-3        # largest dip of the margin between linearisation rows around t* [-]
+ROW_DELTA_MIN_S = 1.0   # smallest spacing of those rows [s]
 
 
 @dataclass(frozen=True)
@@ -50,15 +60,15 @@ class SafetyLinearization:
     Attributes:
         a: (N, 6) normalised gradient [1/m] with respect to the post-burn ROE z_i [m].
         rhs: (N,) right-hand side ``1 + beta`` [-].
-        beta: (N,) normalised q-sigma margin ``q sigma_{i,t*}`` [-] (0 when deterministic).
-        t_star_idx: (N,) index j of the drift sample used (t* = t_i + tau_j).
+        beta: (N,) normalised q-sigma margin ``q sigma_i(tau*)`` [-] (0 when deterministic).
+        t_star_s: (N,) drift offset tau* = t* - t_i of the continuous minimum [s].
         dist: (N,) ellipsoidal distance of the reference at t* [-].
     """
 
     a: np.ndarray
     rhs: np.ndarray
     beta: np.ndarray
-    t_star_idx: np.ndarray
+    t_star_s: np.ndarray
     dist: np.ndarray
 
 
@@ -67,19 +77,20 @@ class SafetyEvaluation:
     """Nonlinear passive-safety check of a trajectory.
 
     Attributes:
-        margin: (N,) normalised margin ``min_j (d_ij - 1 - q sigma_ij)`` [-]; >= 0 is safe.
+        margin: (N,) normalised margin ``min_tau (d - 1 - q sigma)`` over the continuous drift
+            arc [-] (certified to `drift.CERT_TOL`); >= 0 is safe.
         margin_m: (N,) the same times the smallest semi-axis of the active ellipsoid [m].
         violation: (N,) int 0/1, the paper's binary constraint-violation metric (1 = violated,
             i.e. margin < 0).
         constraint_to_go: (N,) int, C(t_i) = sum_{j >= i} violation_j.
-        t_star_idx: (N,) index of the drift sample with the smallest margin.
+        t_star_s: (N,) drift offset tau* of the smallest margin [s].
     """
 
     margin: np.ndarray
     margin_m: np.ndarray
     violation: np.ndarray
     constraint_to_go: np.ndarray
-    t_star_idx: np.ndarray
+    t_star_s: np.ndarray
 
 
 class PassiveSafety:
@@ -90,8 +101,9 @@ class PassiveSafety:
         uncertainty: the uncertainty model, or None (deterministic, zero covariance).
         q_sigma: confidence multiplier q [-] (0 when deterministic).
         n_nodes: number of nodes N.
-        n_samples: number of drift samples S.
+        n_samples: number of drift samples S (the search grid of the continuous minimum).
         tau_s: (S,) drift sample offsets [s], tau_0 = 0.
+        arcs: the closed-form drift arcs (`drift.DriftArcs`).
         ellipsoid_p: (N, 3, 3) ellipsoid matrices Diag(1/r^2) [1/m^2].
         semi_axes_m: (N, 3) active ellipsoid semi-axes [m].
         drift_stms: (N, S, 6, 6) Phi(t_i + tau_j, t_i).
@@ -101,7 +113,8 @@ class PassiveSafety:
 
     def __init__(self, horizon: Horizon, scenario: ScenarioConfig,
                  uncertainty: UncertaintyConfig | None,
-                 t_safety_s: float | None = None, n_safety: int | None = None) -> None:
+                 t_safety_s: float | None = None, n_safety: int | None = None,
+                 koz_switch_node: int | None = None) -> None:
         """Precompute the drift samples, STMs, position maps and ellipsoids.
 
         Args:
@@ -112,6 +125,9 @@ class PassiveSafety:
                 periods; 0 -> plain collision avoidance (single sample tau = 0).
             n_safety: number of drift samples; None -> ``scenario.n_safety``. Ignored (1) when
                 the drift duration is 0.
+            koz_switch_node: first node of this horizon guarded by the keep-out zone (0: all,
+                >= N: none); None -> ``scenario.ae_to_koz_node`` (a fresh plan). A replan over
+                the remaining horizon passes the switch's node in its own grid.
 
         Raises:
             InputError: on a negative/non-finite duration or a sample count < 1.
@@ -131,12 +147,17 @@ class PassiveSafety:
         self.n_nodes = horizon.n_nodes
         self.n_samples = n_s
         self.tau_s = np.linspace(0.0, t_safe, n_s)
-        self._build_ellipsoids(scenario)
+        switch = scenario.ae_to_koz_node if koz_switch_node is None else int(koz_switch_node)
+        if switch < 0:
+            raise InputError("koz_switch_node", "must be >= 0", koz_switch_node)
+        self._build_ellipsoids(scenario, switch)
         self._build_drift_maps()
+        self.arcs = DriftArcs(horizon.chief_oe, self.semi_axes_m, t_safe, n_s)
+        self._cache: tuple | None = None
 
     # ------------------------------------------------------------------ construction
-    def _build_ellipsoids(self, scenario: ScenarioConfig) -> None:
-        koz = np.arange(self.n_nodes) >= scenario.ae_to_koz_node  # (N,)
+    def _build_ellipsoids(self, scenario: ScenarioConfig, koz_switch_node: int) -> None:
+        koz = np.arange(self.n_nodes) >= koz_switch_node  # (N,)
         axes = np.where(koz[:, None], np.asarray(scenario.koz_semi_axes_m),
                         np.asarray(scenario.ae_semi_axes_m))  # (N, 3) [m]
         self.semi_axes_m = axes
@@ -158,7 +179,6 @@ class PassiveSafety:
             pos[i] = psi_pos @ stms[i]
         self.drift_stms = stms
         self.drift_pos_maps = pos
-        self._pos_flat = pos.reshape(n, s * 3, 6)  # (N, 3S, 6) for one batched matmul
 
     # ------------------------------------------------------------------ public API
     def post_burn(self, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
@@ -176,20 +196,45 @@ class PassiveSafety:
         x, u = self._check(roe_m, dv_rtn_mps)
         return state_covariance_history(x, u, self.horizon, self.uncertainty)
 
-    def drift_covariance(self, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
-        """Drift covariance ``X_ij = Phi_ij X_i Phi_ij^T`` [m^2] at every sample, (N, S, 6, 6)."""
-        return propagate_covariance(self.covariance(roe_m, dv_rtn_mps)[:, None],
-                                    self.drift_stms)
+    def drift_covariance(self, roe_m: object, dv_rtn_mps: object,
+                         tau_s: object | None = None) -> np.ndarray:
+        """Covariance propagated along the drift, ``Phi(t_i + tau_i, t_i) X_i Phi^T`` [m^2].
+
+        Args:
+            roe_m: (N, 6) pre-burn a-scaled ROE [m].
+            dv_rtn_mps: (N, 3) impulsive delta-v in RTN [m/s].
+            tau_s: (N,) drift offsets [s]; None -> the continuous t* of `evaluate`.
+
+        Returns:
+            (N, 6, 6) covariance at ``t_i + tau_i``.
+        """
+        tau = self._arc(roe_m, dv_rtn_mps)[1].tau_s if tau_s is None else as_finite_array(
+            "tau_s", tau_s, (self.n_nodes,))
+        phi = np.stack([self.drift_maps(i, tau[i:i + 1])[0][0] for i in range(self.n_nodes)])
+        return propagate_covariance(self.covariance(roe_m, dv_rtn_mps), phi)
+
+    def drift_maps(self, i: int, tau_s: object) -> tuple[np.ndarray, np.ndarray]:
+        """STMs (K, 6, 6) and RTN position maps ``D Psi Phi`` (K, 3, 6) of node i's drift.
+
+        Computed directly from `dynamics.stm_j2` and `dynamics.psi_from_latitude` at the offsets
+        `tau_s` (K,) [s] (independent of the closed form used for the minimum).
+        """
+        tau = as_finite_array("tau_s", tau_s, (None,))
+        oe_i = self.horizon.chief_oe[int(i)]
+        n_mot = mean_motion(float(oe_i[0]))
+        stm = stm_j2(oe_i, tau)
+        psi_pos = psi_from_latitude(mean_arg_latitude(propagate_mean_oe(oe_i, tau)), n_mot)[:, :3]
+        return stm, psi_pos @ stm
 
     def linearize(self, roe_m: object, dv_rtn_mps: object) -> SafetyLinearization:
         """Linearise the passive-safety chance constraint around a reference trajectory.
 
-        For node i, t* is the drift sample with the smallest margin ``d_ij - 1 - q sigma_ij``
-        (the most violated one). Deterministically this is the paper's minimum-distance
-        sample; with a covariance it can differ, and the most violated sample is the one the
-        chance constraint must protect. A reference with ``d = 0`` (through the target centre)
-        has no defined gradient and yields ``a_i = 0`` (the constraint is then infeasible and
-        must be absorbed by the optimiser's slack).
+        For node i, t* is the continuous minimiser of the margin ``d - 1 - q sigma`` over the
+        drift arc (the most violated instant). Deterministically this is the paper's
+        minimum-distance instant; with a covariance it can differ, and the most violated
+        instant is the one the chance constraint must protect. A reference with ``d = 0``
+        (through the target centre) has no defined gradient and yields ``a_i = 0`` (the
+        constraint is then infeasible and must be absorbed by the optimiser's slack).
 
         Args:
             roe_m: (N, 6) reference pre-burn a-scaled ROE [m].
@@ -198,34 +243,54 @@ class PassiveSafety:
         Returns:
             SafetyLinearization with ``a[i] @ z_i >= rhs[i]`` for the post-burn ROE z_i [m].
         """
-        d, g, sigma, margin = self._samples(roe_m, dv_rtn_mps)
-        rows = np.arange(self.n_nodes)
-        t_star = np.argmin(margin, axis=1)
-        beta = self.q_sigma * sigma[rows, t_star]
-        return SafetyLinearization(a=g[rows, t_star], rhs=1.0 + beta, beta=beta,
-                                   t_star_idx=t_star, dist=d[rows, t_star])
+        items, res = self._arc(roe_m, dv_rtn_mps)
+        d, g, sigma = self.arcs.gradient(items, res.tau_s[:, None])
+        beta = self.q_sigma * sigma[:, 0]
+        return SafetyLinearization(a=g[:, 0], rhs=1.0 + beta, beta=beta, t_star_s=res.tau_s,
+                                   dist=d[:, 0])
 
     def linearize_samples(self, roe_m: object, dv_rtn_mps: object, k: int
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Linearise at the `k` most violated drift samples of every node (k = 1: `linearize`).
+        """Linearise at `k` instants of every node's drift: t*, its neighbours, other minima.
 
-        Constraining several samples per node keeps the convex model valid when t* moves to a
-        neighbouring sample between SCP iterations; each row is conservative on its own.
+        Rows, in order: t*; then ``t* - delta`` and ``t* + delta`` (k >= 3) with
+        ``delta = sqrt(8 ROW_DIP / m''(t*))`` clipped to [ROW_DELTA_MIN_S, h / 2] (h the sample
+        spacing), so that a margin with the reference's curvature cannot dip by more than
+        ROW_DIP between the rows when t* moves during an SCP step (the row at t* alone is
+        exact only to first order: the minimum of the new iterate is elsewhere); then the
+        other refined local minima and drift samples by increasing margin. Each row is
+        conservative on its own (Cauchy-Schwarz at its instant).
 
         Args:
             roe_m: (N, 6) reference pre-burn a-scaled ROE [m].
             dv_rtn_mps: (N, 3) reference impulsive delta-v in RTN [m/s].
-            k: samples per node, 1 <= k <= n_samples.
+            k: rows per node, 1 <= k <= n_samples.
 
         Returns:
-            a (N, k, 6), rhs (N, k) with ``a[i, m] @ z_i >= rhs[i, m]``, and the sample
-            indices (N, k), most violated first.
+            a (N, k, 6), rhs (N, k) with ``a[i, m] @ z_i >= rhs[i, m]``, and the drift offsets
+            (N, k) [s] of the rows.
         """
         k = int(min(max(k, 1), self.n_samples))
-        d, g, sigma, margin = self._samples(roe_m, dv_rtn_mps)
-        idx = np.argsort(margin, axis=1, kind="stable")[:, :k]  # (N, k)
-        rows = np.arange(self.n_nodes)[:, None]
-        return g[rows, idx], 1.0 + self.q_sigma * sigma[rows, idx], idx
+        items, res = self._arc(roe_m, dv_rtn_mps)
+        tau = res.top_k(k)
+        if k >= 3:
+            tau = np.column_stack([tau[:, :1], self._neighbours(items, res.tau_s),
+                                   tau[:, 1:k - 2]])
+        _, g, sigma = self.arcs.gradient(items, tau)
+        return g, 1.0 + self.q_sigma * sigma, tau
+
+    def _neighbours(self, items: ArcItems, t_star_s: np.ndarray) -> np.ndarray:
+        """(N, 2) offsets ``t* -/+ delta`` [s] (see `linearize_samples`)."""
+        t_end = float(self.tau_s[-1])
+        eps = 1e-2 * ROW_DELTA_MIN_S
+        probe = np.clip(t_star_s[:, None] + np.array([-eps, eps]), 0.0, t_end)
+        dm = self.arcs.points(items, np.arange(self.n_nodes), probe).dm
+        curv = (dm[:, 1] - dm[:, 0]) / np.maximum(probe[:, 1] - probe[:, 0], 1e-12)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            delta = np.sqrt(8.0 * ROW_DIP / curv)
+        h_half = 0.5 * t_end / max(self.n_samples - 1, 1)
+        delta = np.clip(np.where(np.isfinite(delta), delta, h_half), ROW_DELTA_MIN_S, h_half)
+        return np.clip(t_star_s[:, None] + delta[:, None] * np.array([-1.0, 1.0]), 0.0, t_end)
 
     def evaluate(self, roe_m: object, dv_rtn_mps: object) -> SafetyEvaluation:
         """Evaluate the nonlinear passive-safety chance constraint along a trajectory.
@@ -235,16 +300,45 @@ class PassiveSafety:
             dv_rtn_mps: (N, 3) impulsive delta-v in RTN [m/s].
 
         Returns:
-            SafetyEvaluation (margins, binary violation metric, constraint-to-go).
+            SafetyEvaluation (continuous-minimum margins, binary violation metric,
+            constraint-to-go).
         """
-        _, _, _, margin_ij = self._samples(roe_m, dv_rtn_mps)
-        rows = np.arange(self.n_nodes)
-        t_star = np.argmin(margin_ij, axis=1)
-        margin = margin_ij[rows, t_star]
+        res = self._arc(roe_m, dv_rtn_mps)[1]
+        margin = res.margin
         violation = (margin < 0.0).astype(int)
         ctg = np.cumsum(violation[::-1])[::-1].copy()
         return SafetyEvaluation(margin=margin, margin_m=margin * self._min_axis_m,
-                                violation=violation, constraint_to_go=ctg, t_star_idx=t_star)
+                                violation=violation, constraint_to_go=ctg, t_star_s=res.tau_s)
+
+    def node_margins(self, i: int, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
+        """Margins of B candidate (state, burn) pairs at one node, as `evaluate(...).margin[i]`.
+
+        For the transformer rollout: the same continuous-minimum evaluation, with the
+        covariance of each candidate's own state and burn (chance-constrained) or none.
+
+        Args:
+            i: node index, 0 <= i < N.
+            roe_m: (B, 6) pre-burn a-scaled ROE at node i [m].
+            dv_rtn_mps: (B, 3) impulsive delta-v in RTN at node i [m/s].
+
+        Returns:
+            (B,) normalised margins [-]; >= 0 is safe.
+
+        Raises:
+            InputError: on a bad node index, NaN/inf or shapes that do not match.
+        """
+        if isinstance(i, bool) or int(i) != i or not 0 <= int(i) < self.n_nodes:
+            raise InputError("i", f"must be a node index in [0, {self.n_nodes})", i)
+        i = int(i)
+        x = as_finite_array("roe_m", roe_m, (None, 6))
+        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (x.shape[0], 3))
+        z = x + u @ self.horizon.b[i].T
+        x_cov = None
+        if self.uncertainty is not None:
+            x_cov = post_burn_covariance(x, u, self.horizon.b[i], self.horizon.psi[i],
+                                         self.uncertainty)
+        items = self.arcs.items(np.full(x.shape[0], i), z, x_cov, self.q_sigma)
+        return self.arcs.minimum(items).margin
 
     # ------------------------------------------------------------------ internals
     def _check(self, roe_m: object, dv_rtn_mps: object) -> tuple[np.ndarray, np.ndarray]:
@@ -252,21 +346,19 @@ class PassiveSafety:
         u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (self.n_nodes, 3))
         return x, u
 
-    def _samples(self, roe_m: object, dv_rtn_mps: object
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Distances d (N, S), gradients g (N, S, 6), sigmas (N, S) and margins (N, S)."""
+    def _arc(self, roe_m: object, dv_rtn_mps: object) -> tuple[ArcItems, ArcMinimum]:
+        """Certified arc minima of a trajectory (the last one is cached: SCVx* evaluates and
+        then linearises the same iterate)."""
         x, u = self._check(roe_m, dv_rtn_mps)
-        n, s = self.n_nodes, self.n_samples
+        key = (x.tobytes(), u.tobytes())
+        cached = self._cache
+        if cached is not None and cached[0] == key:
+            return cached[1], cached[2]
         z = x + (self.horizon.b @ u[:, :, None])[:, :, 0]  # (N, 6)
-        p = (self._pos_flat @ z[:, :, None]).reshape(n, s, 3)  # (N, S, 3) [m]
-        pp = p * self._p_diag[:, None, :]  # (N, S, 3) P p
-        d = np.sqrt(np.einsum("nsi,nsi->ns", p, pp))  # (N, S)
-        g = np.einsum("nsij,nsi->nsj", self.drift_pos_maps, pp)  # (N, S, 6)
-        g /= np.maximum(d, _D_FLOOR)[:, :, None]
-        if self.uncertainty is None:
-            sigma = np.zeros((n, s))
-        else:
+        x_cov = None
+        if self.uncertainty is not None:
             x_cov = state_covariance_history(x, u, self.horizon, self.uncertainty)
-            var = np.einsum("nsj,nsj->ns", g @ x_cov, g)  # g^T X_i g, (N, S)
-            sigma = np.sqrt(np.clip(var, 0.0, None))
-        return d, g, sigma, d - 1.0 - self.q_sigma * sigma
+        items = self.arcs.items(np.arange(self.n_nodes), z, x_cov, self.q_sigma)
+        res = self.arcs.minimum(items)
+        self._cache = (key, items, res)
+        return items, res

@@ -136,6 +136,33 @@ def propagate_covariance(x_cov: object, phi: object) -> np.ndarray:
     return 0.5 * (out + np.swapaxes(out, -1, -2))
 
 
+def post_burn_covariance(roe_m: object, dv_rtn_mps: object, b: object, psi: object,
+                         cfg: UncertaintyConfig) -> np.ndarray:
+    """Post-burn state covariance ``X = X_nav(x) + B U(u) B^T + Q`` of M (state, burn) pairs.
+
+    Args:
+        roe_m: (M, 6) pre-burn a-scaled ROE [m].
+        dv_rtn_mps: (M, 3) impulsive delta-v in RTN [m/s].
+        b: (M, 6, 3) or (6, 3) control matrices [s] of the burns.
+        psi: (M, 6, 6) or (6, 6) ROE -> RTN maps at the burns (range for the navigation error).
+        cfg: uncertainty model.
+
+    Returns:
+        (M, 6, 6) covariance [m^2].
+
+    Raises:
+        InputError: on NaN/inf or shapes that do not match.
+    """
+    x = as_finite_array("roe_m", roe_m, (None, 6))
+    m = x.shape[0]
+    u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (m, 3))
+    b = np.broadcast_to(np.asarray(b, float), (m, 6, 3))
+    psi = np.broadcast_to(np.asarray(psi, float), (m, 6, 6))
+    act = b @ gates_covariance(u, cfg) @ np.swapaxes(b, -1, -2)  # (M, 6, 6)
+    out = nav_covariance(x, psi, cfg) + act + process_noise(cfg)
+    return 0.5 * (out + np.swapaxes(out, -1, -2))
+
+
 def state_covariance_history(roe_m: object, dv_rtn_mps: object, horizon: Horizon,
                              cfg: UncertaintyConfig | None) -> np.ndarray:
     """Post-burn state error covariance at every node, ``X(t_i) = X_nav + B U B^T + Q``.
@@ -161,7 +188,4 @@ def state_covariance_history(roe_m: object, dv_rtn_mps: object, horizon: Horizon
     u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (n, 3))
     if cfg is None:
         return np.zeros((n, 6, 6))
-    b = horizon.b
-    act = b @ gates_covariance(u, cfg) @ np.swapaxes(b, -1, -2)  # (N, 6, 6)
-    out = nav_covariance(x, horizon.psi, cfg) + act + process_noise(cfg)
-    return 0.5 * (out + np.swapaxes(out, -1, -2))
+    return post_burn_covariance(x, u, horizon.b, horizon.psi, cfg)

@@ -58,7 +58,9 @@ MODES = ("deterministic", "chance")
 STAGES = ("cvx", "collision_avoidance", "passive_safety")
 SEED_STRIDE = 1_000_003
 SEED_RULE = f"seed_i = base_seed * {SEED_STRIDE} + i"
-PIPELINE_VERSION = 1  # bump when a code change alters the stored data of a given seed
+# Bump when a code change alters the stored data of a given seed. 2: passive safety over the
+# continuous drift arc (certified t*, issue 13): new SCP solutions, constraint-to-go and margins.
+PIPELINE_VERSION = 2
 KEPT_INFEASIBLE = 0
 TIMING_FIELDS = ("stage_time_ms",)  # the only stored fields that differ between runs
 
@@ -81,8 +83,10 @@ FIELDS = {
     "dv_rtn_mps": "(N, 3) impulsive delta-v in RTN [m/s]",
     "cost_mps": "() sum of ||dv||_2 [m/s]",
     "reward_to_go_mps": "(N,) R(t_i) = -sum_{j>=i} ||dv_j||_2 [m/s]",
-    "constraint_to_go": "(N,) int32, C(t_i) under the mode's passive-safety model",
-    "margin_m": "(N,) passive-safety margin under the mode's model [m], >= 0 safe",
+    "constraint_to_go": "(N,) int32, C(t_i) under the mode's passive-safety model (minimum "
+                        "margin over the continuous drift arc)",
+    "margin_m": "(N,) passive-safety margin under the mode's model [m], >= 0 safe (certified "
+                "lower bound of the minimum over the continuous drift arc)",
     "cvx_roe_m": "(N, 6) CVX (stage 1) pre-burn ROE [m]",
     "cvx_dv_rtn_mps": "(N, 3) CVX delta-v in RTN [m/s]",
     "cvx_cost_mps": "() CVX cost, the lower bound [m/s]",

@@ -85,20 +85,17 @@ class ScpSubproblem:
     def _assemble(self, roe0_m: np.ndarray, roe_f_m: np.ndarray) -> None:
         h, n, sx, trip = self.horizon, self.n, self.sx, _Triplets()
         eye6 = np.eye(6)
-        b_zero = [roe0_m / sx]
         trip.add(np.arange(6)[:, None], self.ix[0][None, :], eye6)
-        row = 6
-        for k in range(n - 1):
-            r = row + np.arange(6)[:, None]
-            trip.add(r, self.ix[k + 1][None, :], eye6)
-            trip.add(r, self.ix[k][None, :], -h.stm[k])
-            trip.add(r, self.iu[k][None, :], -(h.stm[k] @ h.b[k]) / sx)
-            b_zero.append(np.zeros(6))
-            row += 6
+        # x_{k+1} - Phi_k x_k - Phi_k B_k u_k = 0 for k = 0 .. n-2, one block of 6 rows each
+        r = (6 + 6 * np.arange(n - 1)[:, None] + np.arange(6))[:, :, None]  # (n-1, 6, 1)
+        trip.add(r, self.ix[1:][:, None, :], eye6)
+        trip.add(r, self.ix[:-1][:, None, :], -h.stm)
+        trip.add(r, self.iu[:-1][:, None, :], -(h.stm @ h.b[:-1]) / sx)
+        row = 6 * n
         r = row + np.arange(6)[:, None]
         trip.add(r, self.ix[n - 1][None, :], eye6)
         trip.add(r, self.iu[n - 1][None, :], h.b[n - 1] / sx)
-        b_zero.append(roe_f_m / sx)
+        b_zero = [roe0_m / sx, np.zeros(6 * (n - 1)), roe_f_m / sx]
         row += 6
         n_zero = row
         # safety rows (k per node): -a_im' (sx x~_i + B_i u_i) - zeta_i <= -rhs_im
@@ -124,11 +121,11 @@ class ScpSubproblem:
             trip.add(row + m + np.arange(m), self.ic, -1.0)
             row += 2 * m
             soc = ()
-        else:
-            for i in range(n):
-                trip.add(row, self.ic[i], -1.0)
-                trip.add(row + 1 + np.arange(3), self.iu[i], -1.0)
-                row += 4
+        else:  # cone i: rows (t_i, u_i) <- (-t_i, -u_i)
+            r_cone = row + 4 * np.arange(n)
+            trip.add(r_cone, self.ic, -1.0)
+            trip.add(r_cone[:, None] + 1 + np.arange(3), self.iu, -1.0)
+            row += 4 * n
             soc = (4,) * n
         self.cones = Cones(n_zero, row - n_zero - 4 * len(soc), soc)
         rows, cols, vals = trip.arrays()

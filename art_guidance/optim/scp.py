@@ -1,7 +1,8 @@
 """SCVx* sequential convex programming (Oguri 2023) for the passively safe rendezvous OCP.
 
 Each iteration linearises the (chance-constrained) passive-safety constraint around the
-reference (`safety.PassiveSafety.linearize`), solves the convex subproblem
+reference at the continuous minimiser t* of every drift arc, its neighbours t* -/+ delta and the
+other local minima (`safety.PassiveSafety.linearize_samples`), solves the convex subproblem
 (`problem.ScpSubproblem`), and compares the actual decrease of the augmented-Lagrangian merit
 
     J(x, u) = sum ||u_i|| + mu' g+(x, u) + w/2 ||g+(x, u)||^2,   g = -(nonlinear margin)
@@ -65,7 +66,10 @@ class Scvx:
         self.roe_f_m = np.asarray(roe_f_m, float)
         self.cfg = config or ScpConfig()
         self.norm = norm
-        self.k = int(min(max(samples_per_node, 1), safety.n_samples))
+        # rows per node: t* and samples_per_node - 1 other minima / samples, plus the two
+        # neighbours t* -/+ delta of the continuous minimum (`PassiveSafety.linearize_samples`)
+        k = int(max(samples_per_node, 1))
+        self.k = int(min(k + 2 if k > 1 else 1, safety.n_samples))
         # The convex model is tightened so converged plans keep a nonlinear margin >= 0.
         self.tighten = self.cfg.tightening
         self.sub = ScpSubproblem(self.horizon, self.roe0_m, self.roe_f_m, norm, solver, self.k)

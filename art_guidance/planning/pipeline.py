@@ -70,9 +70,8 @@ class GuidancePipeline:
             horizon = Horizon.build(request.chief_oe,
                                     time_grid_s(request.chief_oe[0], n_orbits, n_nodes))
             unc = self.uncertainty if request.chance_constrained else None
-            scenario = self.scenario.replace(n_nodes=max(n_nodes, self.scenario.n_nodes),
-                                             ae_to_koz_node=switch)
-            self._cache[key] = (horizon, PassiveSafety(horizon, scenario, unc))
+            self._cache[key] = (horizon, PassiveSafety(horizon, self.scenario, unc,
+                                                       koz_switch_node=switch))
         return self._cache[key]
 
     def plan(self, request: PlanRequest) -> PlanResult:

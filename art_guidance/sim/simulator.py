@@ -423,8 +423,8 @@ def run_safety_model(sim: RendezvousSim, uncertainty: UncertaintyConfig | None =
         koz_switch_t_s = koz_switch_time_s(sim.scenario, sim.chief_mean_oe0[0])
     n_nodes = max(t.size, 3)
     switch = int(np.searchsorted(t, float(koz_switch_t_s) - EPOCH_MATCH_S, side="left"))
-    scenario = sim.scenario.replace(n_nodes=n_nodes, ae_to_koz_node=min(switch, n_nodes))
-    return PassiveSafety(Horizon.build(sim.chief_mean_oe0, t), scenario, uncertainty)
+    return PassiveSafety(Horizon.build(sim.chief_mean_oe0, t), sim.scenario, uncertainty,
+                         koz_switch_node=min(switch, n_nodes))
 
 
 def summarize(sim: RendezvousSim, target_rtn: object, safety_model: PassiveSafety | None = None,
