@@ -249,7 +249,9 @@ class GuidanceCore:
             try:
                 self._solve(job)
             except Exception as exc:  # the worker must survive anything
-                self.get_logger().error(f"planning failed: {type(exc).__name__}: {exc}")
+                if not self.context.ok():
+                    return  # shutting down under a running solve: nothing left to tell
+                self._log().error(f"planning failed: {type(exc).__name__}: {exc}")
                 self.plan_pub.publish(status_plan_msg(
                     job.nav.stamp_ns, self._next_id(), ManeuverPlan.STATUS_SOLVER_ERROR,
                     f"{type(exc).__name__}: {exc}", self._active_id()))
@@ -272,7 +274,7 @@ class GuidanceCore:
         self.plan_pub.publish(plan_msg)
         self.stats["plans"] += 1
         level = OK if result.scp.feasible else WARN
-        self.get_logger().info(
+        self._log().info(
             f"{plan_id} ({job.trigger}): {result.status.name}, {result.cost_mps:.4f} m/s, "
             f"{result.scp.iterations} it, margin {result.constraint_margin_m:.2f} m, "
             f"{result.timings_ms['total']:.0f} ms; {action.value} "
@@ -301,8 +303,8 @@ class GuidanceCore:
             if new_request:
                 self._recorded_request = request
         else:
-            self.get_logger().error(f"recording failed, guidance continues: "
-                                    f"{self.recorder.last_error}")
+            self._log().error(f"recording failed, guidance continues: "
+                              f"{self.recorder.last_error}")
             self._publish_diag("art_guidance/recorder", ERROR, self.recorder.last_error,
                                {"errors": self.recorder.errors})
 
@@ -337,12 +339,13 @@ class GuidanceCore:
         self._stop_worker()
         if self.recorder is not None:
             self.recorder.finish()
-            self._shutdown_logger().info(f"recorded {self.recorder.solves} solves to "
-                                         f"{self.recorder.directory}")
+            self._log().info(f"recorded {self.recorder.solves} solves to "
+                             f"{self.recorder.directory}")
 
-    def _shutdown_logger(self):
+    def _log(self):
         """The node's logger while its context lives; after SIGINT/SIGTERM (context shut down,
-        rosout gone) a console-only logger, so shutting down logs no rosout error."""
+        rosout gone) a console-only logger, so a solve finishing during shutdown logs no rosout
+        error. Used from the worker thread and at shutdown."""
         if self.context.ok():
             return self.get_logger()
         return rclpy.logging.get_logger("art_guidance.shutdown")

@@ -124,6 +124,10 @@ def test_best_effort_publisher_is_served(client):
 
 
 def test_sigint_shuts_down_without_errors(client, node_proc):
+    """Also with a solve under way: it finishes quietly after the context is gone."""
+    stamp = time.time_ns()
+    client.nav_pub.publish(nav_msg(stamp, NOMINAL_RTN + [0.0, 900.0, 0, 0, 0, 0]))
+    assert client.decision_for(stamp) == "replanning"
     node_proc.send_signal(signal.SIGINT)
     out, _ = node_proc.communicate(timeout=30)
     assert node_proc.returncode == 0, out
