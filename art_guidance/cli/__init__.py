@@ -15,7 +15,7 @@ from typing import Sequence
 from art_guidance import __version__
 from art_guidance.errors import GuidanceError
 
-SUBCOMMANDS = ("demo", "plan", "generate", "replay", "bag", "bench", "node", "sim")
+SUBCOMMANDS = ("demo", "plan", "generate", "train", "replay", "bag", "bench", "node", "sim")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -10,7 +10,7 @@ import pytest
 
 from art_guidance.cli import build_parser, main
 
-SUBCOMMANDS = ("demo", "plan", "bench", "node", "replay", "bag", "generate", "sim")
+SUBCOMMANDS = ("demo", "plan", "bench", "node", "replay", "bag", "generate", "sim", "train")
 REQUIRED_KEYS = {"chief_oe", "epochs_s", "dv_rtn_mps", "roe_m", "rtn", "cost_mps", "status",
                  "scp_iterations", "warm_start", "posthoc", "timings_ms",
                  "constraint_margin_m"}
@@ -70,14 +70,16 @@ def test_console_script_runs():
 
 
 def test_non_ros_commands_never_import_rclpy(tmp_path):
-    """Building the parser and planning must not load ROS (a plain-Python user has none)."""
+    """Building the parser and planning must not load ROS (a plain-Python user has none), nor
+    torch (a CVX-warm-started plan needs no model)."""
     code = ("import sys, json\n"
             "from art_guidance.cli import build_parser, main\n"
             "build_parser()\n"
             f"rc = main(['plan', '--seed', '2', '--warm-start', 'cvx', '--json', "
             f"{str(tmp_path / 'p.json')!r}])\n"
             "print(json.dumps([rc, sorted(m for m in sys.modules if m.startswith(('rclpy', "
-            "'art_guidance_msgs', 'art_guidance.ros.guidance', 'art_guidance.ros.sim')))]))\n")
+            "'art_guidance_msgs', 'art_guidance.ros.guidance', 'art_guidance.ros.sim', "
+            "'torch')))]))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     rc, ros_modules = json.loads(out.stdout.strip().splitlines()[-1])

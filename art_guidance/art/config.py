@@ -1,0 +1,179 @@
+"""ART model and training configuration: frozen, validated, stored inside every checkpoint.
+
+Presets (`PRESETS`): ``paper`` is the appendix table of the paper (6 layers, 6 heads, 384 wide,
+K = 100, dropout 0.1 also on the attention, ReLU; 10.6 M parameters); ``small`` is the default,
+sized so that a KV-cached 100-step rollout (transformer + dynamics) stays within 40 ms on one
+CPU thread of the shared 2-core development machine and trains on 2 CPU cores (3 layers,
+3 heads of 32, 96 wide, K = 100, residual/embedding dropout 0.1, none on the attention
+probabilities, ReLU; 0.35 M parameters). Measured there with other jobs running: 3 x 96
+36 ms median, 3 x 128 46 ms, 4 x 128 69 ms. ``tiny`` exists for tests and smoke runs only.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+from art_guidance.errors import ConfigError
+
+REPRESENTATIONS = ("roe", "rtn")
+ACTIVATIONS = ("relu", "gelu")
+MODALITIES = ("goal", "reward", "constraint", "state", "control")  # token order in a step
+TOKENS_PER_STEP = len(MODALITIES)
+STATE_DIM, CONTROL_DIM, GOAL_DIM = 6, 3, 6
+# Width of a token's packed input: every modality has its own slot (goal 6, R 1, C 1, state 6,
+# control 3); a token fills its slot only, so all five embeddings are one matrix product.
+SLOTS = {"goal": slice(0, 6), "reward": slice(6, 7), "constraint": slice(7, 8),
+         "state": slice(8, 14), "control": slice(14, 17)}
+FEATURES = 17
+
+
+@dataclass(frozen=True)
+class ArtConfig:
+    """Transformer shape and state representation (the defaults are the `small` preset).
+
+    Attributes:
+        n_layers: transformer blocks.
+        n_heads: attention heads per block (divides `width`).
+        width: embedding width d.
+        context: K, the most time steps the model sees (5 K tokens); also the size of the
+            learned time-step embedding. A horizon of n <= K nodes uses time indices K - n ..
+            K - 1 (aligned to the end, so a replan over the last n nodes looks like the tail
+            of a training trajectory).
+        dropout: residual and embedding dropout during training.
+        attn_dropout: dropout on the attention probabilities during training. GPT-2 (and the
+            paper's Hugging Face model) use `dropout` here too; on CPU any value > 0 forces
+            PyTorch's unfused attention (the B x H x 5K x 5K probabilities are materialised
+            and masked), which made training ~2.5x slower, so the CPU presets set it to 0.
+        activation: "relu" (paper) or "gelu".
+        representation: state (and goal) representation: "roe" (a-scaled ROE [m]) or "rtn"
+            (Psi x [m, m/s]); controls are always RTN delta-v [m/s].
+        mlp_ratio: hidden width of the MLP as a multiple of `width`.
+    """
+
+    n_layers: int = 3
+    n_heads: int = 3
+    width: int = 96
+    context: int = 100
+    dropout: float = 0.1
+    attn_dropout: float = 0.0
+    activation: str = "relu"
+    representation: str = "roe"
+    mlp_ratio: int = 4
+
+    def __post_init__(self) -> None:
+        for name in ("n_layers", "n_heads", "width", "context", "mlp_ratio"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"art.{name} must be an integer >= 1, got {value!r}")
+        if self.width % self.n_heads:
+            raise ConfigError(f"art.width ({self.width}) must be a multiple of n_heads "
+                              f"({self.n_heads})")
+        for name in ("dropout", "attn_dropout"):
+            if not 0.0 <= float(getattr(self, name)) < 1.0:
+                raise ConfigError(f"art.{name} must be in [0, 1), got {getattr(self, name)!r}")
+        if self.activation not in ACTIVATIONS:
+            raise ConfigError(f"art.activation must be one of {ACTIVATIONS}, got "
+                              f"{self.activation!r}")
+        if self.representation not in REPRESENTATIONS:
+            raise ConfigError(f"art.representation must be one of {REPRESENTATIONS}, got "
+                              f"{self.representation!r}")
+
+    @property
+    def head_dim(self) -> int:
+        """Width of one attention head."""
+        return self.width // self.n_heads
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for the checkpoint."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "ArtConfig":
+        """Inverse of `to_dict` (validated again; unknown keys are an error)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise ConfigError(f"unknown ART config keys {sorted(unknown)}")
+        return cls(**data)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings (AdamW, warm-up then cosine decay, gradient-norm clipping).
+
+    Attributes:
+        batch_size: trajectories per optimiser step (global, over all processes).
+        lr: peak learning rate.
+        min_lr_ratio: final learning rate as a fraction of `lr` (cosine decay over
+            `max_epochs`); 1.0 keeps it constant like the paper.
+        warmup_steps: linear warm-up steps.
+        weight_decay: AdamW weight decay (torch default).
+        grad_clip: gradient-norm clip (paper: 1.0).
+        max_epochs: passes over the training trajectories at most.
+        eval_every: optimiser steps between validation passes and checkpoints (0: once per
+            epoch).
+        patience: validation passes without improvement before early stopping.
+        val_fraction: share of the training split held out for validation and early
+            stopping (the dataset's test split is never read).
+        suffix_fraction: share of the training sequences that start at a random node k > 0
+            (teaches replanning over the remaining horizon).
+    """
+
+    batch_size: int = 32
+    lr: float = 5e-4
+    min_lr_ratio: float = 0.1
+    warmup_steps: int = 200
+    weight_decay: float = 0.01
+    grad_clip: float = 1.0
+    max_epochs: int = 200
+    eval_every: int = 0
+    patience: int = 10
+    val_fraction: float = 0.05
+    suffix_fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("batch_size", "max_epochs", "patience"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"train.{name} must be an integer >= 1, got {value!r}")
+        for name in ("warmup_steps", "eval_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ConfigError(f"train.{name} must be an integer >= 0, got {value!r}")
+        if not (self.lr > 0 and self.grad_clip > 0 and self.weight_decay >= 0):
+            raise ConfigError("train needs lr > 0, grad_clip > 0 and weight_decay >= 0")
+        if not 0 < self.min_lr_ratio <= 1:
+            raise ConfigError(f"train.min_lr_ratio must be in (0, 1], got {self.min_lr_ratio}")
+        if not 0 < self.val_fraction < 1 or not 0 <= self.suffix_fraction <= 1:
+            raise ConfigError("train needs 0 < val_fraction < 1 and 0 <= suffix_fraction <= 1")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for the checkpoint."""
+        return dataclasses.asdict(self)
+
+    def replace(self, **changes: Any) -> "TrainConfig":
+        """A copy with some fields changed (validated again); None values are ignored."""
+        return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
+
+
+PRESETS: dict[str, tuple[ArtConfig, TrainConfig]] = {
+    "paper": (ArtConfig(n_layers=6, n_heads=6, width=384, context=100, dropout=0.1,
+                        attn_dropout=0.1),
+              TrainConfig(batch_size=32, lr=2e-4, warmup_steps=500)),
+    "small": (ArtConfig(), TrainConfig()),  # the dataclass defaults are the default model
+    "tiny": (ArtConfig(n_layers=2, n_heads=2, width=32, context=100, dropout=0.0),
+             TrainConfig(batch_size=8, lr=3e-3, warmup_steps=10, eval_every=20)),
+}
+
+
+def preset(name: str, representation: str = "roe") -> tuple[ArtConfig, TrainConfig]:
+    """The model and training configuration of a preset, in the chosen representation.
+
+    Raises:
+        ConfigError: unknown preset or representation.
+    """
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+    model, train = PRESETS[name]
+    return dataclasses.replace(model, representation=representation), train

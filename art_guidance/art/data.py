@@ -1,0 +1,192 @@
+"""Training data: dataset directories -> normalised tensors, a validation split, batches.
+
+Only the dataset's own train split is read (`is_test` False) and infeasible samples are
+skipped. A seeded share of it is held out for validation and early stopping; the
+normalisation statistics come from the rest. Every stored quantity is used as written by the
+generator (see `art_guidance.data.stages.FIELDS`): R(t_i) = -sum_{j >= i} ||dv_j||, C(t_i) =
+sum_{j >= i} v_j with v_j = [margin_j < 0] under the dataset's passive-safety model. The goal
+is the terminal post-burn state: `roe_f_m` in the ROE representation, `target_rtn` (= Psi_N
+roe_f_m) in RTN; the RTN states are `rtn` = Psi_i x_i.
+
+Batches are sequences of the N nodes of a trajectory or, for a share of them, suffixes starting
+at a random node k (teaching replans over the remaining horizon); suffixes are shifted to the
+front and padded at the end, where causality keeps the padding out of every valid prediction
+and the loss mask out of the loss. Time-step indices follow the end-aligned rule of
+`ArtConfig.context`. All randomness derives from (seed, epoch) and (seed, step), so a resumed
+or data-parallel run draws exactly the batches of an uninterrupted single process.
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from art_guidance.art.config import MODALITIES
+from art_guidance.art.normalization import Normalizer
+from art_guidance.config import GuidanceConfig
+from art_guidance.data.storage import MANIFEST, load_dataset, read_manifest
+from art_guidance.errors import InputError
+
+_VAL_STREAM, _EPOCH_STREAM, _STEP_STREAM = 0xA1, 0xE9, 0x57
+
+
+@dataclass(frozen=True)
+class TrainingData:
+    """Normalised training and validation tensors of one or more dataset directories.
+
+    Attributes:
+        tensors: {"goal": (M, 6), "reward": (M, N), "constraint": (M, N),
+            "state": (M, N, 6), "control": (M, N, 3)} float32, normalised.
+        train_rows, val_rows: int64 row indices into the tensors (disjoint).
+        normalizer: statistics of the train rows.
+        n_nodes: N, nodes per trajectory.
+        provenance: dataset mode, config fingerprint and bundle (GuidanceConfig.to_json),
+            manifests (path, sha256), counts; stored in the checkpoint.
+    """
+
+    tensors: dict[str, torch.Tensor]
+    train_rows: np.ndarray
+    val_rows: np.ndarray
+    normalizer: Normalizer
+    n_nodes: int
+    provenance: dict
+
+
+def _raw_arrays(data: dict[str, np.ndarray], representation: str) -> dict[str, np.ndarray]:
+    rtn = representation == "rtn"
+    return {"goal": data["target_rtn"] if rtn else data["roe_f_m"],
+            "reward": data["reward_to_go_mps"],
+            "constraint": data["constraint_to_go"].astype(np.float64),
+            "state": data["rtn"] if rtn else data["roe_m"],
+            "control": data["dv_rtn_mps"]}
+
+
+def _read_dir(root: str) -> tuple[dict, dict[str, np.ndarray], dict]:
+    header, _, valid = read_manifest(root)
+    digest = hashlib.sha256((Path(root) / MANIFEST).read_bytes()[:valid]).hexdigest()
+    data = load_dataset(root)
+    keep = ~data["is_test"] & data["feasible"]
+    info = {"dir": str(Path(root).resolve()), "manifest_sha256": digest, "n": int(header["n"]),
+            "train_feasible": int(keep.sum()), "test_skipped": int(data["is_test"].sum())}
+    return header, {k: v[keep] for k, v in data.items()}, info
+
+
+def load_training_data(dirs: list[str], representation: str, val_fraction: float,
+                       seed: int) -> TrainingData:
+    """Read dataset directories, keep their feasible train-split samples, split, normalise.
+
+    Args:
+        dirs: dataset directories of one mode and one configuration.
+        representation: "roe" or "rtn".
+        val_fraction: share of the kept samples held out for validation.
+        seed: seeds the validation split.
+
+    Raises:
+        InputError: no directory, directories of different modes or configurations, or fewer
+            than 2 usable trajectories.
+        DatasetError: a corrupt or incomplete directory.
+    """
+    if not dirs:
+        raise InputError("--data", "at least one dataset directory is required")
+    parts, infos, first = [], [], None
+    for root in dirs:
+        header, data, info = _read_dir(root)
+        if first is None:
+            first = header
+        elif (header["mode"], header["config_sha256"]) != (first["mode"],
+                                                           first["config_sha256"]):
+            raise InputError("--data", f"{root} holds a {header['mode']} dataset of config "
+                             f"{header['config_sha256'][:12]}, the first a {first['mode']} one"
+                             f" of {first['config_sha256'][:12]}; train on one kind at a time")
+        parts.append(_raw_arrays(data, representation))
+        infos.append(info)
+    raw = {m: np.concatenate([p[m] for p in parts]) for m in MODALITIES}
+    m_rows = raw["goal"].shape[0]
+    if m_rows < 2:
+        raise InputError("--data", f"{m_rows} feasible training trajectories; need at least 2")
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), _VAL_STREAM]))
+    perm = rng.permutation(m_rows)
+    n_val = min(max(1, int(round(val_fraction * m_rows))), m_rows - 1)
+    val_rows, train_rows = np.sort(perm[:n_val]), np.sort(perm[n_val:])
+    normalizer = Normalizer.fit({m: raw[m][train_rows] for m in MODALITIES})
+    tensors = {m: torch.from_numpy(np.ascontiguousarray(normalizer.normalize(m, raw[m]),
+                                                        dtype=np.float32)) for m in MODALITIES}
+    provenance = {"mode": first["mode"], "config_sha256": first["config_sha256"],
+                  "guidance_config": _guidance_config(first["config"]),
+                  "manifests": infos, "n_nodes": int(raw["state"].shape[1]),
+                  "n_train": int(train_rows.size), "n_val": int(val_rows.size),
+                  "representation": representation}
+    return TrainingData(tensors, train_rows.astype(np.int64), val_rows.astype(np.int64),
+                        normalizer, int(raw["state"].shape[1]), provenance)
+
+
+def _guidance_config(config: dict) -> dict:
+    """The configuration bundle (GuidanceConfig.to_json) of a dataset header's config."""
+    if "guidance_config" in config:
+        return config["guidance_config"]
+    bundle = GuidanceConfig().to_json()  # headers written before the bundle existed
+    bundle.update({k: config[k] for k in ("scenario", "uncertainty", "scp") if config.get(k)})
+    return bundle
+
+
+def epoch_order(seed: int, epoch: int, rows: np.ndarray) -> np.ndarray:
+    """The train rows in the (seeded) order of `epoch`."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), _EPOCH_STREAM, int(epoch)]))
+    return rows[rng.permutation(rows.size)]
+
+
+def suffix_starts(seed: int, step: int, size: int, n_nodes: int, fraction: float) -> np.ndarray:
+    """(size,) start nodes of the sequences of training step `step`.
+
+    0, or with probability `fraction` a node in 1 .. N - 2 (at least two steps remain, so
+    the next-state loss has a target).
+    """
+    return _starts([int(seed), _STEP_STREAM, int(step)], size, n_nodes, fraction)
+
+
+def validation_starts(seed: int, size: int, n_nodes: int, fraction: float) -> np.ndarray:
+    """(size,) fixed start nodes of the validation sequences (same law as in training)."""
+    return _starts([int(seed), _VAL_STREAM, 1], size, n_nodes, fraction)
+
+
+def _starts(entropy: list[int], size: int, n_nodes: int, fraction: float) -> np.ndarray:
+    rng = np.random.default_rng(np.random.SeedSequence(entropy))
+    use = rng.random(size) < fraction
+    late = rng.integers(1, max(n_nodes - 1, 2), size)
+    return np.where(use & (n_nodes > 2), late, 0).astype(np.int64)
+
+
+def valid_mask(starts: np.ndarray, n_nodes: int) -> torch.Tensor:
+    """(b, N) bool: the valid (unpadded) steps of sequences starting at `starts`."""
+    return torch.from_numpy(np.arange(n_nodes)[None, :] < (n_nodes - starts)[:, None])
+
+
+def make_batch(tensors: dict[str, torch.Tensor], rows: np.ndarray, starts: np.ndarray,
+               context: int, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+    """Gather the sequences of `rows` starting at `starts`, front-aligned and end-padded.
+
+    Args:
+        tensors: normalised data (see TrainingData.tensors).
+        rows: (b,) row indices.
+        starts: (b,) start node of each sequence.
+        context: the model's K (time index of node i is K - N + i).
+        device: where the batch goes.
+
+    Returns:
+        "goal" (b, N, 6), "reward" (b, N), "constraint" (b, N), "state" (b, N, 6),
+        "control" (b, N, 3), "timestep" (b, N) int64, "mask" (b, N) bool.
+    """
+    n = tensors["state"].shape[1]
+    r = torch.as_tensor(rows, dtype=torch.long)
+    node = torch.as_tensor(starts, dtype=torch.long)[:, None] + torch.arange(n)  # (b, N)
+    mask = node < n  # (b, N)
+    node = node.clamp(max=n - 1)
+    rr = r[:, None].expand_as(node)  # (b, N)
+    batch = {m: tensors[m][rr, node] for m in ("reward", "constraint", "state", "control")}
+    batch["goal"] = tensors["goal"][r][:, None].expand(len(r), n, -1)  # (b, N, 6)
+    batch["timestep"] = node + (context - n)  # (b, N)
+    batch["mask"] = mask
+    return {k: v.to(device) for k, v in batch.items()}

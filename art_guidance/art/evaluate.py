@@ -1,0 +1,109 @@
+"""Held-out evaluation of ART rollouts against CVX (paper section V, post hoc check).
+
+For every held-out scenario the model is rolled out from the initial state, conditioned on
+R(t_1) = -J_CVX and C(t_1) = 0 with the target as goal, and compared with the CVX solution of
+the same scenario: its realised constraint-violation budget C(t_1) against CVX's, the share of
+rollouts with C(t_1) = 0, the cost error E_R = (R_ART - R_des) / R_des with R_des = -J_CVX, and
+the share inside the paper's post hoc acceptance region (-1.5 <= 100 E_R <= 3.5,
+0 <= E_C <= 2, with E_C = C_ART(t_1) - 0).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from art_guidance.art.checkpoint import TrainedArt
+from art_guidance.art.rollout import rollout
+from art_guidance.checks import as_finite_array
+from art_guidance.config import PosthocThresholds
+from art_guidance.errors import InputError
+from art_guidance.safety import PassiveSafety
+
+
+@dataclass(frozen=True)
+class RolloutEvaluation:
+    """Per-scenario results and their summary.
+
+    Attributes:
+        c_art: (M,) C(t_1) realised by the rollouts.
+        c_cvx: (M,) C(t_1) of the CVX solutions.
+        e_r: (M,) E_R = (R_ART - R_des) / R_des, R_des = -J_CVX [-].
+        accepted: (M,) inside the post hoc acceptance region.
+        cost_mps: (M,) rollout cost sum ||dv|| [m/s].
+    """
+
+    c_art: np.ndarray
+    c_cvx: np.ndarray
+    e_r: np.ndarray
+    accepted: np.ndarray
+    cost_mps: np.ndarray
+
+    def summary(self) -> dict[str, float]:
+        """Means and shares over the scenarios (JSON-ready)."""
+        return {"n": int(self.c_art.size),
+                "mean_c_art": float(self.c_art.mean()), "mean_c_cvx": float(self.c_cvx.mean()),
+                "frac_c_art_zero": float(np.mean(self.c_art == 0)),
+                "frac_c_cvx_zero": float(np.mean(self.c_cvx == 0)),
+                "frac_c_art_le_cvx": float(np.mean(self.c_art <= self.c_cvx)),
+                "mean_e_r": float(self.e_r.mean()), "median_e_r": float(np.median(self.e_r)),
+                "frac_posthoc_accepted": float(self.accepted.mean())}
+
+
+def heldout_scenarios(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The test-split scenarios of a loaded dataset whose CVX solve succeeded.
+
+    Args:
+        data: `art_guidance.data.storage.load_dataset` output.
+
+    Returns:
+        {"roe0_m": (M, 6), "target_rtn": (M, 6), "cvx_cost_mps": (M,),
+        "cvx_constraint_to_go0": (M,), "index": (M,)}.
+    """
+    keep = data["is_test"] & (data["cvx_constraint_to_go0"] >= 0)
+    return {k: data[k][keep] for k in ("roe0_m", "target_rtn", "cvx_cost_mps",
+                                       "cvx_constraint_to_go0", "index")}
+
+
+def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
+                      target_rtn: object, cvx_cost_mps: object, cvx_constraint_to_go0: object,
+                      thresholds: PosthocThresholds | None = None,
+                      batch_size: int = 64) -> RolloutEvaluation:
+    """Roll the model out on held-out scenarios and compare with CVX.
+
+    Args:
+        art: the trained model.
+        safety: passive-safety model of the dataset's horizon and mode (`build_safety`).
+        roe0_m: (M, 6) initial a-scaled ROE [m].
+        target_rtn: (M, 6) terminal RTN states [m, m/s].
+        cvx_cost_mps: (M,) J_CVX [m/s], > 0.
+        cvx_constraint_to_go0: (M,) C(t_1) of the CVX solutions.
+        thresholds: post hoc acceptance region (default: the paper's).
+        batch_size: scenarios per batched rollout.
+
+    Returns:
+        RolloutEvaluation (call `.summary()` for the aggregate numbers).
+
+    Raises:
+        InputError: mismatched shapes, non-finite values or a non-positive J_CVX.
+    """
+    x0 = as_finite_array("roe0_m", roe0_m, (None, 6))
+    m = x0.shape[0]
+    target = as_finite_array("target_rtn", target_rtn, (m, 6))
+    j_cvx = as_finite_array("cvx_cost_mps", cvx_cost_mps, (m,))
+    c_cvx = as_finite_array("cvx_constraint_to_go0", cvx_constraint_to_go0, (m,))
+    if m == 0 or np.any(j_cvx <= 0):
+        raise InputError("cvx_cost_mps", "need at least one scenario and J_CVX > 0", j_cvx)
+    t = thresholds or PosthocThresholds()
+    c_art, cost = np.empty(m, dtype=int), np.empty(m)
+    for s in range(0, m, batch_size):
+        sl = slice(s, s + batch_size)
+        res = rollout(art, safety, x0[sl], target[sl], -j_cvx[sl], 0.0)
+        c_art[sl] = res.realised_constraint_to_go[:, 0]
+        cost[sl] = res.cost_mps
+    r_des = -j_cvx
+    e_r = (-cost - r_des) / r_des
+    e_c = c_art - 0
+    accepted = ((t.e_r_pct_min <= 100.0 * e_r) & (100.0 * e_r <= t.e_r_pct_max)
+                & (t.e_c_min <= e_c) & (e_c <= t.e_c_max))
+    return RolloutEvaluation(c_art, c_cvx.astype(int), e_r, accepted, cost)

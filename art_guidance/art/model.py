@@ -1,0 +1,164 @@
+"""The Autonomous Rendezvous Transformer: a causal GPT over (goal, R, C, state, control) tokens.
+
+Paper sections III and V ("ART architecture"). Every time step t_i contributes five tokens in
+this order: the goal (terminal target state), the reward-to-go R(t_i), the constraint-violation
+budget C(t_i), the state x(t_i) and the control u(t_i). Each modality has its own linear
+embedding; a learned time-step embedding is added to the five tokens of its step (no positional
+embedding); the stacked tokens go through a LayerNorm and causal pre-LN GPT-2 blocks. Two
+modality-specific decoders read the final hidden states: the control u(t_i) from the output of
+the state token x(t_i), and the next state x(t_{i+1}) from the output of the control token
+u(t_i). Training minimises the paper's state + control MSE with teacher forcing
+(`loss_terms`), on z-scored features (`normalization`).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from art_guidance.art.config import (
+    CONTROL_DIM, GOAL_DIM, MODALITIES, STATE_DIM, TOKENS_PER_STEP, ArtConfig,
+)
+
+_IN_DIMS = {"goal": GOAL_DIM, "reward": 1, "constraint": 1, "state": STATE_DIM,
+            "control": CONTROL_DIM}
+STATE_TOKEN, CONTROL_TOKEN = MODALITIES.index("state"), MODALITIES.index("control")
+
+
+def activation(name: str):
+    """The MLP non-linearity of a config ("relu" or "gelu")."""
+    return F.relu if name == "relu" else F.gelu
+
+
+class Block(nn.Module):
+    """Pre-LN transformer block: x + attn(ln1(x)), then x + mlp(ln2(x))."""
+
+    def __init__(self, cfg: ArtConfig) -> None:
+        super().__init__()
+        d = cfg.width
+        self.n_heads = cfg.n_heads
+        self.attn_dropout = cfg.attn_dropout
+        self.act = activation(cfg.activation)
+        self.ln1 = nn.LayerNorm(d)
+        self.qkv = nn.Linear(d, 3 * d)
+        self.proj = nn.Linear(d, d)
+        self.ln2 = nn.LayerNorm(d)
+        self.fc = nn.Linear(d, cfg.mlp_ratio * d)
+        self.out = nn.Linear(cfg.mlp_ratio * d, d)
+        self.drop = nn.Dropout(cfg.dropout)
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        """Causal self-attention and MLP over `h` (B, L, d)."""
+        b, length, d = h.shape
+        qkv = self.qkv(self.ln1(h)).view(b, length, 3, self.n_heads, d // self.n_heads)
+        q, k, v = qkv.permute(2, 0, 3, 1, 4)  # each (B, H, L, hd)
+        p = self.attn_dropout if self.training else 0.0
+        a = F.scaled_dot_product_attention(q, k, v, is_causal=True, dropout_p=p)  # (B, H, L, hd)
+        h = h + self.drop(self.proj(a.transpose(1, 2).reshape(b, length, d)))  # (B, L, d)
+        return h + self.drop(self.out(self.act(self.fc(self.ln2(h)))))  # (B, L, d)
+
+
+class ArtModel(nn.Module):
+    """Causal GPT over the paper's trajectory representation (five tokens per step).
+
+    Attributes:
+        cfg: the ArtConfig the model was built from.
+    """
+
+    def __init__(self, cfg: ArtConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        d = cfg.width
+        self.embed = nn.ModuleDict({m: nn.Linear(_IN_DIMS[m], d) for m in MODALITIES})
+        self.time_embed = nn.Embedding(cfg.context, d)
+        self.embed_ln = nn.LayerNorm(d)
+        self.drop = nn.Dropout(cfg.dropout)
+        self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layers))
+        self.ln_f = nn.LayerNorm(d)
+        self.head_control = nn.Linear(d, CONTROL_DIM)
+        self.head_state = nn.Linear(d, STATE_DIM)
+        self.apply(self._init_weights)
+        for block in self.blocks:  # GPT-2: scale the residual projections by 1/sqrt(2 L)
+            for lin in (block.proj, block.out):
+                nn.init.normal_(lin.weight, std=0.02 / math.sqrt(2 * cfg.n_layers))
+
+    @staticmethod
+    def _init_weights(module: nn.Module) -> None:
+        if isinstance(module, (nn.Linear, nn.Embedding)):
+            nn.init.normal_(module.weight, std=0.02)
+        if isinstance(module, nn.Linear) and module.bias is not None:
+            nn.init.zeros_(module.bias)
+
+    def n_parameters(self) -> int:
+        """Number of trainable parameters."""
+        return sum(p.numel() for p in self.parameters())
+
+    def forward(self, goal: torch.Tensor, reward: torch.Tensor, constraint: torch.Tensor,
+                state: torch.Tensor, control: torch.Tensor, timestep: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predict every step's control and next state from the whole (causal) context.
+
+        Args:
+            goal: (B, T, 6) normalised goal (the same target at every step).
+            reward: (B, T) normalised reward-to-go R(t_i).
+            constraint: (B, T) normalised constraint-violation budget C(t_i).
+            state: (B, T, 6) normalised state x(t_i).
+            control: (B, T, 3) normalised control u(t_i) (teacher forcing; the last step's
+                control only influences predictions after it).
+            timestep: (B, T) int64 time-step indices in [0, K).
+
+        Returns:
+            control_pred (B, T, 3): u(t_i) read from the state token of step i;
+            state_pred (B, T, 6): x(t_{i+1}) read from the control token of step i.
+        """
+        b, t = reward.shape
+        tokens = torch.stack([
+            self.embed["goal"](goal), self.embed["reward"](reward[..., None]),
+            self.embed["constraint"](constraint[..., None]), self.embed["state"](state),
+            self.embed["control"](control)], dim=2)  # (B, T, 5, d)
+        tokens = tokens + self.time_embed(timestep)[:, :, None, :]  # (B, T, 5, d)
+        h = self.drop(self.embed_ln(tokens.reshape(b, t * TOKENS_PER_STEP, -1)))  # (B, 5T, d)
+        for block in self.blocks:
+            h = block(h)  # (B, 5T, d)
+        h = self.ln_f(h).reshape(b, t, TOKENS_PER_STEP, -1)  # (B, T, 5, d)
+        control_pred = self.head_control(h[:, :, STATE_TOKEN])  # (B, T, 3)
+        state_pred = self.head_state(h[:, :, CONTROL_TOKEN])  # (B, T, 6)
+        return control_pred, state_pred
+
+
+def loss_terms(model: ArtModel, batch: dict[str, torch.Tensor]
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sums of squared errors of the paper's loss with teacher forcing (normalised units).
+
+    The control of step i is compared with the data wherever step i is valid; the next-state
+    prediction of step i with the data's state at step i + 1 wherever that step is valid.
+
+    Args:
+        model: the transformer.
+        batch: "goal" (B, T, 6), "reward" (B, T), "constraint" (B, T), "state" (B, T, 6),
+            "control" (B, T, 3), "timestep" (B, T) int64, "mask" (B, T) bool (valid steps;
+            padding only at the end of a sequence, so causality keeps it out of the valid
+            predictions).
+
+    Returns:
+        (sum of squared control errors, sum of squared next-state errors), scalars. Divide by
+        the number of valid entries of the whole (global) batch to get the MSE.
+    """
+    control_pred, state_pred = model(batch["goal"], batch["reward"], batch["constraint"],
+                                     batch["state"], batch["control"], batch["timestep"])
+    mask = batch["mask"].to(control_pred.dtype)  # (B, T)
+    sse_u = (((control_pred - batch["control"]) ** 2).sum(-1) * mask).sum()
+    err_x = ((state_pred[:, :-1] - batch["state"][:, 1:]) ** 2).sum(-1)  # (B, T-1)
+    sse_x = (err_x * mask[:, 1:]).sum()
+    return sse_u, sse_x
+
+
+def loss_counts(mask: torch.Tensor) -> tuple[int, int]:
+    """Entries the two sums of `loss_terms` run over: (3 * valid steps, 6 * valid next steps).
+
+    Args:
+        mask: (B, T) bool valid steps.
+    """
+    return CONTROL_DIM * int(mask.sum()), STATE_DIM * int(mask[:, 1:].sum())

@@ -1,0 +1,236 @@
+"""Autoregressive ART rollouts with the dynamics in the loop (paper section III, "Inference").
+
+At every planned node i (from `start_node` to the last node N - 1), for a batch of scenarios:
+
+1. the transformer predicts the control u_i from the goal, R(t_i), C(t_i) and the state x(t_i)
+   (and everything before them in the context);
+2. the passive-safety margin of node i is evaluated for (x_i, u_i) with the project's safety
+   model (chance-constrained with the covariance recovered from x_i and u_i, or
+   deterministic, whichever `safety` is), and the violation indicator v_i = [margin < 0];
+3. the performance parameters are updated, R(t_{i+1}) = R(t_i) + ||u_i||,
+   C(t_{i+1}) = C(t_i) - v_i, and the state propagated in ROE,
+   x_{i+1} = Phi_i (x_i + B_i u_i) (the RTN representation feeds Psi_{i+1} x_{i+1}).
+
+Conditioning for a warm start: R(t_1) = -J_CVX, C(t_1) = 0, goal = the request's target. The
+horizon may be shorter than the context K; its nodes use the last time-step indices
+(K - n .. K - 1), so a replan from node k over the remaining horizon looks like the tail of a
+training trajectory. `use_cache=False` recomputes the whole context at every step through the
+module's forward pass (the reference the KV cache is tested against).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from art_guidance.art.checkpoint import TrainedArt
+from art_guidance.art.config import FEATURES, SLOTS, TOKENS_PER_STEP
+from art_guidance.checks import as_finite_array
+from art_guidance.config import GuidanceConfig
+from art_guidance.dynamics import Horizon, time_grid_s
+from art_guidance.errors import InputError
+from art_guidance.safety import PassiveSafety
+
+
+@dataclass(frozen=True)
+class RolloutResult:
+    """A batch of rollouts over nodes `nodes` (T of them) of the horizon.
+
+    Attributes:
+        nodes: (T,) horizon node indices planned.
+        dv_rtn_mps: (B, T, 3) planned impulsive delta-v in RTN [m/s].
+        roe_m: (B, T, 6) pre-burn a-scaled ROE at the planned nodes [m].
+        reward_to_go_mps: (B, T) R(t_i) fed to the model (conditioning history) [m/s].
+        constraint_to_go: (B, T) C(t_i) fed to the model (conditioning history).
+        margin: (B, T) normalised passive-safety margin of each node [-], < 0 violated.
+        violation: (B, T) int 0/1 violation indicator.
+    """
+
+    nodes: np.ndarray
+    dv_rtn_mps: np.ndarray
+    roe_m: np.ndarray
+    reward_to_go_mps: np.ndarray
+    constraint_to_go: np.ndarray
+    margin: np.ndarray
+    violation: np.ndarray
+
+    @property
+    def cost_mps(self) -> np.ndarray:
+        """(B,) sum of ||dv|| [m/s]."""
+        return np.linalg.norm(self.dv_rtn_mps, axis=-1).sum(axis=-1)
+
+    @property
+    def realised_reward_to_go_mps(self) -> np.ndarray:
+        """(B, T) realised R(t_i) = -sum_{j >= i} ||u_j|| of the rollout [m/s]."""
+        norms = np.linalg.norm(self.dv_rtn_mps, axis=-1)
+        return -np.cumsum(norms[:, ::-1], axis=1)[:, ::-1]
+
+    @property
+    def realised_constraint_to_go(self) -> np.ndarray:
+        """(B, T) realised C(t_i) = sum_{j >= i} v_j of the rollout (C(t_1): column 0)."""
+        return np.cumsum(self.violation[:, ::-1], axis=1)[:, ::-1]
+
+
+def build_safety(art: TrainedArt, chance_constrained: bool | None = None) -> PassiveSafety:
+    """The horizon and passive-safety model of the dataset the model was trained on.
+
+    Args:
+        art: a model whose meta holds the dataset's configuration bundle (else the packaged
+            defaults are used).
+        chance_constrained: override the dataset's mode (None: chance if the dataset was).
+    """
+    data = art.meta.get("dataset", {})
+    bundle = data.get("guidance_config")
+    config = GuidanceConfig.from_json(bundle) if bundle else GuidanceConfig()
+    chance = data.get("mode") == "chance" if chance_constrained is None else chance_constrained
+    scenario = config.scenario
+    chief = np.array(scenario.chief_oe)
+    horizon = Horizon.build(chief, time_grid_s(chief[0], scenario.n_orbits, scenario.n_nodes))
+    return PassiveSafety(horizon, scenario, config.uncertainty if chance else None)
+
+
+def _node_margins(safety: PassiveSafety, node: int, roe_m: np.ndarray,
+                  dv_rtn_mps: np.ndarray) -> np.ndarray:
+    """Normalised passive-safety margin of `node` for a batch of (x_i, u_i), (B,).
+
+    The one place that adapts to the safety module: `PassiveSafety.node_margins` when it
+    exists; otherwise `evaluate` on full-length arrays filled with the node's own state and
+    burn (a node's margin and covariance depend on that node's x_i and u_i only).
+    """
+    fn = getattr(safety, "node_margins", None)
+    if fn is not None:
+        return np.asarray(fn(node, roe_m, dv_rtn_mps), dtype=float)
+    n = safety.n_nodes
+    return np.array([safety.evaluate(np.broadcast_to(x, (n, 6)),
+                                     np.broadcast_to(u, (n, 3))).margin[node]
+                     for x, u in zip(roe_m, dv_rtn_mps)])
+
+
+_R_COL, _C_COL = SLOTS["reward"].start, SLOTS["constraint"].start
+
+
+class _CachedPolicy:
+    """Feeds each step's new tokens through the KV-cached decoder."""
+
+    def __init__(self, art: TrainedArt, goal_n: np.ndarray, t0: int, n_steps: int) -> None:
+        self.dec = art.decoder
+        b = goal_n.shape[0]
+        self.dec.reset(b, n_steps, t0)
+        dtype = torch.empty(0, dtype=self.dec.dtype).numpy().dtype
+        self.feats = np.zeros((b, n_steps * TOKENS_PER_STEP, FEATURES), dtype)  # (B, 5T, 17)
+        self.feats[:, 0::TOKENS_PER_STEP, SLOTS["goal"]] = goal_n[:, None]
+        self.feats_t = torch.from_numpy(self.feats)  # shares memory with self.feats
+        self.on_cpu = self.dec.device.type == "cpu"
+
+    def control(self, j: int, reward_n: np.ndarray, constraint_n: np.ndarray,
+                state_n: np.ndarray, prev_control_n: np.ndarray | None) -> np.ndarray:
+        base = TOKENS_PER_STEP * j
+        f = self.feats
+        f[:, base + 1, _R_COL] = reward_n
+        f[:, base + 2, _C_COL] = constraint_n
+        f[:, base + 3, SLOTS["state"]] = state_n
+        p0 = base
+        if j:
+            f[:, base - 1, SLOTS["control"]] = prev_control_n
+            p0 = base - 1
+        x = self.feats_t[:, p0:base + 4]  # (B, n, 17)
+        if not self.on_cpu:
+            x = x.to(self.dec.device)
+        return self.dec.step(x, p0).cpu().numpy()  # (B, 3)
+
+
+class _RecomputePolicy:
+    """Feeds the whole context again at every step through the module's forward pass."""
+
+    def __init__(self, art: TrainedArt, goal_n: np.ndarray, t0: int, n_steps: int) -> None:
+        self.model = art.model
+        p = next(self.model.parameters())
+        b = goal_n.shape[0]
+        kw = {"dtype": p.dtype, "device": p.device}
+        self.goal = torch.as_tensor(goal_n, **kw)[:, None].expand(b, n_steps, 6)  # (B, T, 6)
+        self.reward = torch.zeros(b, n_steps, **kw)  # (B, T)
+        self.constraint = torch.zeros(b, n_steps, **kw)  # (B, T)
+        self.state = torch.zeros(b, n_steps, 6, **kw)  # (B, T, 6)
+        self.ctrl = torch.zeros(b, n_steps, 3, **kw)  # (B, T, 3)
+        self.time = (t0 + torch.arange(n_steps, device=p.device)).expand(b, n_steps)  # (B, T)
+
+    def control(self, j: int, reward_n: np.ndarray, constraint_n: np.ndarray,
+                state_n: np.ndarray, prev_control_n: np.ndarray | None) -> np.ndarray:
+        as_t = self.reward.new_tensor
+        self.reward[:, j] = as_t(reward_n)
+        self.constraint[:, j] = as_t(constraint_n)
+        self.state[:, j] = as_t(state_n)
+        if j:
+            self.ctrl[:, j - 1] = as_t(prev_control_n)
+        s = slice(0, j + 1)
+        u_pred, _ = self.model(self.goal[:, s], self.reward[:, s], self.constraint[:, s],
+                               self.state[:, s], self.ctrl[:, s], self.time[:, s])
+        return u_pred[:, j].cpu().numpy()  # (B, 3)
+
+
+def _batch(field: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+    """`value` broadcast to the batch `shape` as a finite float array (a copy)."""
+    try:
+        arr = np.broadcast_to(np.asarray(value, dtype=float), shape)
+    except ValueError as exc:
+        raise InputError(field, f"cannot broadcast to {shape}: {exc}") from exc
+    return as_finite_array(field, arr, shape).copy()
+
+
+def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: object,
+            reward_mps: object, constraint: object = 0.0, start_node: int = 0,
+            use_cache: bool = True) -> RolloutResult:
+    """Roll the model out over nodes start_node .. N - 1 of `safety.horizon` for a batch.
+
+    Args:
+        art: the trained model.
+        safety: passive-safety model of the horizon (chance-constrained or deterministic); its
+            `horizon` gives Phi, B and Psi.
+        roe_m: (B, 6) or (6,) pre-burn a-scaled ROE at `start_node` [m].
+        target_rtn: (B, 6) or (6,) terminal RTN state after the last burn [m, m/s] (the goal).
+        reward_mps: (B,) or scalar R at `start_node`, e.g. -J_CVX [m/s].
+        constraint: (B,) or scalar C at `start_node` (0 asks for a passively safe plan).
+        start_node: first node to plan (a replan over the remaining horizon).
+        use_cache: KV-cached incremental decoding (default) or recompute the whole context.
+
+    Returns:
+        RolloutResult over the T = N - start_node planned nodes.
+
+    Raises:
+        InputError: bad shapes or values, or more steps than the model's context K.
+    """
+    horizon = safety.horizon
+    n_nodes = horizon.n_nodes
+    x = as_finite_array("roe_m", np.atleast_2d(np.asarray(roe_m, dtype=float)), (None, 6))
+    b = x.shape[0]
+    target = _batch("target_rtn", target_rtn, (b, 6))
+    r, c = _batch("reward_mps", reward_mps, (b,)), _batch("constraint", constraint, (b,))
+    k = art.config.context
+    if isinstance(start_node, bool) or int(start_node) != start_node \
+            or not 0 <= start_node < n_nodes or n_nodes - start_node > k:
+        raise InputError("start_node", f"must be an integer leaving 1..{k} nodes of the "
+                         f"{n_nodes}-node horizon", start_node)
+    start, n_steps = int(start_node), n_nodes - int(start_node)
+    rtn_repr = art.config.representation == "rtn"
+    goal = target if rtn_repr else np.linalg.solve(horizon.psi[-1], target.T).T  # (B, 6)
+    norm = art.normalizer
+    dv, roe = np.empty((b, n_steps, 3)), np.empty((b, n_steps, 6))
+    rs, cs, margins = np.empty((b, n_steps)), np.empty((b, n_steps)), np.empty((b, n_steps))
+    with torch.inference_mode():
+        policy = (_CachedPolicy if use_cache else _RecomputePolicy)(
+            art, norm.normalize("goal", goal), k - n_steps, n_steps)
+        u_n = None
+        for j, node in enumerate(range(start, n_nodes)):
+            state = x @ horizon.psi[node].T if rtn_repr else x  # (B, 6)
+            u_n = policy.control(j, norm.normalize("reward", r), norm.normalize("constraint", c),
+                                 norm.normalize("state", state), u_n)  # (B, 3)
+            u = norm.denormalize("control", u_n.astype(float))  # (B, 3) [m/s]
+            margin = _node_margins(safety, node, x, u)  # (B,)
+            dv[:, j], roe[:, j], rs[:, j], cs[:, j], margins[:, j] = u, x, r, c, margin
+            r = r + np.sqrt(np.einsum("bi,bi->b", u, u))  # R(t_{i+1}) = R(t_i) + ||u_i||
+            c = c - (margin < 0.0)  # C(t_{i+1}) = C(t_i) - v_i
+            if node < n_nodes - 1:
+                x = (x + u @ horizon.b[node].T) @ horizon.stm[node].T  # (B, 6)
+    return RolloutResult(np.arange(start, n_nodes), dv, roe, rs, cs, margins,
+                         (margins < 0.0).astype(int))

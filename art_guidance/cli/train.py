@@ -1,0 +1,82 @@
+"""`art-guidance train`: train the Autonomous Rendezvous Transformer on generated datasets."""
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+
+_PRESETS = ("small", "paper", "tiny")  # art_guidance.art.config.PRESETS (kept import-free)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register `train` on the `art-guidance` subparsers (cheap: imports no torch)."""
+    p = sub.add_parser(
+        "train", help="train the ART model on dataset directories (resumable, data parallel)",
+        description="Train the Autonomous Rendezvous Transformer on the train split of one or "
+        "more datasets written by `art-guidance generate` (the test split is never read; a "
+        "seeded share of the train split validates and early-stops). Writes OUT (best "
+        "weights, config, normalisation, dataset checksums, this command) and OUT.state "
+        "(resume state) atomically at every validation pass; re-running the same command "
+        "resumes after a kill. Deterministic for a seed on CPU at a fixed thread count; uses "
+        "CUDA when present. Data parallel: torchrun --standalone --nproc_per_node P -m "
+        "art_guidance.cli train ... (gloo on CPU, NCCL on GPUs). Exit 0 done or stopped at a "
+        "limit, 130 interrupted, 2 bad input.")
+    p.add_argument("--data", action="append", required=True, metavar="DIR",
+                   help="dataset directory (repeat for several of the same mode and config)")
+    p.add_argument("--preset", choices=_PRESETS, default="small",
+                   help="model size: small (default: 3 layers x 96, 0.35 M parameters, trains "
+                   "on CPU), paper (6 x 384, 10.6 M, the paper's appendix), tiny (tests)")
+    p.add_argument("--repr", choices=("roe", "rtn"), default="roe", dest="representation",
+                   help="state representation: ROE (a-scaled, m) or RTN (Psi x)")
+    p.add_argument("--out", required=True, help="checkpoint path (OUT.state holds the resume "
+                   "state)")
+    p.add_argument("--seed", type=int, default=0, help="weights, validation split, batches")
+    p.add_argument("--max-minutes", type=float, default=None,
+                   help="stop after this wall time (resumable); default: no limit")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="stop at this optimiser step (resumable; smoke runs)")
+    p.add_argument("--epochs", type=int, default=None, dest="max_epochs",
+                   help="maximum epochs (preset default 200; early stopping usually ends first)")
+    p.add_argument("--batch-size", type=int, default=None,
+                   help="global batch (preset: 32, the paper's effective 4 x 8)")
+    p.add_argument("--lr", type=float, default=None, help="peak learning rate (preset)")
+    p.add_argument("--eval-every", type=int, default=None,
+                   help="steps between validation passes and checkpoints (default: 1 epoch)")
+    p.add_argument("--patience", type=int, default=None,
+                   help="validation passes without improvement before stopping (default 10)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default=None,
+                   help="default: CUDA when available")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads per process (default: torch's choice)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Train as asked; returns 0 when done or at a limit, 130 when interrupted.
+
+    Raises:
+        GuidanceError: bad input (InputError, ConfigError), a corrupt dataset or training
+            state; the CLI's handler turns it into exit code 2.
+    """
+    import torch
+
+    from art_guidance.art.train import TrainOptions, train
+    from art_guidance.errors import InputError
+
+    if args.threads is not None:
+        if args.threads < 1:
+            raise InputError("--threads", "must be >= 1", args.threads)
+        torch.set_num_threads(args.threads)
+    if args.max_steps is not None and args.max_steps < 1:
+        raise InputError("--max-steps", "must be >= 1", args.max_steps)
+    overrides = {k: getattr(args, k) for k in ("max_epochs", "batch_size", "lr", "eval_every",
+                                               "patience")}
+    opts = TrainOptions(data=tuple(args.data), out=args.out, preset=args.preset,
+                        representation=args.representation, seed=args.seed,
+                        max_minutes=args.max_minutes, max_steps=args.max_steps,
+                        overrides={k: v for k, v in overrides.items() if v is not None},
+                        progress=not args.no_progress, device=args.device,
+                        command=shlex.join(["art-guidance", *sys.argv[1:]]))
+    summary = train(opts)
+    return 130 if summary["stop_reason"] == "interrupted" else 0

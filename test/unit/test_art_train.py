@@ -1,0 +1,145 @@
+"""ART training in one process: data split and normalisation, overfitting, provenance, CLI.
+
+The dataset is a real one (16 deterministic samples through the 3-stage pipeline, generated
+once per module, a few seconds).
+"""
+from __future__ import annotations
+
+import argparse
+import fcntl
+import hashlib
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from art_guidance.art import build_safety, checkpoint
+from art_guidance.art.config import MODALITIES, preset
+from art_guidance.art.data import load_training_data, make_batch
+from art_guidance.art.model import ArtModel, loss_counts, loss_terms
+from art_guidance.art.train import TrainOptions, state_path, train
+from art_guidance.cli import train as cli_train
+from art_guidance.data.generate import generate
+from art_guidance.data.storage import load_dataset
+from art_guidance.errors import ConfigError, GuidanceError, InputError
+
+torch.set_num_threads(1)
+OVERFIT = {"lr": 1e-2, "min_lr_ratio": 1.0, "batch_size": 16, "suffix_fraction": 0.0,
+           "max_epochs": 300, "eval_every": 100, "patience": 100, "val_fraction": 0.1}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("art") / "det16"
+    generate(out, 16, "deterministic", base_seed=5, workers=2, shard_size=4, progress=False,
+             log=lambda _: None)
+    return out
+
+
+def _train_loss(model, data) -> float:
+    """Paper loss (normalised MSE) of `model` on the full training sequences."""
+    rows = data.train_rows
+    batch = make_batch(data.tensors, rows, np.zeros(rows.size, dtype=np.int64), 100)
+    n_u, n_x = loss_counts(batch["mask"])
+    model.eval()
+    with torch.no_grad():
+        sse_u, sse_x = loss_terms(model, batch)
+    return float(sse_u / n_u + sse_x / n_x)
+
+
+def test_training_uses_the_train_split_only_and_its_statistics(dataset):
+    raw = load_dataset(dataset)
+    data = load_training_data([str(dataset)], "rtn", 0.1, seed=3)
+    kept = ~raw["is_test"] & raw["feasible"]
+    assert data.train_rows.size + data.val_rows.size == kept.sum() < raw["index"].size
+    assert not set(data.train_rows) & set(data.val_rows)
+    train_rtn = raw["rtn"][kept][data.train_rows]  # (M, N, 6) RTN states of the train rows
+    assert np.allclose(data.normalizer.mean["state"], train_rtn.reshape(-1, 6).mean(0))
+    assert np.allclose(data.normalizer.std["state"], train_rtn.reshape(-1, 6).std(0))
+    assert np.allclose(data.normalizer.mean["goal"], raw["target_rtn"][kept][
+        data.train_rows].mean(0))
+    # the dataset's R and C are the paper's: R(t_i) = -sum_{j>=i} ||dv_j||, C(t_i) = sum v_j
+    dv = raw["dv_rtn_mps"][kept]
+    rtg = -np.cumsum(np.linalg.norm(dv, axis=2)[:, ::-1], axis=1)[:, ::-1]
+    assert np.allclose(raw["reward_to_go_mps"][kept], rtg, rtol=1e-12, atol=1e-15)
+    steps = -np.diff(raw["constraint_to_go"][kept], axis=1, append=0)  # v_j in {0, 1}
+    assert np.isin(steps, (0, 1)).all()
+    z = data.tensors["state"][torch.as_tensor(data.train_rows)]  # (M, N, 6) z-scores
+    assert torch.allclose(z.reshape(-1, 6).mean(0), torch.zeros(6), atol=1e-5)
+
+
+def test_training_overfits_a_tiny_dataset(dataset, tmp_path):
+    out = tmp_path / "overfit.pt"
+    data = load_training_data([str(dataset)], "roe", OVERFIT["val_fraction"], seed=0)
+    torch.manual_seed(0)
+    initial = _train_loss(ArtModel(preset("tiny")[0]), data)  # the run starts from these weights
+    summary = train(TrainOptions(data=(str(dataset),), out=str(out), preset="tiny",
+                                 overrides=OVERFIT, progress=False), log=lambda _: None)
+    assert summary["stop_reason"] == "max epochs"
+    art = checkpoint.load(out)  # best validation weights; the last ones are in the state file
+    last, _ = checkpoint.build(state_path(out), checkpoint.read_payload(state_path(out))[0])
+    final = _train_loss(last, data)
+    assert initial > 1.0 and final < 0.02, (initial, final)  # "near zero": < 2 % of the start
+    assert art.meta["training"]["best_val_loss"] == summary["best_val_loss"]
+
+
+def test_checkpoint_records_provenance_and_reruns_are_safe(dataset, tmp_path):
+    out = tmp_path / "m.pt"
+    opts = TrainOptions(data=(str(dataset),), out=str(out), preset="tiny", seed=1,
+                        overrides={"max_epochs": 2}, progress=False, command="art-guidance x")
+    first = train(opts, log=lambda _: None)
+    assert first["stop_reason"] == "max epochs"
+    art = checkpoint.load(out)
+    manifest = (dataset / "manifest.jsonl").read_bytes()
+    data_meta = art.meta["dataset"]
+    assert data_meta["manifests"][0]["manifest_sha256"] == hashlib.sha256(manifest).hexdigest()
+    assert data_meta["mode"] == "deterministic" and data_meta["n_nodes"] == 100
+    assert art.meta["training"]["command"] == "art-guidance x"
+    assert build_safety(art).uncertainty is None and build_safety(art).n_nodes == 100
+    assert set(art.normalizer.mean) == set(MODALITIES)
+    again = train(opts, log=lambda _: None)  # finished: nothing to do, nothing rewritten
+    assert again["step"] == first["step"] and checkpoint.load(out).sha256 == art.sha256
+    with pytest.raises(InputError, match="different training run"):
+        train(TrainOptions(**{**opts.__dict__, "seed": 2}), log=lambda _: None)
+    with open(str(out) + ".lock", "w") as held:  # another run is training into this --out
+        fcntl.flock(held, fcntl.LOCK_EX)
+        with pytest.raises(InputError, match="another training run"):
+            train(opts, log=lambda _: None)
+    state_path(out).unlink()
+    with pytest.raises(InputError, match="no training state"):
+        train(opts, log=lambda _: None)
+    with pytest.raises(ConfigError):
+        train(TrainOptions(**{**opts.__dict__, "out": str(tmp_path / "n.pt"),
+                              "overrides": {"lr": -1.0}}), log=lambda _: None)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="art-guidance")
+    cli_train.add_parser(parser.add_subparsers(dest="command"))
+    return parser
+
+
+def test_cli_parser_and_bad_input(dataset, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        _parser().parse_args(["train", "--help"])
+    assert info.value.code == 0 and "--max-minutes" in capsys.readouterr().out
+    args = _parser().parse_args(["train", "--data", str(dataset), "--out", str(tmp_path / "x"),
+                                 "--repr", "rtn", "--preset", "tiny", "--max-steps", "0"])
+    assert args.representation == "rtn" and args.func is cli_train.run
+    with pytest.raises(InputError, match="--max-steps"):
+        args.func(args)
+    args = _parser().parse_args(["train", "--data", str(tmp_path / "none"), "--out",
+                                 str(tmp_path / "x")])
+    with pytest.raises(GuidanceError) as info:  # DatasetError; the CLI handler exits 2
+        args.func(args)
+    assert "not a dataset directory" in str(info.value)
+
+
+def test_building_the_parser_does_not_import_torch(python_exe):
+    code = ("import argparse, sys\nfrom art_guidance.cli import train\n"
+            "train.add_parser(argparse.ArgumentParser().add_subparsers())\n"
+            "print('torch' in sys.modules)")
+    out = subprocess.run([python_exe, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
