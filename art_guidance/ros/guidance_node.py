@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import signal
 import sys
 import threading
 import time
@@ -23,6 +24,7 @@ from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -46,6 +48,7 @@ from art_guidance.ros.adapters import (
 )
 
 OK, WARN, ERROR = 0, 1, 2
+SPIN_PERIOD_S = 0.1  # the executor wakes this often to notice SIGINT/SIGTERM [s]
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "min_remaining_nodes")
 PARAMETERS = node_parameter_defaults()  # config/guidance_node.yaml: the one table
@@ -423,32 +426,38 @@ def _versions() -> dict:
 
 
 def main(argv: Sequence[str] | None = None, managed: bool = False) -> int:
-    """Run the node until SIGINT/SIGTERM (Jazzy-correct shutdown order).
+    """Run the node until SIGINT/SIGTERM.
+
+    The signals only set a flag: the executor stops, the worker finishes its solve (recorded
+    and published), the recorder closes, and only then is the ROS context shut down, so
+    nothing logs or publishes into a dead context.
 
     Args:
         argv: full argument vector (program name first); None uses sys.argv.
         managed: run the lifecycle node (starts unconfigured) instead of the plain one.
     """
-    rclpy.init(args=list(argv) if argv is not None else sys.argv)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    rclpy.init(args=list(argv) if argv is not None else sys.argv,
+               signal_handler_options=SignalHandlerOptions.NO)
     node = None
     executor = SingleThreadedExecutor()
     try:
         node = ManagedGuidanceNode() if managed else GuidanceNode()
         executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=SPIN_PERIOD_S)
+    except ExternalShutdownException:
         pass
     except (GuidanceError, ValueError) as exc:
         print(f"guidance_node: {exc}", file=sys.stderr)
         return 2
-    except Exception:
-        if rclpy.ok():
-            raise
-        # SIGINT/SIGTERM while still starting up: rclpy invalidated the context under us
     finally:
-        executor.shutdown()
         if node is not None:
             node.shutdown_worker()
+        executor.shutdown()
+        if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
