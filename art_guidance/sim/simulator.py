@@ -433,8 +433,9 @@ def summarize(sim: RendezvousSim, target_rtn: object, safety_model: PassiveSafet
 
     Passive safety of the *realised* trajectory: at every executed node the post-burn state
     (the simulator's model ROE of the truth) drifts freely for `t_safety` with the linear
-    model, and the smallest margin ``min_j (d_ij - 1 - q sigma_ij) * min semi-axis`` [m] over
-    nodes and drift samples is reported (AE before the switch, KOZ after; >= 0 is safe).
+    model, and the smallest margin ``min_tau (d - 1 - q sigma) * min semi-axis`` [m] over nodes
+    and the whole drift arc (the continuous minimum of `PassiveSafety.evaluate`) is reported
+    (AE before the switch, KOZ after; >= 0 is safe).
 
     Args:
         sim: the simulator after the run.
