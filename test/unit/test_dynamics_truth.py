@@ -37,15 +37,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+# The tests' one truth (helpers.orbit_truth): constants typed in from PHYSICS.md
+# (test_dynamics.py checks the module uses the same values), the two-body + J2 acceleration and
+# the Kepler -> Cartesian conversion.
+from helpers.orbit_truth import J2, MU, R_E
+from helpers.orbit_truth import accel as _accel
+from helpers.orbit_truth import cart_from_kep as _cart_from_kep
 from scipy.integrate import solve_ivp
 
 from art_guidance import dynamics as dyn
 from art_guidance.config import ScenarioConfig
-
-# Constants typed in from PHYSICS.md (test_dynamics.py checks the module uses the same values).
-MU = 3.986004415e14
-R_E = 6378136.3
-J2 = 1.082635819197e-3
 
 RTOL = 1e-12
 ATOL = 1e-9
@@ -62,19 +63,6 @@ NONLIN_COEF = 15.0
 
 
 # --------------------------------------------------------------------------- independent truth
-def _accel(pos: np.ndarray) -> np.ndarray:
-    """Two-body + J2 acceleration [m/s^2] for positions (..., 3) [m] (gradient of J2 potential)."""
-    x, y, z = pos[..., 0], pos[..., 1], pos[..., 2]
-    r2 = x * x + y * y + z * z
-    r = np.sqrt(r2)
-    k = -MU / (r2 * r)
-    f = 1.5 * J2 * R_E * R_E / r2
-    zz = 5.0 * z * z / r2
-    return np.stack([k * x * (1.0 + f * (1.0 - zz)),
-                     k * y * (1.0 + f * (1.0 - zz)),
-                     k * z * (1.0 + f * (3.0 - zz))], axis=-1)
-
-
 def _energy(state: np.ndarray) -> np.ndarray:
     """Specific energy v^2/2 + V with V = -mu/r + mu J2 R^2 (3 z^2/r^2 - 1) / (2 r^3)."""
     r = np.linalg.norm(state[..., :3], axis=-1)
@@ -99,29 +87,6 @@ def _integrate(states0: np.ndarray, t0: float, t1: float):
 def _states(sol, t: float) -> np.ndarray:
     """(B, 6) inertial states at epoch t from a dense solution."""
     return sol.sol(t).reshape(-1, 6)
-
-
-def _ecc_anomaly(m: np.ndarray, e: np.ndarray) -> np.ndarray:
-    ecc = np.array(m, dtype=float, copy=True)
-    for _ in range(30):
-        ecc = ecc - (ecc - e * np.sin(ecc) - m) / (1.0 - e * np.cos(ecc))
-    return ecc
-
-
-def _cart_from_kep(oe: np.ndarray) -> np.ndarray:
-    """Inertial states (..., 6) from (..., 6) Keplerian elements via the P, Q perifocal vectors."""
-    oe = np.asarray(oe, float)
-    a, e, i, raan, w, m = np.moveaxis(oe, -1, 0)
-    ecc = _ecc_anomaly(m, e)
-    eta = np.sqrt(1.0 - e * e)
-    co, so, cw, sw, ci, si = np.cos(raan), np.sin(raan), np.cos(w), np.sin(w), np.cos(i), np.sin(i)
-    p_hat = np.stack([co * cw - so * sw * ci, so * cw + co * sw * ci, sw * si], -1)
-    q_hat = np.stack([-co * sw - so * cw * ci, -so * sw + co * cw * ci, cw * si], -1)
-    r = a * (1.0 - e * np.cos(ecc))
-    xp, yp = a * (np.cos(ecc) - e), a * eta * np.sin(ecc)
-    vp, vq = -np.sqrt(MU * a) / r * np.sin(ecc), np.sqrt(MU * a) / r * eta * np.cos(ecc)
-    return np.concatenate([xp[..., None] * p_hat + yp[..., None] * q_hat,
-                           vp[..., None] * p_hat + vq[..., None] * q_hat], -1)
 
 
 def _kep_from_cart(state: np.ndarray) -> np.ndarray:
