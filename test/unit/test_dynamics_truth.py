@@ -43,6 +43,9 @@ import pytest
 from helpers.orbit_truth import J2, MU, R_E
 from helpers.orbit_truth import accel as _accel
 from helpers.orbit_truth import cart_from_kep as _cart_from_kep
+from helpers.orbit_truth import deputy_from_roe as _deputy_from_roe
+from helpers.orbit_truth import roe as _roe
+from helpers.orbit_truth import wrap as _wrap
 from scipy.integrate import solve_ivp
 
 from art_guidance import dynamics as dyn
@@ -110,33 +113,6 @@ def _kep_from_cart(state: np.ndarray) -> np.ndarray:
     two_pi = 2.0 * np.pi
     return np.stack([a, np.hypot(ex, ey), i, raan % two_pi, np.arctan2(ey, ex) % two_pi,
                      (ecc - esin_e) % two_pi], -1)
-
-
-def _wrap(x: np.ndarray) -> np.ndarray:
-    return (np.asarray(x) + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def _roe(chief: np.ndarray, deputy: np.ndarray) -> np.ndarray:
-    """a-scaled quasi-nonsingular ROE [m] (..., 6) from the definition in PHYSICS.md."""
-    a, e, i, raan, w, m = np.moveaxis(np.asarray(chief, float), -1, 0)
-    ad, ed, idp, raand, wd, md = np.moveaxis(np.asarray(deputy, float), -1, 0)
-    draan = _wrap(raand - raan)
-    return a[..., None] * np.stack([
-        (ad - a) / a, _wrap(wd + md - w - m) + draan * np.cos(i),
-        ed * np.cos(wd) - e * np.cos(w), ed * np.sin(wd) - e * np.sin(w),
-        idp - i, draan * np.sin(i)], -1)
-
-
-def _deputy_from_roe(chief: np.ndarray, roe_m: np.ndarray) -> np.ndarray:
-    """(..., 6) deputy elements from chief elements and a-scaled ROE (inverse of `_roe`)."""
-    a, e, i, raan, w, m = chief
-    x = np.asarray(roe_m, float) / a
-    exd, eyd = e * np.cos(w) + x[..., 2], e * np.sin(w) + x[..., 3]
-    wd = np.arctan2(eyd, exd)
-    draan = x[..., 5] / np.sin(i)
-    ud = w + m + x[..., 1] - draan * np.cos(i)
-    return np.stack([a * (1.0 + x[..., 0]), np.hypot(exd, eyd), i + x[..., 4], raan + draan,
-                     wd, ud - wd], -1)
 
 
 def _rtn_basis(chief_state: np.ndarray) -> np.ndarray:
