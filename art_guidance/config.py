@@ -247,12 +247,17 @@ class PlanningConfig:
 
     samples_per_node: int = 3
     posthoc: PosthocThresholds = field(default_factory=PosthocThresholds)
+    art_deadline_share: float = 0.6
 
     def __post_init__(self) -> None:
         k = self.samples_per_node
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ConfigError(f"samples_per_node must be an integer >= 1, "
                               f"got {self.samples_per_node!r}")
+        share = self.art_deadline_share
+        if isinstance(share, bool) or not isinstance(share, (int, float)) \
+                or not 0.0 < share < 1.0:
+            raise ConfigError(f"art_deadline_share must be in (0, 1), got {share!r}")
         if isinstance(self.posthoc, Mapping):
             thresholds = _from_mapping(PosthocThresholds, self.posthoc, "posthoc")
             object.__setattr__(self, "posthoc", thresholds)

@@ -1,9 +1,11 @@
 """Benchmark: nav message in -> plan out latency of the guidance node over real DDS.
 
 The node runs in its own process (as `ros2 run` would start it) with every nav message forced to
-replan; the client publishes a nav state, waits for the plan with that stamp, and repeats. The
-reference is the same `GuidancePipeline.plan` called in-process on the same states, so the
-difference is the node and middleware overhead.
+replan; the client publishes a nav state, waits for the plan with that stamp, and repeats. This
+runs twice: with the learned warm start (`warm_start auto`, the shipped model) and CVX only.
+The reference is the same `GuidancePipeline.plan` called in-process on the same states, so the
+difference is the node and middleware overhead; its timings give the split per stage (CVX,
+ART rollout + post hoc check, SCP).
 """
 from __future__ import annotations
 
@@ -26,29 +28,27 @@ from art_guidance.ros.env import isolated_ros_env
 REPO = Path(__file__).resolve().parents[1]
 
 
-def run(repeats: int = 30) -> dict:
-    """Latency over `repeats` plans; returns p50/p95 [ms] and the in-process reference."""
-    ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_bench_"),
-                           150 + os.getpid() % 50)
-    os.environ.update(ros)  # this process is the client
-    env = dict(os.environ)
-    sys.path.insert(0, str(REPO / "test"))  # the tests' DDS client (helpers.ros_client)
-    from helpers.ros_client import Client, nav_msg
+def _states(repeats: int) -> list[np.ndarray]:
+    scenario = ScenarioConfig.from_yaml()
+    rng = np.random.default_rng(11)
+    half = np.asarray(scenario.rtn0_half_width)
+    return [np.asarray(scenario.rtn0_nominal) + rng.uniform(-1, 1, 6) * half
+            for _ in range(repeats + 1)]
 
+
+def _node_latency(warm_start: str, states: list[np.ndarray], client_cls, nav_msg) -> list[float]:
+    """Nav -> plan latency [ms] of a node process with `warm_start` (first plan excluded)."""
+    env = dict(os.environ)
     proc = subprocess.Popen([sys.executable, "-m", "art_guidance.ros.guidance_node", "--ros-args",
-                             "-p", "replan_sigma_threshold:=1e-9"], env=env,
+                             "-p", "replan_sigma_threshold:=1e-9", "-p", "record:=false",
+                             "-p", f"warm_start:={warm_start}"], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    client = Client("art_guidance_bench_client")
+    client = client_cls(f"art_guidance_bench_client_{warm_start}")
+    latency = []
     try:
-        if not client.wait_matched(30.0):
+        if not client.wait_matched(60.0):
             raise RuntimeError("guidance node did not come up")
-        scenario = ScenarioConfig.from_yaml()
-        rng = np.random.default_rng(11)
-        half = np.asarray(scenario.rtn0_half_width)
-        states = [np.asarray(scenario.rtn0_nominal) + rng.uniform(-1, 1, 6) * half
-                  for _ in range(repeats + 1)]
-        latency = []
-        for k, rtn in enumerate(tqdm(states, desc="bench node", unit="plan")):
+        for k, rtn in enumerate(tqdm(states, desc=f"bench node ({warm_start})", unit="plan")):
             if k == 0:  # the first fix may be lost while discovery completes
                 stamp, _ = client.send_nav(rtn)
                 t0 = time.perf_counter()
@@ -64,20 +64,50 @@ def run(repeats: int = 30) -> dict:
         client.close()
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=30)
-    pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario))
+    return latency
+
+
+def run(repeats: int = 30) -> dict:
+    """Latency over `repeats` plans with the learned warm start (auto, shipped model) and with
+    CVX only; p50/p95 [ms], the in-process reference and the split per stage."""
+    ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_bench_"),
+                           150 + os.getpid() % 50)
+    os.environ.update(ros)  # this process is the client
+    sys.path.insert(0, str(REPO / "test"))  # the tests' DDS client (helpers.ros_client)
+    from helpers.ros_client import Client, nav_msg
+
+    from art_guidance.art.provider import ArtWarmStart
+
+    states = _states(repeats)
+    out: dict = {"plans": repeats}
+    scenario = ScenarioConfig.from_yaml()
     chief = np.array(scenario.chief_oe)
     target = np.asarray(scenario.waypoints_rtn["plus_vbar"])
-    ref = []
-    for rtn in states[1:]:
-        t0 = time.perf_counter()
-        pipeline.plan(PlanRequest(chief, roe_from_rtn_linear(chief, rtn), target))
-        ref.append(1e3 * (time.perf_counter() - t0))
-    p50, ref50 = float(np.percentile(latency, 50)), float(np.percentile(ref, 50))
-    return {"plans": len(latency), "latency_p50_ms": p50,
-            "latency_p95_ms": float(np.percentile(latency, 95)),
-            "in_process_plan_p50_ms": ref50,
-            "in_process_plan_p95_ms": float(np.percentile(ref, 95)),
-            "node_overhead_p50_ms": p50 - ref50, "latency_over_in_process": p50 / ref50}
+    provider = ArtWarmStart.load()
+    for warm_start in ("auto", "cvx"):
+        latency = _node_latency(warm_start, states, Client, nav_msg)
+        pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario),
+                                    provider=provider if warm_start == "auto" else None)
+        stages: dict[str, list[float]] = {k: [] for k in ("cvx", "art", "scp", "total")}
+        accepted = 0
+        for rtn in states[1:]:
+            res = pipeline.plan(PlanRequest(chief, roe_from_rtn_linear(chief, rtn), target,
+                                            warm_start=warm_start))
+            accepted += res.warm_start == "art"
+            for key in stages:
+                stages[key].append(res.timings_ms[key])
+        p50 = float(np.percentile(latency, 50))
+        ref50 = float(np.percentile(stages["total"], 50))
+        out.update({f"{warm_start}_latency_p50_ms": p50,
+                    f"{warm_start}_latency_p95_ms": float(np.percentile(latency, 95)),
+                    f"{warm_start}_in_process_plan_p50_ms": ref50,
+                    f"{warm_start}_node_overhead_p50_ms": p50 - ref50,
+                    **{f"{warm_start}_{k}_p50_ms": float(np.percentile(v, 50))
+                       for k, v in stages.items() if k != "total"}})
+        if warm_start == "auto":
+            out["auto_art_accepted"] = f"{accepted}/{repeats}"
+    out["auto_over_cvx_latency_p50"] = out["auto_latency_p50_ms"] / out["cvx_latency_p50_ms"]
+    return out
 
 
 if __name__ == "__main__":

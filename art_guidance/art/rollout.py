@@ -90,23 +90,6 @@ def build_safety(art: TrainedArt, chance_constrained: bool | None = None) -> Pas
     return PassiveSafety(horizon, scenario, config.uncertainty if chance else None)
 
 
-def _node_margins(safety: PassiveSafety, node: int, roe_m: np.ndarray,
-                  dv_rtn_mps: np.ndarray) -> np.ndarray:
-    """Normalised passive-safety margin of `node` for a batch of (x_i, u_i), (B,).
-
-    The one place that adapts to the safety module: `PassiveSafety.node_margins` when it
-    exists; otherwise `evaluate` on full-length arrays filled with the node's own state and
-    burn (a node's margin and covariance depend on that node's x_i and u_i only).
-    """
-    fn = getattr(safety, "node_margins", None)
-    if fn is not None:
-        return np.asarray(fn(node, roe_m, dv_rtn_mps), dtype=float)
-    n = safety.n_nodes
-    return np.array([safety.evaluate(np.broadcast_to(x, (n, 6)),
-                                     np.broadcast_to(u, (n, 3))).margin[node]
-                     for x, u in zip(roe_m, dv_rtn_mps)])
-
-
 _R_COL, _C_COL = SLOTS["reward"].start, SLOTS["constraint"].start
 
 
@@ -226,7 +209,7 @@ def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: o
             u_n = policy.control(j, norm.normalize("reward", r), norm.normalize("constraint", c),
                                  norm.normalize("state", state), u_n)  # (B, 3)
             u = norm.denormalize("control", u_n.astype(float))  # (B, 3) [m/s]
-            margin = _node_margins(safety, node, x, u)  # (B,)
+            margin = safety.node_margins(node, x, u)  # (B,)
             dv[:, j], roe[:, j], rs[:, j], cs[:, j], margins[:, j] = u, x, r, c, margin
             r = r + np.sqrt(np.einsum("bi,bi->b", u, u))  # R(t_{i+1}) = R(t_i) + ||u_i||
             c = c - (margin < 0.0)  # C(t_{i+1}) = C(t_i) - v_i

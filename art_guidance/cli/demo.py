@@ -43,7 +43,9 @@ def _offline_demo(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Closed-loop rendezvous: the guidance node and the simulator as two processes over DDS."""
+    """Closed-loop rendezvous: the guidance node (shipped ART model, warm start auto) and the
+    simulator as two processes over DDS; then the same seed flown in-process with CVX warm
+    starts only, to report how many replans accepted ART and the delta-v difference."""
     if args.offline:
         return _offline_demo(args)
     import os
@@ -80,12 +82,43 @@ def run(args: argparse.Namespace) -> int:
             except subprocess.TimeoutExpired:
                 node.kill()
     summary = _last_json_line(sim.stdout)
+    if bag.is_dir() and "total_dv_mps" in summary and not args.no_compare:
+        summary.update(_warm_start_comparison(bag, args, summary["total_dv_mps"]))
     for key, value in summary.items():
         shown = f"{value:.4g}" if isinstance(value, float) else value
         print(f"  {key}: {shown}")
     print(f"MCAP log (rosbag2 bag): {bag}\nplot: {run / 'rendezvous.png'}\n"
           f"node log: {run / 'node.log'}\nreplay it: art-guidance replay {bag}")
     return sim.returncode
+
+
+def _warm_start_comparison(bag: object, args: argparse.Namespace, total_dv_mps: float) -> dict:
+    """How many replans of the recorded run accepted ART, and the delta-v of the same seed flown
+    with CVX warm starts only (in-process, no DDS: same simulator, policy and pipeline)."""
+    import logging
+
+    from art_guidance.planning import GuidancePipeline
+    from art_guidance.record.replay import read_log
+    from art_guidance.record.recorder import SOLVE_RECORD_TYPE
+    from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
+    from art_guidance.sim.inprocess import InProcessGuidance
+
+    log = read_log(bag)
+    records = log.of_type(SOLVE_RECORD_TYPE)
+    out = {"model_sha256": log.metadata.get("model_checksum", "none"),
+           "n_solves": len(records),
+           "n_art_proposed": sum(bool(len(r.warm_start_art_dv_rtn_mps)) for r in records),
+           "n_art_accepted": sum(r.warm_start == "art" for r in records)}
+    print("flying the same seed with CVX warm starts only (in-process) for comparison ...")
+    params = dict(PARAMETERS, waypoint=args.waypoint, seed=args.seed, warm_start="cvx",
+                  png_path="", summary_path="")
+    loop = ClosedLoop(InProcessGuidance(GuidancePipeline(), SIM_EPOCH0_NS), params,
+                      logging.getLogger("art_guidance.demo"), settle_s=0.0)
+    cvx_summary, _ = loop.finish(loop.run(), 0.0)
+    out.update(cvx_only_total_dv_mps=cvx_summary["total_dv_mps"],
+               cvx_only_miss_m=cvx_summary["miss_m"],
+               dv_saved_vs_cvx_only_mps=cvx_summary["total_dv_mps"] - total_dv_mps)
+    return out
 
 
 def _last_json_line(text: str) -> dict:
@@ -113,4 +146,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--offline", action="store_true",
                    help="only plan the nominal transfer in-process (no ROS)")
     p.add_argument("--json", default=None, help="with --offline: also write the plan as JSON")
+    p.add_argument("--no-compare", action="store_true", help="skip the comparison run of the "
+                   "same seed with CVX warm starts only")
     p.set_defaults(func=run)

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import argparse
+import sys
+
 import numpy as np
 
 from art_guidance.errors import InputError
@@ -26,15 +28,48 @@ def run(args: argparse.Namespace) -> int:
     chief = np.array(scenario.chief_oe)
     request = PlanRequest(chief, roe_from_rtn_linear(chief, sample.rtn0), target,
                           chance_constrained=not args.deterministic, warm_start=args.warm_start)
-    result = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario)).plan(request)
+    provider, model_text = _provider(args)
+    result = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario),
+                              provider=provider).plan(request)
     data = result.to_json()
     data.update(seed=args.seed, waypoint=args.waypoint or sample.waypoint,
-                mode="deterministic" if args.deterministic else "chance")
+                mode="deterministic" if args.deterministic else "chance", model=model_text,
+                model_sha256=getattr(provider, "sha256", None))
     write_json_atomic(args.json, data)
-    print(f"{result.status.name}: cost {result.cost_mps:.4f} m/s (CVX {result.cvx.cost_mps:.4f}),"
-          f" {result.scp.iterations} SCP iterations, margin {result.constraint_margin_m:.2f} m, "
-          f"{result.timings_ms['total']:.0f} ms -> {args.json}")
+    t = result.timings_ms
+    print(f"warm starts: CVX {result.cvx.cost_mps:.4f} m/s"
+          + (f", ART {data['art_cost_mps']:.4f} m/s" if data["art_cost_mps"] is not None
+             else "") + f" -> {result.warm_start.upper()}: {result.warm_start_reason}")
+    print(f"{result.status.name}: cost {result.cost_mps:.4f} m/s, {result.scp.iterations} SCP "
+          f"iterations, margin {result.constraint_margin_m:.2f} m, {t['total']:.0f} ms "
+          f"(CVX {t['cvx']:.0f}, ART {t['art']:.0f}, SCP {t['scp']:.0f}) -> {args.json}")
     return 0 if result.scp.feasible else 1
+
+
+def _provider(args: argparse.Namespace) -> tuple[object | None, str]:
+    """The learned warm start for --warm-start auto/art (torch is imported only then).
+
+    auto with a model that does not load plans from CVX with a warning; art refuses.
+    """
+    if args.warm_start == "cvx":
+        return None, "not loaded (--warm-start cvx)"
+    from art_guidance.art.provider import ArtWarmStart, resolve_model_path
+    from art_guidance.errors import GuidanceError
+
+    path = resolve_model_path(args.model)
+    if path is None:
+        if args.warm_start == "art":
+            raise InputError("model", "--warm-start art needs a model", args.model)
+        return None, "none (--model none)"
+    try:
+        provider = ArtWarmStart.load(path)
+    except GuidanceError as exc:
+        if args.warm_start == "art":
+            raise
+        print(f"warning: learned warm start unavailable, planning from CVX only: {exc}",
+              file=sys.stderr)
+        return None, f"failed to load: {exc}"
+    return provider, provider.describe()
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -47,7 +82,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--deterministic", action="store_true",
                    help="deterministic passive safety (default: chance-constrained)")
     p.add_argument("--warm-start", choices=["auto", "cvx", "art"], default="auto",
-                   help="warm start for SCP (auto: ART if a model is loaded and accepted)")
+                   help="warm start for SCP: auto = ART if its rollout passes the post hoc "
+                   "check, else CVX; art = ART even if the check fails; cvx = CVX (no model "
+                   "loaded)")
+    p.add_argument("--model", default="", help="ART checkpoint ('' = the shipped default, "
+                   "'none' = no model)")
     p.add_argument("--waypoint", default=None, help="override the sampled waypoint")
     p.add_argument("--scenario", default=None, help="scenario YAML (default: packaged)")
     p.add_argument("--json", required=True, help="output path of the plan JSON")

@@ -8,10 +8,10 @@ from art_guidance.planning.pipeline import GuidancePipeline
 from art_guidance.config import PosthocThresholds
 from art_guidance.planning.posthoc import posthoc_check
 from art_guidance.planning.types import (
-    WARM_STARTS, NavState, PlanRequest, PlanResult, PosthocDecision, Target, WarmStart,
-    WarmStartProvider,
+    WARM_STARTS, NavState, PlanRequest, PlanResult, PosthocDecision, ScpAttempt, Target,
+    WarmStart, WarmStartProposal, WarmStartProvider,
 )
 
 __all__ = ["GuidancePipeline", "NavState", "PlanRequest", "PlanResult", "PosthocDecision",
-           "PosthocThresholds", "Target", "WARM_STARTS", "WarmStart", "WarmStartProvider",
-           "posthoc_check"]
+           "PosthocThresholds", "ScpAttempt", "Target", "WARM_STARTS", "WarmStart",
+           "WarmStartProposal", "WarmStartProvider", "posthoc_check"]

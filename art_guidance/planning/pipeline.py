@@ -1,12 +1,16 @@
 """`GuidancePipeline.plan(request) -> PlanResult`: warm start -> post hoc check -> SCP.
 
-The warm start comes from a `WarmStartProvider`. The convex TPBVP ("CVX") is always solved: it is
-the fallback and the post hoc reference. A learned provider (ART) plugs in through the same
-interface; its rollout is accepted only if the post hoc check passes.
+The convex TPBVP ("CVX") is always solved: it is the fallback and the post hoc reference
+(R_des = -J_CVX). A learned `WarmStartProvider` (ART, `art_guidance.art.provider`) then
+proposes controls; the pipeline validates them, rolls them out through its own dynamics and
+applies the post hoc check (accept when E_R and E_C are inside the configured region); an
+accepted (or, with warm_start "art", forced) proposal warm-starts SCVx*, otherwise CVX does.
+Every plan says in words which warm start it used and why (`PlanResult.warm_start_reason`).
 """
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -14,10 +18,11 @@ from art_guidance.checks import as_finite_array
 from art_guidance.config import GuidanceConfig
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import ConfigError, InputError
-from art_guidance.optim import Scvx, solve_cvx
+from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
 from art_guidance.planning.posthoc import posthoc_check
 from art_guidance.planning.types import (
-    PlanRequest, PlanResult, PosthocDecision, WarmStartProvider,
+    PlanRequest, PlanResult, PosthocDecision, ScpAttempt, WarmStart, WarmStartProposal,
+    WarmStartProvider,
 )
 from art_guidance.safety import PassiveSafety
 
@@ -75,40 +80,110 @@ class GuidancePipeline:
         return self._cache[key]
 
     def plan(self, request: PlanRequest) -> PlanResult:
-        """Plan one transfer; never raises for solver trouble (see `PlanResult.status`)."""
+        """Plan one transfer; never raises for solver or model trouble (see
+        `PlanResult.status` and `PlanResult.warm_start_reason`).
+
+        With a deadline and an ART warm start, SCVx* from ART may use `art_deadline_share` of
+        it; if that run does not converge, SCVx* is retried from CVX in the time left and the
+        better feasible plan (then the lower cost) is kept.
+        """
         t0 = time.perf_counter()
         horizon, safety = self._setup(request)
         t_setup = time.perf_counter()
         roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
         cvx = solve_cvx(horizon, request.roe0_m, roe_f)
         t_cvx = time.perf_counter()
-        warm, source, posthoc, t_art, art_dv = cvx.dv_rtn_mps, "cvx", None, 0.0, None
-        if request.warm_start in ("auto", "art") and self.provider is not None:
-            ta = time.perf_counter()
-            proposal = self.provider.propose(request, horizon, cvx)
-            if proposal is not None:
-                try:
-                    art_dv = as_finite_array("warm start", proposal, (horizon.n_nodes, 3))
-                except InputError:  # a broken model output is rejected, never flown
-                    posthoc = PosthocDecision(float("nan"), float("nan"), False)
-                else:
-                    art_roe = horizon.propagate(request.roe0_m, art_dv)
-                    posthoc = posthoc_check(art_dv, art_roe, cvx.cost_mps, safety,
-                                            self.posthoc)
-                    if posthoc.accepted or request.warm_start == "art":
-                        warm, source = art_dv, "art"
-            t_art = 1e3 * (time.perf_counter() - ta)
-        elif request.warm_start == "art":
-            raise InputError("warm_start", "no learned warm-start model is loaded", "art")
-        if not np.all(np.isfinite(warm)):
-            warm = np.zeros((horizon.n_nodes, 3))
+        learned = self._learned(request, horizon, safety, cvx)
+        t_art = time.perf_counter()
+        cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
+            else np.zeros((horizon.n_nodes, 3))
         scvx = Scvx(safety, request.roe0_m, roe_f, self.scp_config,
                     samples_per_node=self.samples_per_node)
-        res = scvx.solve(warm, deadline_s=self.deadline_s)
+        source, reason, discarded = learned.source, learned.reason, None
+        if source == "art":
+            budget = None if self.deadline_s is None \
+                else self.deadline_s * self.config.planning.art_deadline_share
+            res = scvx.solve(learned.dv, deadline_s=budget)
+            if res.status is not ScpStatus.CONVERGED:
+                left = None if self.deadline_s is None \
+                    else max(self.deadline_s - (time.perf_counter() - t_art), 0.0)
+                retry = scvx.solve(cvx_dv, deadline_s=left)
+                keep_art = _better(res, retry)
+                kept, lost = (res, retry) if keep_art else (retry, res)
+                discarded = ScpAttempt("cvx" if keep_art else "art", lost.status, lost.cost_mps,
+                                       lost.iterations, lost.solve_time_ms)
+                reason += (f"; SCP from ART ended {res.status.name}, retried from CVX "
+                           f"({retry.status.name}): kept the {'ART' if keep_art else 'CVX'}"
+                           f"-warm-started plan")
+                source, res = ("art" if keep_art else "cvx"), kept
+        else:
+            res = scvx.solve(cvx_dv, deadline_s=self.deadline_s)
         t_end = time.perf_counter()
         margin = float(safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
         timings = {"setup": 1e3 * (t_setup - t0), "cvx": 1e3 * (t_cvx - t_setup),
-                   "art": t_art, "scp": res.solve_time_ms, "total": 1e3 * (t_end - t0)}
+                   "art": 1e3 * (t_art - t_cvx), "scp": 1e3 * (t_end - t_art),
+                   "total": 1e3 * (t_end - t0)}
         return PlanResult(res.status, request.chief_oe, horizon.epochs_s, res.dv_rtn_mps,
                           res.roe_m, horizon.to_rtn(res.roe_m), res.cost_mps, res, cvx, source,
-                          posthoc, margin, timings, request, art_dv)
+                          learned.posthoc, margin, timings, request, learned.proposal, reason,
+                          discarded)
+
+    def _learned(self, request: PlanRequest, horizon: Horizon, safety: PassiveSafety,
+                 cvx: ConvexSolution) -> "_Learned":
+        """Ask the provider for a learned warm start and check it post hoc."""
+        if request.warm_start == WarmStart.CVX.value:
+            return _Learned("cvx", "CVX warm start requested")
+        if self.provider is None:
+            return _Learned("cvx", f"{request.warm_start} requested but no learned model is "
+                            "loaded: CVX warm start")
+        if not cvx.status.feasible:
+            return _Learned("cvx", f"CVX ended {cvx.status.name}: no reference for the post hoc "
+                            "check, CVX warm start")
+        t0 = time.perf_counter()
+        try:
+            proposal = self.provider.propose(request, safety, cvx)
+        except Exception as exc:  # a model never takes the plan down
+            return _Learned("cvx", f"ART not run ({_short(exc)}): CVX warm start")
+        if not isinstance(proposal, WarmStartProposal):
+            proposal = WarmStartProposal(proposal, rollout_ms=1e3 * (time.perf_counter() - t0))
+        try:
+            dv = as_finite_array("ART warm start", proposal.dv_rtn_mps, (horizon.n_nodes, 3))
+        except InputError as exc:  # a broken model output is rejected, never flown
+            return _Learned("cvx", f"ART output rejected ({_short(exc)}): CVX warm start",
+                            PosthocDecision(float("nan"), float("nan"), False), proposal)
+        roe = horizon.propagate(request.roe0_m, dv)
+        posthoc = posthoc_check(dv, roe, cvx.cost_mps, safety, self.posthoc)
+        if posthoc.accepted:
+            return _Learned("art", f"ART accepted by the post hoc check ({posthoc.text()})",
+                            posthoc, proposal, dv)
+        if request.warm_start == WarmStart.ART.value:
+            return _Learned("art", f"ART forced although the post hoc check rejects it "
+                            f"({posthoc.text()})", posthoc, proposal, dv)
+        return _Learned("cvx", f"ART rejected by the post hoc check ({posthoc.text()}): CVX "
+                        "warm start", posthoc, proposal)
+
+
+@dataclass(frozen=True)
+class _Learned:
+    """What the learned warm start step decided."""
+
+    source: str
+    reason: str
+    posthoc: PosthocDecision | None = None
+    proposal: WarmStartProposal | None = None
+    dv: np.ndarray | None = None
+
+
+def _better(a: ScpResult, b: ScpResult) -> bool:
+    """True if `a` is at least as good as `b`: feasible first, then the lower cost (feasible)
+    or the smaller violation (neither feasible)."""
+    if a.feasible != b.feasible:
+        return a.feasible
+    if a.feasible:
+        return a.cost_mps <= b.cost_mps
+    return a.max_violation <= b.max_violation
+
+
+def _short(exc: Exception) -> str:
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    return f"{type(exc).__name__}: {text[:200]}"

@@ -11,9 +11,10 @@ from typing import Protocol
 import numpy as np
 
 from art_guidance.checks import as_finite_array
-from art_guidance.dynamics import Horizon, check_oe
+from art_guidance.dynamics import check_oe
 from art_guidance.errors import InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus
+from art_guidance.safety import PassiveSafety
 
 
 class WarmStart(str, enum.Enum):
@@ -91,11 +92,49 @@ class PlanRequest:
 
 @dataclass(frozen=True)
 class PosthocDecision:
-    """Post hoc check of a learned warm start (paper: E_R, E_C)."""
+    """Post hoc check of a learned warm start (paper: E_R, E_C).
+
+    NaN values mean the proposal could not be checked (non-finite or wrong-shape output); it
+    is then rejected.
+    """
 
     e_r: float
     e_c: float
     accepted: bool
+
+    def text(self) -> str:
+        """E_R and E_C in the units of the acceptance region (100 E_R [%], E_C [nodes])."""
+        return f"100 E_R = {100.0 * self.e_r:+.2f} %, E_C = {self.e_c:g}"
+
+
+@dataclass(frozen=True)
+class WarmStartProposal:
+    """A learned warm start as proposed (before the post hoc check).
+
+    Attributes:
+        dv_rtn_mps: (N, 3) proposed controls [m/s] (any shape or value: the pipeline validates).
+        reward_to_go_mps: (N,) realised R(t_i) = -sum_{j >= i} ||u_j|| of the rollout [m/s].
+        constraint_to_go: (N,) realised C(t_i) = number of violating nodes j >= i.
+        model_sha256: checksum of the model that produced it ("" if unknown).
+        rollout_ms: wall time of the rollout [ms].
+    """
+
+    dv_rtn_mps: np.ndarray
+    reward_to_go_mps: np.ndarray | None = None
+    constraint_to_go: np.ndarray | None = None
+    model_sha256: str = ""
+    rollout_ms: float = 0.0
+
+
+@dataclass(frozen=True)
+class ScpAttempt:
+    """An SCP run of the plan that was not kept (e.g. from ART before the retry from CVX)."""
+
+    warm_start: str
+    status: ScpStatus
+    cost_mps: float
+    iterations: int
+    solve_time_ms: float
 
 
 @dataclass(frozen=True)
@@ -111,12 +150,19 @@ class PlanResult:
     cost_mps: float
     scp: ScpResult
     cvx: ConvexSolution
-    warm_start: str          # "art" or "cvx"
-    posthoc: PosthocDecision | None
+    warm_start: str          # "art" or "cvx": the warm start of the SCP run kept
+    posthoc: PosthocDecision | None  # None: no learned warm start was tried
     constraint_margin_m: float
     timings_ms: dict = field(default_factory=dict)
     request: PlanRequest | None = None
-    art_dv_rtn_mps: np.ndarray | None = None  # (N, 3) learned warm start, if one was proposed
+    proposal: WarmStartProposal | None = None  # the learned warm start, if one was proposed
+    warm_start_reason: str = ""  # why this warm start, in words
+    discarded: ScpAttempt | None = None  # an SCP run replaced by a better retry
+
+    @property
+    def art_dv_rtn_mps(self) -> np.ndarray | None:
+        """(N, 3) learned warm-start controls as proposed, or None."""
+        return None if self.proposal is None else np.asarray(self.proposal.dv_rtn_mps)
 
     def to_json(self) -> dict:
         """The plan as JSON-ready data (units in the names)."""
@@ -132,21 +178,37 @@ class PlanResult:
             "status": self.status.name,
             "scp_iterations": self.scp.iterations,
             "warm_start": self.warm_start,
+            "warm_start_reason": self.warm_start_reason,
             "posthoc": None if ph is None else {"E_R": ph.e_r, "E_C": ph.e_c,
                                                 "accepted": ph.accepted},
+            "art_cost_mps": (None if self.art_dv_rtn_mps is None or not np.all(
+                np.isfinite(self.art_dv_rtn_mps)) else float(
+                np.linalg.norm(self.art_dv_rtn_mps.reshape(-1, 3), axis=1).sum())),
+            "discarded_attempt": None if self.discarded is None else {
+                "warm_start": self.discarded.warm_start, "status": self.discarded.status.name,
+                "cost_mps": self.discarded.cost_mps, "iterations": self.discarded.iterations},
             "timings_ms": dict(self.timings_ms),
             "constraint_margin_m": self.constraint_margin_m,
         }
 
 
 class WarmStartProvider(Protocol):
-    """Proposes warm-start controls (N, 3) [m/s] for a request, or None (e.g. out of domain).
+    """Proposes a learned warm start for a request.
 
-    The pipeline rolls them out through its own dynamics and applies the post hoc check.
+    `propose` returns a `WarmStartProposal` (or bare (N, 3) controls [m/s]); it raises a
+    `GuidanceError` saying why when the request is outside what it can propose for (e.g. a
+    horizon longer than the model's context). The pipeline never trusts the output: it
+    validates it, rolls it out through its own dynamics and applies the post hoc check; any
+    exception is caught and the plan falls back to CVX.
+
+    Attributes:
+        sha256: checksum of the model ("" if none), recorded with every run.
     """
 
-    def propose(self, request: PlanRequest, horizon: Horizon,
-                cvx: ConvexSolution) -> np.ndarray | None:
+    sha256: str
+
+    def propose(self, request: PlanRequest, safety: PassiveSafety,
+                cvx: ConvexSolution) -> "WarmStartProposal | np.ndarray":
         ...
 
 

@@ -4,8 +4,9 @@
 a torn last record) yields every solve whose chunk was completed; it never modifies the files.
 Messages are found by their type (the schema name), not by topic, so a node started in a
 namespace or with remapped topics replays the same. `replay` rebuilds the pipeline from the
-recorded configuration, solves each recorded request again (the request JSON in the
-SolveRecord) and compares the plan.
+recorded configuration (and the learned model, checked against the recorded checksum), solves
+each recorded request again (the request JSON in the SolveRecord) and compares the ART rollout,
+the post hoc decision and the plan.
 """
 from __future__ import annotations
 
@@ -18,13 +19,14 @@ from mcap.records import Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
-from art_guidance.errors import InputError
+from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, PlanRequest
 from art_guidance.record.bag_metadata import bag_files
 from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE
 
 COST_REL_TOL = 1e-6     # relative cost agreement of a re-solve
 DV_ABS_TOL_MPS = 1e-5   # largest delta-v component difference [m/s]
+ROLLOUT_ABS_TOL_MPS = 1e-6  # largest ART rollout control difference [m/s] (same model, CPU)
 
 
 def _stamp_ns(stamp: object) -> int:
@@ -121,20 +123,89 @@ def _plan_arrays(plan: object) -> tuple[float, np.ndarray]:
     return float(plan.cost_mps), np.asarray(plan.dv_rtn_mps, float).reshape(-1, 3)
 
 
-def replay(path: str | Path) -> dict:
-    """Re-solve every recorded request; returns a JSON-ready report with a per-solve verdict."""
+def _replay_provider(log: RecordedLog, model: str | Path | None) -> tuple[object | None, str]:
+    """The warm-start provider to replay with, and a note on how it relates to the log's.
+
+    A log recorded without a model replays CVX-only (a given model is ignored). A log recorded
+    with a model replays with `model`, or with the shipped default when its checksum is the
+    recorded one; a different checksum is reported, never a silent mismatch.
+    """
+    recorded = str(log.metadata.get("model_checksum", "none") or "none")
+    if recorded == "none":
+        note = "recorded without a learned model: replayed CVX-only"
+        return None, note + ("; the given model is not used" if model else "")
+    from art_guidance.art.provider import ArtWarmStart, default_model_path
+
+    path = Path(model) if model else default_model_path()
+    try:
+        provider = ArtWarmStart.load(path)
+    except GuidanceError as exc:
+        raise InputError("model", f"the log was recorded with model sha256 {recorded[:16]}..., "
+                         f"which could not be loaded for replay: {exc}") from exc
+    if provider.sha256 != recorded:
+        return provider, (f"recorded with model sha256 {recorded[:16]}..., replayed with "
+                          f"{path.name} sha256 {provider.sha256[:16]}...: solves that used "
+                          "the learned warm start are not compared")
+    return provider, f"replayed with the recorded model {path.name} (sha256 matches)"
+
+
+def _art_rows(record: object, result: object) -> dict:
+    """Rollout and decision comparison of one solve (recorded vs replayed)."""
+    rec_dv = np.asarray(getattr(record, "warm_start_art_dv_rtn_mps", []), float)
+    rep_dv = (np.asarray(result.art_dv_rtn_mps, float).reshape(-1)
+              if result.art_dv_rtn_mps is not None else np.zeros(0))
+    row = {"warm_start": getattr(record, "warm_start", ""),
+           "replayed_warm_start": result.warm_start,
+           "replayed_warm_start_reason": result.warm_start_reason}
+    ok = not row["warm_start"] or row["warm_start"] == result.warm_start
+    if rec_dv.size or rep_dv.size:
+        d_roll = (float(np.max(np.abs(rec_dv - rep_dv))) if rec_dv.shape == rep_dv.shape
+                  else float("inf"))
+        ph = result.posthoc
+        rec_ph = int(getattr(record, "posthoc", 0))
+        rep_ph = 0 if ph is None else (1 if ph.accepted else 2)
+        d_er = (abs(float(getattr(record, "posthoc_e_r", np.nan)) - ph.e_r)
+                if ph is not None else float("nan"))
+        row.update(rollout_max_abs_diff_mps=d_roll, posthoc=rec_ph, replayed_posthoc=rep_ph,
+                   e_r_abs_diff=d_er)
+        ok = ok and d_roll <= ROLLOUT_ABS_TOL_MPS and rec_ph == rep_ph
+    row["decision_match"] = bool(ok)
+    return row
+
+
+def replay(path: str | Path, model: str | Path | None = None) -> dict:
+    """Re-solve every recorded request; returns a JSON-ready report with a per-solve verdict.
+
+    A solve matches when the replayed plan's cost agrees to COST_REL_TOL and every delta-v
+    component to DV_ABS_TOL_MPS, and, where a learned warm start was proposed, the rollout
+    agrees to ROLLOUT_ABS_TOL_MPS and the post hoc decision and the warm start kept are the
+    same.
+
+    Args:
+        path: an .mcap file or a bag folder.
+        model: checkpoint to replay learned warm starts with (default: the shipped model if it
+            is the recorded one; see the report's "model" note otherwise).
+    """
     log = read_log(path)
     if "config" not in log.metadata:
         raise InputError("log", "no art_guidance configuration in the MCAP metadata", str(path))
+    provider, model_note = _replay_provider(log, model)
+    same_model = provider is None or provider.sha256 == log.metadata.get("model_checksum")
     pipeline = GuidancePipeline.from_config_json(json.loads(log.metadata["config"]))
+    pipeline.provider = provider
     pipeline.deadline_s = None  # replays are not time-boxed; timed-out solves are flagged
     rows = []
     for record, plan in log.solves():
         cost, dv = _plan_arrays(plan)
-        row = {"plan_id": plan.plan_id, "status": plan.status_text, "cost_mps": cost,
-               "request_stamp_ns": request_stamp_ns(record)}
-        if plan.status_text == "TIMEOUT":
+        row = {"plan_id": plan.plan_id, "status": plan.status_text.split(":")[0],
+               "cost_mps": cost, "request_stamp_ns": request_stamp_ns(record)}
+        reason = str(getattr(record, "warm_start_reason", ""))
+        if plan.status_text.startswith("TIMEOUT") or "TIMEOUT" in reason:
             row.update(match=None, reason="recorded solve hit its deadline")
+            rows.append(row)
+            continue
+        if not same_model and len(getattr(record, "warm_start_art_dv_rtn_mps", [])):
+            row.update(match=None, reason="recorded with a different model")
             rows.append(row)
             continue
         result = pipeline.plan(PlanRequest.from_json(json.loads(record.request_json)))
@@ -143,12 +214,16 @@ def replay(path: str | Path) -> dict:
                 if result.dv_rtn_mps.shape == dv.shape else float("inf"))
         row.update(replayed_cost_mps=result.cost_mps, cost_rel_diff=d_cost,
                    dv_max_abs_diff_mps=d_dv, replayed_status=result.status.name,
-                   match=bool(d_cost <= COST_REL_TOL and d_dv <= DV_ABS_TOL_MPS))
+                   **_art_rows(record, result))
+        row["match"] = bool(d_cost <= COST_REL_TOL and d_dv <= DV_ABS_TOL_MPS
+                            and row["decision_match"])
         rows.append(row)
     compared = [r for r in rows if r["match"] is not None]
     return {"log": str(path), "solves": len(rows), "compared": len(compared),
             "matched": sum(r["match"] for r in compared),
             "mismatched": sum(not r["match"] for r in compared),
-            "truncated": log.truncated, "tolerances": {"cost_rel": COST_REL_TOL,
-                                                       "dv_abs_mps": DV_ABS_TOL_MPS},
+            "model": model_note, "model_checksum": log.metadata.get("model_checksum", "none"),
+            "truncated": log.truncated,
+            "tolerances": {"cost_rel": COST_REL_TOL, "dv_abs_mps": DV_ABS_TOL_MPS,
+                           "rollout_abs_mps": ROLLOUT_ABS_TOL_MPS},
             "per_solve": rows}

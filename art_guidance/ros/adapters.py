@@ -107,17 +107,22 @@ def plan_to_msg(result: PlanResult, stamp_ns: int, plan_id: str) -> ManeuverPlan
     msg.rtn = result.rtn.reshape(-1).tolist()
     msg.cost_mps = float(result.cost_mps)
     msg.warm_start = result.warm_start
-    msg.posthoc_e_r = msg.posthoc_e_c = math.nan
-    msg.posthoc = ManeuverPlan.POSTHOC_NOT_RUN
-    if result.posthoc is not None:
-        msg.posthoc_e_r = float(result.posthoc.e_r)
-        msg.posthoc_e_c = float(result.posthoc.e_c)
-        msg.posthoc = (ManeuverPlan.POSTHOC_ACCEPTED if result.posthoc.accepted
-                       else ManeuverPlan.POSTHOC_REJECTED)
+    msg.warm_start_reason = result.warm_start_reason[:500]
+    msg.posthoc, msg.posthoc_e_r, msg.posthoc_e_c = posthoc_fields(result)
     msg.scp_iterations = int(result.scp.iterations)
     msg.solve_time_ms = float(result.timings_ms.get("total", 0.0))
     msg.constraint_margin_m = float(result.constraint_margin_m)
     return msg
+
+
+def posthoc_fields(result: PlanResult) -> tuple[int, float, float]:
+    """(POSTHOC_*, E_R, E_C) of a plan; NOT_RUN with NaNs when no learned warm start was tried
+    (which must not look like a failed check)."""
+    ph = result.posthoc
+    if ph is None:
+        return ManeuverPlan.POSTHOC_NOT_RUN, math.nan, math.nan
+    return ((ManeuverPlan.POSTHOC_ACCEPTED if ph.accepted else ManeuverPlan.POSTHOC_REJECTED),
+            float(ph.e_r), float(ph.e_c))
 
 
 def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str, trigger: str,
@@ -128,8 +133,14 @@ def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str, trigger: s
     ns_to_stamp(msg.header.stamp, stamp_ns)
     ns_to_stamp(msg.request_stamp, request_stamp_ns)
     msg.plan_id, msg.trigger = plan_id, trigger
-    if result.art_dv_rtn_mps is not None:
-        msg.warm_start_art_dv_rtn_mps = np.asarray(result.art_dv_rtn_mps).reshape(-1).tolist()
+    proposal = result.proposal
+    if proposal is not None:
+        msg.warm_start_art_dv_rtn_mps = _floats(proposal.dv_rtn_mps)
+        msg.art_reward_to_go_mps = _floats(proposal.reward_to_go_mps)
+        msg.art_constraint_to_go = _floats(proposal.constraint_to_go)
+        msg.model_sha256 = proposal.model_sha256
+    msg.warm_start, msg.warm_start_reason = result.warm_start, result.warm_start_reason
+    msg.posthoc, msg.posthoc_e_r, msg.posthoc_e_c = posthoc_fields(result)
     if np.all(np.isfinite(result.cvx.dv_rtn_mps)):
         msg.warm_start_cvx_dv_rtn_mps = result.cvx.dv_rtn_mps.reshape(-1).tolist()
     hist = result.scp.history
@@ -141,6 +152,16 @@ def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str, trigger: s
     msg.timing_scp_ms, msg.timing_total_ms = float(t.get("scp", 0.0)), float(t.get("total", 0.0))
     msg.request_json = json.dumps(result.request.to_json() if result.request else {})
     return msg
+
+
+def _floats(values: object) -> list[float]:
+    """Any array-like as a flat float list (empty for None or values that are not numbers)."""
+    if values is None:
+        return []
+    try:
+        return np.asarray(values, dtype=float).reshape(-1).tolist()
+    except (TypeError, ValueError):
+        return []
 
 
 def status_plan_msg(stamp_ns: int, plan_id: str, status: int, text: str,

@@ -91,7 +91,9 @@ class GuidanceCore:
         if self.p["default_waypoint"] not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {self.p['default_waypoint']!r} is not one of "
                               f"{sorted(self.scenario.waypoints_rtn)}")
-        self.pipeline = GuidancePipeline(config, deadline_s=self.p["solve_deadline_s"])
+        self.provider, self.model_status = self._load_model()
+        self.pipeline = GuidancePipeline(config, provider=self.provider,
+                                         deadline_s=self.p["solve_deadline_s"])
         settings = {name: self.p[name] for name in POLICY_PARAMETERS}
         self.policy = ReplanPolicy(ReplanSettings(
             **settings, ae_to_koz_node=self.scenario.ae_to_koz_node))
@@ -109,6 +111,38 @@ class GuidanceCore:
         self._request_msg: ReplanRequest | None = None
         self.recorder = self._make_recorder()
         self.stats = {"nav": 0, "rejected": 0, "plans": 0, "superseded": 0}
+
+    def _load_model(self) -> tuple[object | None, str]:
+        """Load the learned warm start once, at start-up (never in a callback).
+
+        Returns (provider or None, status in words). A missing, corrupt or mismatched model
+        leaves the node in CVX-only mode with one warning (and the status in every plan
+        diagnostic); it never stops the node.
+        """
+        spec = self.p["model_path"]
+        if spec.strip().lower() == "none":
+            return None, "cvx-only: model_path is 'none'"
+        try:
+            from art_guidance.art.provider import ArtWarmStart, resolve_model_path
+
+            provider = ArtWarmStart.load(resolve_model_path(spec))
+        except Exception as exc:  # a model never takes the node down
+            text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            status = f"cvx-only: the model did not load ({type(exc).__name__}: {text[:300]})"
+            self.get_logger().warning(f"learned warm start unavailable, planning from CVX "
+                                      f"only: {text}")
+            return None, status
+        self.get_logger().info(f"learned warm start: {provider.describe()}, loaded in "
+                               f"{provider.load_ms:.0f} ms")
+        return provider, f"loaded {provider.describe()} in {provider.load_ms:.0f} ms"
+
+    def _model_values(self) -> dict:
+        """Model key-values for the diagnostics."""
+        values = {"model": self.model_status}
+        if self.provider is not None:
+            values.update(model_sha256=self.provider.sha256,
+                          model_load_ms=round(self.provider.load_ms, 1))
+        return values
 
     def _create_publishers(self, create: Callable) -> None:
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -135,7 +169,10 @@ class GuidanceCore:
         self._worker = threading.Thread(target=self._work, name="guidance_worker", daemon=True)
         self._worker.start()
         self.get_logger().info(f"guidance_node planning (target {self.target.waypoint}, "
-                               f"stamp_check {self.p['stamp_check']})")
+                               f"stamp_check {self.p['stamp_check']}, warm start "
+                               f"{self.p['warm_start']}, {self.model_status})")
+        self._publish_diag("art_guidance/model", OK if self.provider is not None else WARN,
+                           self.model_status, self._model_values())
 
     def _stop_worker(self) -> None:
         """Stop taking jobs; the running solve finishes (and is recorded and published)."""
@@ -162,7 +199,8 @@ class GuidanceCore:
             return None
         directory = self.p["record_dir"] or str(default_log_dir())
         meta = {"config": self.pipeline.config_json(), "versions": _versions(),
-                "model_checksum": "none", "parameters": self.p}
+                "model_checksum": self.provider.sha256 if self.provider else "none",
+                "model": self.model_status, "parameters": self.p}
         self.get_logger().info(f"recording every solve to {directory}")
         return McapRecorder(directory, meta, max_bytes=int(self.p["record_max_bytes"]),
                             topics={t: msg_type for msg_type, t in self._record_topics.items()})
@@ -277,16 +315,20 @@ class GuidanceCore:
         self.plan_pub.publish(plan_msg)
         self.stats["plans"] += 1
         level = OK if result.scp.feasible else WARN
+        t = result.timings_ms
         self._log().info(
             f"{plan_id} ({job.trigger}): {result.status.name}, {result.cost_mps:.4f} m/s, "
-            f"{result.scp.iterations} it, margin {result.constraint_margin_m:.2f} m, "
-            f"{result.timings_ms['total']:.0f} ms; {action.value} "
-            f"(in force: {active_id or 'none'})")
+            f"{result.scp.iterations} it from {result.warm_start.upper()}, margin "
+            f"{result.constraint_margin_m:.2f} m, {t['total']:.0f} ms; {action.value} "
+            f"(in force: {active_id or 'none'}); {result.warm_start_reason}")
         self._publish_diag("art_guidance/plan", level, f"{result.status.name}: {action.value}",
                            {"plan_id": plan_id, "nav_stamp_ns": str(job.nav.stamp_ns),
                             "action": action.value, "active_plan_id": active_id,
-                            "cost_mps": result.cost_mps,
-                            "solve_time_ms": result.timings_ms["total"]})
+                            "cost_mps": result.cost_mps, "warm_start": result.warm_start,
+                            "warm_start_reason": result.warm_start_reason,
+                            "solve_time_ms": t["total"], "cvx_ms": round(t["cvx"], 2),
+                            "art_ms": round(t["art"], 2), "scp_ms": round(t["scp"], 2),
+                            **self._model_values()})
 
     def _record(self, job: Job, result: PlanResult, plan_id: str, plan_msg: ManeuverPlan) -> None:
         if self.recorder is None:

@@ -87,6 +87,10 @@ SPECS: dict[str, ParamSpec] = {
                                     "request says otherwise (false: deterministic)", "bool"),
     "warm_start": ParamSpec("SCP warm start until a replan request says otherwise", "str",
                             WARM_STARTS),
+    "model_path": ParamSpec("ART checkpoint for the learned warm start, loaded and checked "
+                            "once at start-up ('' = the shipped default model, 'none' = CVX "
+                            "only); a model that fails to load leaves the node in CVX-only "
+                            "mode with a warning", "str"),
     "replan_sigma_threshold": ParamSpec("replan when any ROE axis deviates from the plan by "
                                         "more than this [navigation sigma]", "float",
                                         minimum=0.0, exclusive_minimum=True, dynamic=True),

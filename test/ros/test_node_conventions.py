@@ -28,7 +28,7 @@ def node_proc(ros_env, python_exe):
     # a whole number for a double parameter, as `ros2 run ... -p max_nav_age_s:=5` passes it
     proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "-p", "max_nav_age_s:=5", "-p", "record:=false",
-                             "-p", "solve_deadline_s:=10"],
+                             "-p", "solve_deadline_s:=10", "-p", "model_path:=none"],
                             env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     yield proc
@@ -94,6 +94,7 @@ def test_plans_say_what_they_are(client):
     plan = client.plan_for(stamp, timeout_s=30.0)
     assert plan is not None and plan.status != ManeuverPlan.STATUS_UNKNOWN
     assert plan.posthoc == ManeuverPlan.POSTHOC_NOT_RUN and math.isnan(plan.posthoc_e_r)
+    assert plan.warm_start == "cvx" and "no learned model" in plan.warm_start_reason
     assert "m/s after" in plan.status_text or "replan not usable" in plan.status_text
     nan = NOMINAL_RTN.copy()
     nan[0] = np.nan

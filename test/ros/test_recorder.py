@@ -153,7 +153,7 @@ def test_folder_is_a_valid_bag_after_every_solve(tmp_path, solves):
     """No finish(): what a kill -9 between solves leaves behind opens in rosbags as it is."""
     pipeline, data = solves
     bag = tmp_path / "bag"
-    rec = McapRecorder(bag, {"config": pipeline.config_json()}, max_bytes=20_000)
+    rec = McapRecorder(bag, {"config": pipeline.config_json()}, max_bytes=30_000)
     for k, (stamp, msgs) in enumerate(data, start=1):
         assert rec.record_solve(msgs, stamp)
         info = _info(bag)
@@ -281,3 +281,47 @@ def test_an_existing_recording_is_never_overwritten(tmp_path, solves):
     with pytest.raises(ConfigError, match="already holds a recording"):
         McapRecorder(tmp_path / "bag", {"config": pipeline.config_json()})
     assert {p.name: p.read_bytes() for p in (tmp_path / "bag").iterdir()} == before
+
+
+def test_replay_of_an_art_warm_started_log(tmp_path):
+    """Solves planned with a learned warm start replay with the same model: the rollout (to
+    1e-6 m/s), the post hoc decision, the warm start kept and the plan match. Given another
+    model, the log is reported as recorded with a different model, not as a mismatch."""
+    from helpers.art_models import write_untrained_checkpoint
+
+    from art_guidance.art.provider import ArtWarmStart
+
+    model, other = tmp_path / "model.pt", tmp_path / "other.pt"
+    sha = write_untrained_checkpoint(model, seed=0)
+    write_untrained_checkpoint(other, seed=1)
+    scenario = ScenarioConfig.from_yaml()
+    pipeline = GuidancePipeline(GuidanceConfig.load(), provider=ArtWarmStart.load(model))
+    chief = np.array(scenario.chief_oe)
+    data = []
+    for seed, warm_start in ((7, "art"), (8, "auto"), (9, "cvx")):
+        s = sample_scenario(scenario, seed)
+        result = pipeline.plan(PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0),
+                                           s.target_rtn, warm_start=warm_start))
+        assert (result.proposal is None) == (warm_start == "cvx")
+        stamp = 1_800_000_000_000_000_000 + seed * 1_000_000_000
+        data.append((stamp, [("/guidance/solve_record",
+                              solve_record_msg(result, stamp, f"plan-{seed}", "test")),
+                             ("/guidance/maneuver_plan",
+                              plan_to_msg(result, stamp, f"plan-{seed}"))]))
+    bag = tmp_path / "bag"
+    with McapRecorder(bag, {"config": pipeline.config_json(), "model_checksum": sha}) as rec:
+        for stamp, msgs in data:
+            assert rec.record_solve(msgs, stamp)
+    record = read_log(bag).of_type("art_guidance_msgs/msg/SolveRecord")[0]
+    assert record.model_sha256 == sha and len(record.art_reward_to_go_mps) == 100
+    assert record.warm_start == "art" and record.posthoc in (1, 2)
+    report = replay(bag, model)
+    assert report["compared"] == 3 and report["matched"] == 3, report
+    assert "sha256 matches" in report["model"]
+    art_rows = [r for r in report["per_solve"] if "rollout_max_abs_diff_mps" in r]
+    assert len(art_rows) == 2 and all(r["rollout_max_abs_diff_mps"] <= 1e-6 for r in art_rows)
+    mismatch = replay(bag, other)
+    assert "replayed with other.pt" in mismatch["model"] and mismatch["mismatched"] == 0
+    assert mismatch["compared"] == 1  # the CVX-requested solve only
+    assert {r["reason"] for r in mismatch["per_solve"] if r["match"] is None} == {
+        "recorded with a different model"}

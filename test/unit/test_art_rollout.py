@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 import torch
 
+from helpers.art_models import untrained_art
+
 from art_guidance.art import ArtModel, TrainedArt, preset
 from art_guidance.art.config import FEATURES, SLOTS
 from art_guidance.art.evaluate import evaluate_rollouts, heldout_scenarios
 from art_guidance.art.model import loss_terms
-from art_guidance.art.normalization import Normalizer
 from art_guidance.art.rollout import rollout
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
@@ -25,18 +26,7 @@ from art_guidance.safety import PassiveSafety
 
 torch.set_num_threads(1)
 TOL = 1e-5  # cached vs recomputed, batched vs single: normalised units
-SCALES = {"goal": [500.0, 1000.0, 100.0, 100.0, 50.0, 50.0], "reward": [0.2], "constraint": [2.0],
-          "state": [1000.0, 8000.0, 300.0, 300.0, 50.0, 50.0], "control": [0.01, 0.01, 0.005]}
-
-
-def _art(preset_name: str = "small", representation: str = "roe", seed: int = 0,
-         dtype: torch.dtype = torch.float32, **changes) -> TrainedArt:
-    torch.manual_seed(seed)
-    cfg, _ = preset(preset_name, representation)
-    model = ArtModel(dataclasses.replace(cfg, **changes)).to(dtype)
-    mean = {k: np.zeros(len(v)) for k, v in SCALES.items()}
-    mean.update(reward=np.array([-0.3]), constraint=np.array([1.0]))
-    return TrainedArt(model, Normalizer(mean, {k: np.array(v) for k, v in SCALES.items()}))
+_art = untrained_art
 
 
 @pytest.fixture(scope="module")

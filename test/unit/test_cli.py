@@ -59,7 +59,7 @@ def test_plan_bad_waypoint_is_a_clear_error(tmp_path, capsys):
 
 
 def test_art_warm_start_without_model_is_refused(tmp_path):
-    assert main(["plan", "--seed", "0", "--warm-start", "art", "--json",
+    assert main(["plan", "--seed", "0", "--warm-start", "art", "--model", "none", "--json",
                  str(tmp_path / "x.json")]) == 2
 
 

@@ -1,0 +1,144 @@
+"""The learned warm start in flight: `ArtWarmStart`, the `WarmStartProvider` over a trained ART.
+
+`GuidancePipeline(provider=ArtWarmStart.load())` rolls the model out from the request's state
+with R(t_1) = -J_CVX, C(t_1) = 0 and the request's target as goal, over the request's horizon
+(a replan over the remaining k nodes is the tail of a training trajectory: the rollout uses the
+last k time-step embeddings). The pipeline validates the proposal and applies the post hoc
+check; this module only proposes.
+
+The model is loaded once (`load`, typically at node start-up) and checked against its
+checksum. The rollout runs torch on `threads` threads (default 1: at batch 1 that is the
+fastest, and the result does not depend on the machine's core count, so a replay on another
+machine reproduces it).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from art_guidance.art.checkpoint import TrainedArt
+from art_guidance.art.checkpoint import load as load_checkpoint
+from art_guidance.art.rollout import rollout
+from art_guidance.config import GuidanceConfig
+from art_guidance.dynamics import orbital_period_s
+from art_guidance.errors import ModelError
+from art_guidance.optim import ConvexSolution
+from art_guidance.planning.types import PlanRequest, WarmStartProposal
+from art_guidance.safety import PassiveSafety
+
+DEFAULT_MODEL = "art_small_chance_roe.pt"
+SPACING_REL_TOL = 0.01  # node spacing of a request vs the training horizon's [-]
+
+
+def models_dir() -> Path:
+    """The packaged model directory (`art_guidance/models`)."""
+    return Path(__file__).resolve().parent.parent / "models"
+
+
+def default_model_path() -> Path:
+    """The shipped default model: small preset, ROE representation, chance-constrained data."""
+    return models_dir() / DEFAULT_MODEL
+
+
+def resolve_model_path(spec: str | None) -> Path | None:
+    """A model path from a parameter value: "" or None = the shipped default, "none" = no
+    model (CVX only), anything else a file path."""
+    if spec is None or str(spec).strip() == "":
+        return default_model_path()
+    if str(spec).strip().lower() == "none":
+        return None
+    return Path(spec).expanduser()
+
+
+class ArtWarmStart:
+    """Proposes ART rollouts as SCP warm starts (a `planning.WarmStartProvider`).
+
+    Attributes:
+        art: the trained model.
+        sha256: its checkpoint's payload checksum ("" if built in memory).
+        path: the file it was loaded from ("" if built in memory).
+        load_ms: wall time of loading and checking the checkpoint [ms].
+        node_spacing_s: node spacing of the training horizon [s] (None: not recorded).
+    """
+
+    def __init__(self, art: TrainedArt, load_ms: float = 0.0, threads: int = 1) -> None:
+        self.art = art
+        self.sha256 = art.sha256 or ""
+        self.path = art.path or ""
+        self.load_ms = float(load_ms)
+        self.threads = int(threads)
+        self._lock = threading.Lock()  # one KV cache per model: one rollout at a time
+        self.node_spacing_s = _training_spacing_s(art)
+
+    @classmethod
+    def load(cls, path: str | Path | None = None, expected_sha256: str | None = None,
+             threads: int = 1) -> "ArtWarmStart":
+        """Load and check a checkpoint (default: the shipped model).
+
+        Raises:
+            CheckpointError: missing, corrupt, truncated, tampered, wrong-version or
+                wrong-shape file (the message names the file and the reason).
+        """
+        t0 = time.perf_counter()
+        art = load_checkpoint(path or default_model_path(), expected_sha256=expected_sha256)
+        art.decoder  # pack the cached decoder now, not in the first plan
+        return cls(art, 1e3 * (time.perf_counter() - t0), threads)
+
+    def describe(self) -> str:
+        """One line: file, preset size, representation, checksum."""
+        cfg = self.art.config
+        n_params = sum(p.numel() for p in self.art.model.parameters())
+        return (f"{Path(self.path).name or 'in-memory model'}: {cfg.n_layers}x{cfg.width} "
+                f"({n_params / 1e6:.2f} M parameters), {cfg.representation.upper()} states, "
+                f"sha256 {self.sha256[:12] or '-'}")
+
+    def check_domain(self, safety: PassiveSafety) -> None:
+        """Raise ModelError if the horizon is outside what the model was trained on."""
+        horizon = safety.horizon
+        n, k = horizon.n_nodes, self.art.config.context
+        if n > k:
+            raise ModelError(f"a {n}-node horizon is longer than the model's context of {k} "
+                             "steps")
+        if self.node_spacing_s is not None and n >= 2:
+            spacing = float(np.mean(np.diff(horizon.epochs_s)))
+            if abs(spacing / self.node_spacing_s - 1.0) > SPACING_REL_TOL:
+                raise ModelError(f"node spacing {spacing:.1f} s differs from the training "
+                                 f"horizon's {self.node_spacing_s:.1f} s")
+
+    def propose(self, request: PlanRequest, safety: PassiveSafety,
+                cvx: ConvexSolution) -> WarmStartProposal:
+        """Roll the model out for `request` over `safety.horizon`.
+
+        Raises:
+            ModelError: the horizon is outside the model's domain.
+            InputError: non-finite conditioning (e.g. a non-finite J_CVX).
+        """
+        self.check_domain(safety)
+        t0 = time.perf_counter()
+        with self._lock:
+            threads = torch.get_num_threads()
+            torch.set_num_threads(self.threads)
+            try:
+                res = rollout(self.art, safety, request.roe0_m, request.target_rtn,
+                              -float(cvx.cost_mps), 0.0)
+            finally:
+                torch.set_num_threads(threads)
+        return WarmStartProposal(res.dv_rtn_mps[0], res.realised_reward_to_go_mps[0],
+                                 res.realised_constraint_to_go[0].astype(float), self.sha256,
+                                 1e3 * (time.perf_counter() - t0))
+
+
+def _training_spacing_s(art: TrainedArt) -> float | None:
+    """Node spacing of the horizon the model's dataset was generated on [s]."""
+    bundle = art.meta.get("dataset", {}).get("guidance_config")
+    if not bundle:
+        return None
+    try:
+        sc = GuidanceConfig.from_json(bundle).scenario
+    except Exception:  # provenance is informative; a model without it is still usable
+        return None
+    return sc.n_orbits * orbital_period_s(sc.chief_oe[0]) / (sc.n_nodes - 1)

@@ -1,0 +1,105 @@
+"""The guidance node with a learned warm start, over real DDS: a model that fails to load
+leaves the node planning from CVX (one warning, a diagnostic, plans that say so); a loaded
+model's rollouts go through the post hoc check, are recorded, and the log replays."""
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+from contextlib import contextmanager
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+from art_guidance_msgs.msg import ManeuverPlan  # noqa: E402
+from helpers.art_models import write_untrained_checkpoint  # noqa: E402
+from helpers.ros_client import Client  # noqa: E402
+
+from art_guidance.config import ScenarioConfig  # noqa: E402
+from art_guidance.record.replay import read_log, replay  # noqa: E402
+
+pytestmark = pytest.mark.ros
+NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
+
+
+@contextmanager
+def _node(ros_env, python_exe, namespace: str, *params: str):
+    args = [python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
+            "-r", f"__ns:=/{namespace}", "-p", "solve_deadline_s:=20"]
+    for p in params:
+        args += ["-p", p]
+    proc = subprocess.Popen(args, env=ros_env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    client = Client(f"{namespace}_client", namespace=f"/{namespace}")
+    try:
+        assert client.wait_matched(60.0), "guidance node did not match within 60 s"
+        yield proc, client
+    finally:
+        client.close()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+
+def _plan_diag(client: Client, plan_id: str) -> dict:
+    def find(_, diags):
+        for _, values, name in reversed(diags):
+            if name == "art_guidance/plan" and values.get("plan_id") == plan_id:
+                return values
+        return None
+    return client.wait_for(find, 10.0)
+
+
+def test_a_corrupt_model_leaves_the_node_in_cvx_only_mode(ros_env, python_exe, tmp_path):
+    model = tmp_path / "model.pt"
+    write_untrained_checkpoint(model)
+    blob = bytearray(model.read_bytes())
+    blob[-100] ^= 0xFF
+    model.write_bytes(bytes(blob))
+    with _node(ros_env, python_exe, "corrupt", f"model_path:={model}", "record:=false") as (
+            proc, client):
+        stamp, decision = client.send_nav(NOMINAL_RTN)
+        assert decision == "replanning"
+        plan = client.plan_for(stamp, 60.0)
+        assert plan is not None and plan.status == ManeuverPlan.STATUS_CONVERGED
+        assert plan.warm_start == "cvx" and plan.posthoc == ManeuverPlan.POSTHOC_NOT_RUN
+        assert math.isnan(plan.posthoc_e_r) and "no learned model" in plan.warm_start_reason
+        diag = _plan_diag(client, plan.plan_id)
+        assert diag["model"].startswith("cvx-only: the model did not load")
+        assert "corrupt" in diag["model"]
+        assert proc.poll() is None  # still serving
+    out = proc.stdout.read()
+    assert out.count("learned warm start unavailable") == 1, out[-3000:]
+    assert "Traceback" not in out
+
+
+def test_learned_warm_start_is_checked_recorded_and_replayed(ros_env, python_exe, tmp_path):
+    model, bag = tmp_path / "model.pt", tmp_path / "bag"
+    sha = write_untrained_checkpoint(model)
+    with _node(ros_env, python_exe, "learned", f"model_path:={model}", f"record_dir:={bag}",
+               "replan_sigma_threshold:=1e-9") as (proc, client):
+        plans = []
+        for offset in (0.0, 300.0):
+            stamp, decision = client.send_nav(NOMINAL_RTN + [0.0, offset, 0, 0, 0, 0])
+            assert decision == "replanning"
+            plans.append(client.plan_for(stamp, 60.0))
+        for plan in plans:
+            assert plan is not None and plan.posthoc in (ManeuverPlan.POSTHOC_ACCEPTED,
+                                                         ManeuverPlan.POSTHOC_REJECTED)
+            assert math.isfinite(plan.posthoc_e_r) and plan.posthoc_e_c >= 0
+            assert "post hoc check" in plan.warm_start_reason
+            diag = _plan_diag(client, plan.plan_id)
+            assert diag["model_sha256"] == sha and float(diag["art_ms"]) > 0.0
+            assert diag["model"].startswith("loaded model.pt")
+    assert proc.returncode == 0
+    log = read_log(bag)
+    assert log.metadata["model_checksum"] == sha
+    records = log.of_type("art_guidance_msgs/msg/SolveRecord")
+    assert len(records) == 2 and all(r.model_sha256 == sha for r in records)
+    assert all(len(r.warm_start_art_dv_rtn_mps) == 300 for r in records)
+    report = replay(bag, model)
+    assert report["compared"] == 2 and report["matched"] == 2, report

@@ -1,0 +1,199 @@
+"""The learned warm start in the pipeline: provider, post hoc decision, fallbacks, retries.
+
+The model here is untrained (fixed-seed weights, `helpers.art_models`): these tests check the
+decisions and the fallbacks, which must hold whatever the model proposes. The shipped trained
+model is tested in `test_shipped_model.py`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from helpers.art_models import write_untrained_checkpoint
+
+from art_guidance.art.provider import ArtWarmStart
+from art_guidance.cli import main as cli_main
+from art_guidance.config import GuidanceConfig, ScenarioConfig
+from art_guidance.data.stages import sample_scenario
+from art_guidance.dynamics import roe_from_rtn_linear
+from art_guidance.errors import CheckpointError
+from art_guidance.optim import ScpStatus
+from art_guidance.planning import (
+    GuidancePipeline, PlanRequest, PosthocThresholds, WarmStartProposal,
+)
+
+PAPER = PosthocThresholds()  # -1.5 <= 100 E_R <= 3.5, 0 <= E_C <= 2
+
+
+class Scaled:
+    """Proposes the CVX controls times a factor: E_R = factor - 1 exactly."""
+
+    sha256 = ""
+
+    def __init__(self, factor: float) -> None:
+        self.factor = factor
+
+    def propose(self, request, safety, cvx):
+        return WarmStartProposal(cvx.dv_rtn_mps * self.factor)
+
+
+def _request(seed: int, chance: bool = False, **kw) -> PlanRequest:
+    scenario = ScenarioConfig.from_yaml()
+    s = sample_scenario(scenario, seed)
+    chief = np.array(scenario.chief_oe)
+    return PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
+                       chance_constrained=chance, **kw)
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("model") / "untrained.pt"
+    write_untrained_checkpoint(path, seed=0)
+    return path
+
+
+@pytest.fixture(scope="module")
+def provider(model_path):
+    return ArtWarmStart.load(model_path)
+
+
+@pytest.mark.parametrize("factor,inside", [(0.984, False), (0.986, True), (1.034, True),
+                                           (1.036, False), (0.5, False)])
+def test_decision_follows_the_thresholds(factor, inside):
+    """E_R just inside / outside [-1.5 %, 3.5 %]; accepted iff E_R and E_C are both inside."""
+    result = GuidancePipeline(provider=Scaled(factor)).plan(_request(4))
+    ph = result.posthoc
+    assert ph.e_r == pytest.approx(factor - 1.0, abs=1e-9)
+    e_c_inside = PAPER.e_c_min <= ph.e_c <= PAPER.e_c_max
+    assert ph.accepted == (inside and e_c_inside)
+    assert result.warm_start == ("art" if ph.accepted else "cvx")
+    word = "accepted" if ph.accepted else "rejected"
+    assert word in result.warm_start_reason and "100 E_R" in result.warm_start_reason
+
+
+def test_constraint_budget_bound_rejects():
+    """With E_C's upper bound set below the rollout's C(t1), the same rollout is rejected."""
+    base = GuidancePipeline(provider=Scaled(1.0)).plan(_request(4))
+    e_c = base.posthoc.e_c
+    assert e_c == int(e_c) and e_c >= 0
+    cfg = GuidanceConfig.load()
+    tight = dataclasses.replace(cfg.planning, posthoc=PosthocThresholds(e_c_max=e_c - 1.0)
+                                if e_c >= 1 else PosthocThresholds(e_c_min=e_c + 1.0,
+                                                                   e_c_max=e_c + 2.0))
+    result = GuidancePipeline(cfg.replace(planning=tight), provider=Scaled(1.0)).plan(
+        _request(4))
+    assert not result.posthoc.accepted and result.warm_start == "cvx"
+
+
+def test_provider_rollout_is_what_the_pipeline_checks(provider):
+    """The pipeline's E_C (its own propagation and safety evaluation) equals the rollout's own
+    realised C(t1), and R(t_i) is the realised reward-to-go of the proposed controls."""
+    req = _request(5, chance=True, warm_start="art")
+    result = GuidancePipeline(provider=provider).plan(req)
+    prop = result.proposal
+    n = result.epochs_s.size
+    assert prop.dv_rtn_mps.shape == (n, 3) and prop.model_sha256 == provider.sha256
+    norms = np.linalg.norm(prop.dv_rtn_mps, axis=1)
+    assert prop.reward_to_go_mps[0] == pytest.approx(-norms.sum(), rel=1e-9)
+    assert np.all(np.diff(prop.constraint_to_go) <= 0)  # C(t_i) counts nodes j >= i
+    assert result.posthoc.e_c == prop.constraint_to_go[0]
+    assert result.posthoc.e_r == pytest.approx(
+        (-norms.sum() + result.cvx.cost_mps) / -result.cvx.cost_mps, rel=1e-9)
+    assert result.warm_start == "art" and "forced" in result.warm_start_reason or \
+        result.posthoc.accepted
+    assert result.timings_ms["art"] >= prop.rollout_ms > 0.0
+    assert result.scp.feasible
+
+
+def test_out_of_domain_horizons_fall_back_to_cvx(provider):
+    too_long = _request(5, n_nodes=120, n_orbits=1.29 * 119 / 99)
+    result = GuidancePipeline(provider=provider).plan(too_long)
+    assert result.warm_start == "cvx" and result.posthoc is None
+    assert "longer than the model's context" in result.warm_start_reason
+    wrong_spacing = _request(5, n_nodes=50, n_orbits=1.29)
+    result = GuidancePipeline(provider=provider).plan(wrong_spacing)
+    assert result.warm_start == "cvx" and "node spacing" in result.warm_start_reason
+    replan = _request(5, n_nodes=40, n_orbits=1.29 * 39 / 99, koz_switch_node=10)
+    result = GuidancePipeline(provider=provider).plan(replan)  # the tail of a training horizon
+    assert result.proposal is not None and result.proposal.dv_rtn_mps.shape == (40, 3)
+
+
+def test_failing_provider_never_takes_the_plan_down():
+    class Raises:
+        sha256 = ""
+
+        def propose(self, request, safety, cvx):
+            raise RuntimeError("boom")
+
+    class WrongShape(Raises):
+        def propose(self, request, safety, cvx):
+            return np.zeros((3, 3))
+
+    result = GuidancePipeline(provider=Raises()).plan(_request(4, warm_start="art"))
+    assert result.warm_start == "cvx" and "RuntimeError: boom" in result.warm_start_reason
+    assert result.posthoc is None and result.scp.feasible
+    result = GuidancePipeline(provider=WrongShape()).plan(_request(4))
+    assert result.warm_start == "cvx" and "output rejected" in result.warm_start_reason
+    assert not result.posthoc.accepted and np.isnan(result.posthoc.e_r)
+
+
+def test_no_model_says_not_run():
+    result = GuidancePipeline().plan(_request(4, warm_start="art"))
+    assert result.warm_start == "cvx" and result.posthoc is None
+    assert "no learned model" in result.warm_start_reason
+    assert "requested" in GuidancePipeline().plan(_request(4, warm_start="cvx")
+                                                  ).warm_start_reason
+
+
+def test_unconverged_art_scp_is_retried_from_cvx():
+    """SCVx* from ART stopped after 2 iterations (MAX_ITERATIONS) -> retried from CVX; the
+    better feasible plan is kept and the other is reported."""
+    cfg = GuidanceConfig.load()
+    cfg = cfg.replace(scp=dataclasses.replace(cfg.scp, max_iterations=2))
+    result = GuidancePipeline(cfg, provider=Scaled(1.5)).plan(_request(4, warm_start="art"))
+    lost = result.discarded
+    assert lost is not None and "retried from CVX" in result.warm_start_reason
+    assert {result.warm_start, lost.warm_start} == {"art", "cvx"}
+    if result.scp.feasible and lost.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS):
+        assert result.cost_mps <= lost.cost_mps + 1e-12
+
+
+def test_deadline_is_honoured_with_art(provider):
+    """The ART-warm-started SCP and its retry share the one SCP deadline (one iteration and
+    the final evaluation may run past it: allowance 400 ms on a loaded 2-core machine)."""
+    deadline_s = 0.15
+    pipeline = GuidancePipeline(provider=provider, deadline_s=deadline_s)
+    for seed in (3, 11):
+        result = pipeline.plan(_request(seed, chance=True, warm_start="art"))
+        assert result.timings_ms["scp"] <= 1e3 * deadline_s + 400.0, result.timings_ms
+        assert result.status in set(ScpStatus)
+
+
+def test_corrupt_model_is_refused_and_plan_falls_back(model_path, tmp_path, capsys):
+    blob = bytearray(model_path.read_bytes())
+    blob[-100] ^= 0xFF
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(bytes(blob))
+    with pytest.raises(CheckpointError, match="corrupt"):
+        ArtWarmStart.load(corrupt)
+    out = tmp_path / "p.json"
+    assert cli_main(["plan", "--seed", "4", "--model", str(corrupt), "--json", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "planning from CVX only" in err and "corrupt" in err
+    data = json.loads(out.read_text())
+    assert data["warm_start"] == "cvx" and data["posthoc"] is None
+    assert cli_main(["plan", "--seed", "4", "--model", str(corrupt), "--warm-start", "art",
+                     "--json", str(tmp_path / "q.json")]) == 2
+
+
+def test_plan_cli_shows_both_warm_starts(model_path, tmp_path, capsys):
+    out = tmp_path / "p.json"
+    assert cli_main(["plan", "--seed", "4", "--model", str(model_path), "--json",
+                     str(out)]) in (0, 1)
+    text = capsys.readouterr().out
+    assert "CVX" in text and "ART" in text and "post hoc" in text
+    data = json.loads(out.read_text())
+    assert data["art_cost_mps"] > 0 and data["posthoc"] is not None
+    assert data["model_sha256"] == ArtWarmStart.load(model_path).sha256
