@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import fcntl
 import hashlib
+import json
 import subprocess
 from pathlib import Path
 
@@ -113,6 +114,18 @@ def test_checkpoint_records_provenance_and_reruns_are_safe(dataset, tmp_path):
     with pytest.raises(ConfigError):
         train(TrainOptions(**{**opts.__dict__, "out": str(tmp_path / "n.pt"),
                               "overrides": {"lr": -1.0}}), log=lambda _: None)
+    # the held-out evaluation reads the test split only, and reports against CVX's labels
+    from art_guidance.cli import main as cli_main
+
+    assert cli_main(["evaluate", "--data", str(dataset), "--model", str(out), "--threads", "1",
+                     "--out", str(tmp_path / "eval"), "--no-progress"]) == 0
+    report = json.loads((tmp_path / "eval" / "rollouts.json").read_text())["models"][0]
+    raw = load_dataset(dataset)
+    held = raw["is_test"] & (raw["cvx_constraint_to_go0"] >= 0)
+    assert report["n_scenarios"] == held.sum() >= 1 and report["model_sha256"] == art.sha256
+    assert report["c_cvx_t1"]["mean"] == pytest.approx(raw["cvx_constraint_to_go0"][held].mean())
+    assert sum(report["c_art_histogram"]) == held.sum()
+    assert 0.0 <= report["frac_posthoc_accepted"] <= 1.0
 
 
 def _parser() -> argparse.ArgumentParser:
