@@ -13,6 +13,7 @@ machine reproduces it).
 """
 from __future__ import annotations
 
+import json
 import threading
 import time
 from pathlib import Path
@@ -42,6 +43,26 @@ def models_dir() -> Path:
 def default_model_path() -> Path:
     """The shipped default model: small preset, ROE representation, chance-constrained data."""
     return models_dir() / DEFAULT_MODEL
+
+
+def shipped_models() -> dict[str, dict]:
+    """`models/models.json`: file name -> {"sha256", provenance} of every shipped model."""
+    path = models_dir() / "models.json"
+    if not path.is_file():
+        return {}
+    try:
+        return dict(json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError):
+        return {}
+
+
+def pinned_sha256(path: str | Path) -> str | None:
+    """The checksum a shipped model must have (None for a file that is not a shipped model)."""
+    path = Path(path).resolve()
+    if path.parent != models_dir():
+        return None
+    entry = shipped_models().get(path.name)
+    return None if not isinstance(entry, dict) else entry.get("sha256")
 
 
 def resolve_model_path(spec: str | None) -> Path | None:
@@ -77,14 +98,17 @@ class ArtWarmStart:
     @classmethod
     def load(cls, path: str | Path | None = None, expected_sha256: str | None = None,
              threads: int = 1) -> "ArtWarmStart":
-        """Load and check a checkpoint (default: the shipped model).
+        """Load and check a checkpoint (default: the shipped model). A shipped model is also
+        checked against the checksum pinned in `models/models.json`, so a swapped or
+        damaged file is refused.
 
         Raises:
             CheckpointError: missing, corrupt, truncated, tampered, wrong-version or
                 wrong-shape file (the message names the file and the reason).
         """
         t0 = time.perf_counter()
-        art = load_checkpoint(path or default_model_path(), expected_sha256=expected_sha256)
+        path = Path(path or default_model_path())
+        art = load_checkpoint(path, expected_sha256=expected_sha256 or pinned_sha256(path))
         art.decoder  # pack the cached decoder now, not in the first plan
         return cls(art, 1e3 * (time.perf_counter() - t0), threads)
 

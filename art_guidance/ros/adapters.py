@@ -126,7 +126,7 @@ def posthoc_fields(result: PlanResult) -> tuple[int, float, float]:
 
 
 def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str, trigger: str,
-                     request_stamp_ns: int = 0) -> SolveRecord:
+                     request_stamp_ns: int = 0, model_load_ms: float = 0.0) -> SolveRecord:
     """Everything needed to replay one solve: request, warm starts, SCP history, timings, and
     the header stamp of the ReplanRequest in force (0 = none)."""
     msg = SolveRecord()
@@ -148,6 +148,7 @@ def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str, trigger: s
     msg.scp_trust_radius_history = [float(h.trust_radius) for h in hist]
     msg.scp_max_violation_history = [float(h.max_violation) for h in hist]
     t = result.timings_ms
+    msg.timing_model_load_ms = float(model_load_ms)
     msg.timing_art_ms, msg.timing_cvx_ms = float(t.get("art", 0.0)), float(t.get("cvx", 0.0))
     msg.timing_scp_ms, msg.timing_total_ms = float(t.get("scp", 0.0)), float(t.get("total", 0.0))
     msg.request_json = json.dumps(result.request.to_json() if result.request else {})

@@ -342,7 +342,8 @@ class GuidanceCore:
             msgs.append((topic[REQUEST_TYPE], request))
         request_ns = 0 if request is None else stamp_to_ns(request.header.stamp)
         msgs += [(topic[SOLVE_RECORD_TYPE], solve_record_msg(
-                     result, job.nav.stamp_ns, plan_id, job.trigger, request_ns)),
+                     result, job.nav.stamp_ns, plan_id, job.trigger, request_ns,
+                     self.provider.load_ms if self.provider is not None else 0.0)),
                  (topic[PLAN_TYPE], plan_msg)]
         if self.recorder.record_solve(msgs, time.time_ns()):
             if new_request:

@@ -101,5 +101,6 @@ def test_learned_warm_start_is_checked_recorded_and_replayed(ros_env, python_exe
     records = log.of_type("art_guidance_msgs/msg/SolveRecord")
     assert len(records) == 2 and all(r.model_sha256 == sha for r in records)
     assert all(len(r.warm_start_art_dv_rtn_mps) == 300 for r in records)
+    assert all(r.timing_model_load_ms > 0.0 and r.timing_art_ms > 0.0 for r in records)
     report = replay(bag, model)
     assert report["compared"] == 2 and report["matched"] == 2, report
