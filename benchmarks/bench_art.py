@@ -11,8 +11,9 @@ threads:
   context at every step; `*_cache_speedup` is their ratio;
 - batch-64 rollout throughput (rollouts/s) of the default model, with and without the C update;
 - training throughput (trajectories/s at the preset's batch, 100-step sequences);
-- the default model's training wall time, read from its checkpoint (ART_BENCH_CHECKPOINT or
-  the `checkpoint` argument; without one the timings use random weights, which cost the same).
+- the default model's training wall time, read from its checkpoint (ART_BENCH_CHECKPOINT, the
+  `checkpoint` argument, or the shipped default model; without one the timings use random
+  weights, which cost the same).
 numpy's OpenBLAS threads (used by the safety module) busy-wait between calls; run with
 OPENBLAS_NUM_THREADS=1 for the numbers the planner sees with one core per process.
 """
@@ -26,6 +27,7 @@ import torch
 
 from art_guidance.art import ArtModel, TrainedArt, build_safety, load, preset
 from art_guidance.art.model import loss_terms
+from art_guidance.art.provider import default_model_path
 from art_guidance.art.normalization import Normalizer
 from art_guidance.art.rollout import rollout
 from art_guidance.config import ScenarioConfig
@@ -135,6 +137,8 @@ def _train_rate(name: str, steps: int) -> float:
 def run(repeats: int = 20, checkpoint: str | None = None) -> dict:
     """Time ART rollouts and training; returns medians [ms], speed-ups and rates."""
     checkpoint = checkpoint or os.environ.get("ART_BENCH_CHECKPOINT")
+    if checkpoint is None and default_model_path().is_file():
+        checkpoint = str(default_model_path())
     default = load(checkpoint) if checkpoint else _random_art("small")
     models = {"default": default, "paper": _random_art("paper")}
     safety = _RecordedSafety(build_safety(default, chance_constrained=True))
