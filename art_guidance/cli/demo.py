@@ -84,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
     summary = _last_json_line(sim.stdout)
     if bag.is_dir() and "total_dv_mps" in summary and not args.no_compare:
         summary.update(_warm_start_comparison(bag, args, summary["total_dv_mps"]))
+        write_json_atomic(run / "demo_summary.json", summary)
     for key, value in summary.items():
         shown = f"{value:.4g}" if isinstance(value, float) else value
         print(f"  {key}: {shown}")

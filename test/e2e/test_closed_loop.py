@@ -30,7 +30,14 @@ def test_demo_reaches_the_waypoint_and_its_log_replays(ros_env, python_exe, tmp_
     assert summary["n_replans_kept_active"] <= 3
     assert summary["min_safety_margin_m"] > 0.0
     assert (run / "rendezvous.png").stat().st_size > 10_000
+    # the shipped model proposed (its rollouts are replayed below), and the demo compared the
+    # delta-v with the same seed flown from CVX warm starts only
+    demo = json.loads((run / "demo_summary.json").read_text())
+    assert 1 <= demo["n_art_proposed"] <= demo["n_solves"] == summary["n_plans_received"]
+    assert 0 <= demo["n_art_accepted"] <= demo["n_art_proposed"]
+    assert demo["cvx_only_miss_m"] < 50.0 and demo["cvx_only_total_dv_mps"] > 0.0
     report = replay(run / "mcap")
+    assert "sha256 matches" in report["model"]
     assert report["solves"] == summary["n_plans_received"]
     assert report["mismatched"] == 0 and report["matched"] == report["compared"]
     in_force = ""
