@@ -2,7 +2,8 @@
 
 Paper Sec. "Safety Constraints with State Uncertainty" (after Guffanti & D'Amico, JGCD 2023).
 A contingency at node ``t_i`` leaves the servicer drifting from its post-burn state
-``z_i = x_i + B_i u_i`` (a-scaled ROE [m]) for ``T_safety``. Its RTN position at
+``z_i = x_i + B_d(x_i) u_i`` (a-scaled ROE [m]; B_d: the burn acts at the deputy's own state,
+`dynamics.Horizon.post_burn_nonlinear`) for ``T_safety``. Its RTN position at
 ``t_i + tau`` is ``p_i(tau) = M_i(tau) z_i`` with ``M_i(tau) = D Psi(t_i + tau) Phi(t_i + tau,
 t_i)``, (3, 6). The servicer must stay outside the active ellipsoid ``P_i = Diag(1/r^2)``
 (approach ellipsoid before node ``ae_to_koz_node``, keep-out zone from it on), i.e. the
@@ -182,14 +183,17 @@ class PassiveSafety:
 
     # ------------------------------------------------------------------ public API
     def post_burn(self, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
-        """Post-burn ROE ``z_i = x_i + B_i u_i`` [m], (N, 6), where a contingency drift starts.
+        """Post-burn ROE ``z_i = x_i + B_d(x_i) u_i`` [m], (N, 6), where the free drift starts.
+
+        B_d is the control matrix at the deputy's pre-burn state (`Horizon.post_burn_nonlinear`,
+        the post-burn state of the plans SCVx* makes); every margin here starts from it.
 
         Args:
             roe_m: (N, 6) pre-burn a-scaled ROE [m].
             dv_rtn_mps: (N, 3) impulsive delta-v in RTN [m/s].
         """
         x, u = self._check(roe_m, dv_rtn_mps)
-        return x + np.einsum("kij,kj->ki", self.horizon.b, u)
+        return self.horizon.post_burn_nonlinear(x, u)
 
     def covariance(self, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
         """Post-burn state covariance X_i [m^2], (N, 6, 6); zeros when deterministic."""
@@ -332,7 +336,7 @@ class PassiveSafety:
         i = int(i)
         x = as_finite_array("roe_m", roe_m, (None, 6))
         u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (x.shape[0], 3))
-        z = x + u @ self.horizon.b[i].T
+        z = self.horizon.post_burn_nonlinear_at(i, x, u)
         x_cov = None
         if self.uncertainty is not None:
             x_cov = post_burn_covariance(x, u, self.horizon.b[i], self.horizon.psi[i],
@@ -354,7 +358,7 @@ class PassiveSafety:
         cached = self._cache
         if cached is not None and cached[0] == key:
             return cached[1], cached[2]
-        z = x + (self.horizon.b @ u[:, :, None])[:, :, 0]  # (N, 6)
+        z = self.horizon.post_burn_nonlinear(x, u)  # (N, 6)
         x_cov = None
         if self.uncertainty is not None:
             x_cov = state_covariance_history(x, u, self.horizon, self.uncertainty)

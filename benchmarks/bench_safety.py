@@ -18,7 +18,7 @@ import numpy as np
 
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
 from art_guidance.drift import CERT_TOL, CERT_TOL_REL
-from art_guidance.dynamics import Horizon, time_grid_s
+from art_guidance.dynamics import Horizon, control_matrix_deputy, time_grid_s
 from art_guidance.safety import PassiveSafety
 
 
@@ -38,8 +38,8 @@ def naive_margins(ps: PassiveSafety, roe_m: np.ndarray, dv_rtn_mps: np.ndarray,
     tau = np.linspace(0.0, ps.tau_s[-1], int(ps.tau_s[-1] / step_s) + 1)
     out = np.empty(ps.n_nodes)
     for i in range(ps.n_nodes):
-        b = ps.horizon.b[i]
-        z = roe_m[i] + b @ dv_rtn_mps[i]
+        b = ps.horizon.b[i]  # the covariance maps the Gates error through B(0)
+        z = roe_m[i] + control_matrix_deputy(ps.horizon.chief_oe[i], roe_m[i]) @ dv_rtn_mps[i]
         x_cov = np.zeros((6, 6))
         if unc is not None:
             rho = np.linalg.norm(ps.horizon.psi[i, :3] @ roe_m[i])

@@ -60,7 +60,9 @@ SEED_STRIDE = 1_000_003
 SEED_RULE = f"seed_i = base_seed * {SEED_STRIDE} + i"
 # Bump when a code change alters the stored data of a given seed. 2: passive safety over the
 # continuous drift arc (certified t*, issue 13): new SCP solutions, constraint-to-go and margins.
-PIPELINE_VERSION = 2
+# 3: SCVx* plans with B at the deputy's state and the second-order along-track drift
+# (`Horizon.propagate_nonlinear`): new SCP solutions and trajectories.
+PIPELINE_VERSION = 3
 KEPT_INFEASIBLE = 0
 TIMING_FIELDS = ("stage_time_ms",)  # the only stored fields that differ between runs
 

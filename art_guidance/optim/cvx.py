@@ -3,6 +3,14 @@
 minimise sum_i ||u_i||   (+ reg/2 ||u||^2 for the 1-norm variant)
 s.t.     x_{k+1} = Phi_k (x_k + B_k u_k),  x_1 = x0,  x_N + B_N u_N = x_f.
 
+Model: the linear one of `Horizon.propagate` (B at zero separation, first-order relative drift),
+so that this stays a single convex program solved in milliseconds. It is the warm start of
+SCVx* and the post hoc reference (the cost lower bound of this model's problem; plans of the
+deputy-aware model can cost ~1e-4 less when safety is inactive), not a plan to fly: SCVx*
+re-projects its controls onto the deputy-aware model (`Horizon.propagate_nonlinear`, B at the
+deputy's state and the second-order along-track drift), and flown open loop in a two-body + J2
+truth the CVX controls of a 6-8 m/s transfer miss the waypoint by ~200 m.
+
 The states are eliminated (condensed form): the only equality is the 6-row terminal condition
 sum_k M_k B_k u_k = x_f - M_0 x0 with M_k = Phi_{N-1} ... Phi_k, so the problem has 3N + N
 variables (2-norm) and is solved by Clarabel in a few milliseconds. The 1-norm variant (fuel

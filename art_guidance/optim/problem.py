@@ -5,12 +5,19 @@ Variables, in order: scaled states x~ (N x 6), controls u (N x 3) [m/s], cost au
 zeta (N). States are scaled by s_x = 1/n [s] (x = s_x x~) so that every block is O(1).
 
     minimise  sum_i cost_i + mu' zeta + w/2 ||zeta||^2
-    s.t.      x_1 = x0,  x_{k+1} = Phi_k (x_k + B_k u_k),  x_N + B_N u_N = x_f
-              -a_i' (x_i + B_i u_i) + rhs_i <= zeta_i,  zeta >= 0
+    s.t.      x_1 = x0,  x_{k+1} = P_k z_k + r_k,  z_N = x_f
+              -a_i' z_i + rhs_i <= zeta_i,  zeta >= 0
               ||x - xbar||_inf <= r,  ||u - ubar||_inf <= r
 
-The sparsity pattern is built once per horizon; per iteration only the safety coefficients,
-the right-hand sides, the penalty multipliers and the weight change (updated in place).
+with the post-burn state linearised about the reference, ``z_k = E_k x_k + B_k u_k - j_k``
+(`dynamics.DeputyLinearization`: B at the deputy's reference state, E = I + d(B u)/dx, P = Phi
+plus the slope of the second-order along-track drift, r the affine remainder that makes the
+model exact along the reference). Before `set_dynamics` is called the rows hold the linear model
+of the convex problem (E = I, B = B(0), P = Phi, r = j = 0).
+
+The sparsity pattern is built once per horizon; per iteration only the dynamics and safety
+coefficients, the right-hand sides, the penalty multipliers and the weight change (updated in
+place).
 """
 from __future__ import annotations
 
@@ -19,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from art_guidance.dynamics import Horizon, mean_motion
+from art_guidance.dynamics import DeputyLinearization, Horizon, mean_motion
 from art_guidance.errors import InputError
 from art_guidance.optim.solvers import Cones, CscPattern, SolverOutput, make_solver
 
@@ -89,15 +96,20 @@ class ScpSubproblem:
         # x_{k+1} - Phi_k x_k - Phi_k B_k u_k = 0 for k = 0 .. n-2, one block of 6 rows each
         r = (6 + 6 * np.arange(n - 1)[:, None] + np.arange(6))[:, :, None]  # (n-1, 6, 1)
         trip.add(r, self.ix[1:][:, None, :], eye6)
-        trip.add(r, self.ix[:-1][:, None, :], -h.stm)
-        trip.add(r, self.iu[:-1][:, None, :], -(h.stm @ h.b[:-1]) / sx)
+        self._slot_dx = trip.add(r, self.ix[:-1][:, None, :], -h.stm)
+        self._slot_du = trip.add(r, self.iu[:-1][:, None, :], -(h.stm @ h.b[:-1]) / sx)
         row = 6 * n
         r = row + np.arange(6)[:, None]
-        trip.add(r, self.ix[n - 1][None, :], eye6)
-        trip.add(r, self.iu[n - 1][None, :], h.b[n - 1] / sx)
+        self._slot_fx = trip.add(r, self.ix[n - 1][None, :], eye6)
+        self._slot_fu = trip.add(r, self.iu[n - 1][None, :], h.b[n - 1] / sx)
+        self._roe_f_m = roe_f_m
         b_zero = [roe0_m / sx, np.zeros(6 * (n - 1)), roe_f_m / sx]
         row += 6
         n_zero = row
+        # post-burn model z = e x + bu u - jx used by the safety rows (`set_dynamics`)
+        self._e = np.broadcast_to(eye6, (n, 6, 6))
+        self._bu = h.b
+        self._jx = np.zeros((n, 6))
         # safety rows (k per node): -a_im' (sx x~_i + B_i u_i) - zeta_i <= -rhs_im
         r_safe = row + np.arange(n * self.k).reshape(n, self.k)
         self._slot_ax = trip.add(r_safe[:, :, None], self.ix[:, None, :], 0.0)
@@ -150,12 +162,37 @@ class ScpSubproblem:
             self._b[row + m:row + 2 * m] = rad - ref
             row += 2 * m
 
+    def set_dynamics(self, lin: DeputyLinearization) -> None:
+        """Dynamics, terminal and post-burn rows linearised about a reference (see module doc).
+
+        Rows ``x_{k+1} - P_k E_k x_k - P_k B_k u_k = r_k`` with ``r_k = xbar_{k+1} - P_k (zbar_k
+        + j_k)`` and the terminal ``E_N x_N + B_N u_N = x_f + j_N``, all exact at the reference.
+        Call `set_safety` afterwards: its rows use this post-burn model.
+        """
+        sx = self.sx
+        pe = lin.p @ lin.e[:-1]  # (N-1, 6, 6)
+        pb = lin.p @ lin.b[:-1]  # (N-1, 6, 3)
+        self._a_vals[self._slot_dx] = -pe
+        self._a_vals[self._slot_du] = -pb / sx
+        self._a_vals[self._slot_fx] = lin.e[-1]
+        self._a_vals[self._slot_fu] = lin.b[-1] / sx
+        zj = lin.z[:-1] + lin.jx[:-1]
+        rem = lin.roe_m[1:] - (lin.p @ zj[:, :, None])[:, :, 0]  # (N-1, 6) [m]
+        self._b[6:6 * self.n] = rem.ravel() / sx
+        self._b[6 * self.n:6 * self.n + 6] = (self._roe_f_m + lin.jx[-1]) / sx
+        self._e, self._bu, self._jx = lin.e, lin.b, lin.jx
+
     def set_safety(self, a: np.ndarray, rhs: np.ndarray) -> None:
-        """Linearised rows a_im' z_i >= rhs_im, a (N, k, 6), rhs (N, k), z_i = x_i + B_i u_i."""
+        """Linearised rows a_im' z_i >= rhs_im, a (N, k, 6), rhs (N, k), z_i the post-burn ROE.
+
+        ``z_i = E_i x_i + B_i u_i - j_i`` with the current post-burn model (`set_dynamics`;
+        ``x_i + B_i u_i`` before it is called).
+        """
         a = np.asarray(a, float).reshape(self.n, self.k, 6)
-        self._a_vals[self._slot_ax] = -a * self.sx
-        self._a_vals[self._slot_au] = -np.einsum("kmi,kij->kmj", a, self.horizon.b)
-        self._b[self._row_safe] = -np.asarray(rhs, float).reshape(self.n, self.k)
+        self._a_vals[self._slot_ax] = -np.einsum("kmi,kij->kmj", a, self._e) * self.sx
+        self._a_vals[self._slot_au] = -np.einsum("kmi,kij->kmj", a, self._bu)
+        rhs = np.asarray(rhs, float).reshape(self.n, self.k)
+        self._b[self._row_safe] = -(rhs + np.einsum("kmi,ki->km", a, self._jx))
 
     def set_penalty(self, mu: np.ndarray, weight: float) -> None:
         """Penalty mu' zeta + w/2 ||zeta||^2 on the virtual buffers."""
@@ -171,7 +208,10 @@ class ScpSubproblem:
             p = sp.csc_matrix((p_data, (self.iz, self.iz)), shape=(self.n_var, self.n_var))
             a = sp.csc_matrix((a_data, self._pattern.indices, self._pattern.indptr),
                               shape=self._pattern.shape)
-            self._solver = make_solver(self.solver_name, p, self._q, a, self._b, self.cones)
+            # every block is O(1) by construction (states scaled by s_x, safety rows
+            # normalised): Clarabel's own equilibration only adds interior-point iterations
+            self._solver = make_solver(self.solver_name, p, self._q, a, self._b, self.cones,
+                                       scaled=True)
         else:
             self._solver.update(q=self._q, b=self._b, a_data=a_data, p_data=p_data)
         out = self._solver.solve()

@@ -105,7 +105,7 @@ class ClarabelSolver(_UpdatableSolver):
 
     def __init__(self, p: sp.csc_matrix, q: np.ndarray, a: sp.csc_matrix, b: np.ndarray,
                  cones: Cones, tol: float = 1e-8, max_iter: int = 100,
-                 refine: bool = False) -> None:
+                 refine: bool = False, equilibrate: bool = True) -> None:
         if a.shape[0] != cones.n_rows:
             raise SolverError(f"A has {a.shape[0]} rows, cones describe {cones.n_rows}")
         settings = clarabel.DefaultSettings()
@@ -118,6 +118,9 @@ class ClarabelSolver(_UpdatableSolver):
         # Iterative refinement of each KKT solve roughly doubles the time here and changed the
         # subproblem objectives by < 1e-8 relative (measured); off unless asked for.
         settings.iterative_refinement_enable = refine
+        # Ruiz equilibration: off for problems assembled already scaled (the SCP subproblem:
+        # 22 instead of 30 interior-point iterations, objectives equal to 3e-8 relative)
+        settings.equilibrate_enable = equilibrate
         self._solver = clarabel.DefaultSolver(sp.triu(p, format="csc"), np.asarray(q, float),
                                               a, np.asarray(b, float),
                                               _clarabel_cones(cones), settings)
@@ -172,10 +175,18 @@ SOLVERS = {"clarabel": ClarabelSolver, "osqp": OsqpSolver}
 
 
 def make_solver(name: str, p: sp.csc_matrix, q: np.ndarray, a: sp.csc_matrix, b: np.ndarray,
-                cones: Cones) -> ClarabelSolver | OsqpSolver:
-    """Construct a solver by name ('clarabel' or 'osqp')."""
+                cones: Cones, scaled: bool = False) -> ClarabelSolver | OsqpSolver:
+    """Construct a solver by name ('clarabel' or 'osqp').
+
+    Args:
+        name: 'clarabel' or 'osqp'.
+        p, q, a, b, cones: the problem (see the solver classes).
+        scaled: the data is already well scaled (Clarabel then skips its equilibration).
+    """
     try:
         cls = SOLVERS[name]
     except KeyError:
         raise SolverError(f"unknown solver {name!r}; choose from {sorted(SOLVERS)}") from None
+    if cls is ClarabelSolver:
+        return cls(p, q, a, b, cones, equilibrate=not scaled)
     return cls(p, q, a, b, cones)

@@ -280,11 +280,15 @@ def test_stored_quantities_are_consistent(chance):
         assert rtg[0] == pytest.approx(-cost, rel=1e-12)
         assert cost == pytest.approx(np.linalg.norm(dv, axis=1).sum(), rel=1e-12)
         assert cost == chance["stage_cost_mps"][i, kept - 1]
-        assert cost >= chance["cvx_cost_mps"][i] * (1 - 1e-6)  # CVX: the lower bound
+        # CVX: the lower bound of the linear model's problem; SCVx* plans with B at the deputy's
+        # state, which can cost ~1e-4 less (measured: -1.1e-4 at most, 50 scenarios)
+        assert cost >= chance["cvx_cost_mps"][i] * (1 - 1e-3)
         assert np.all(np.diff(rtg) >= 0) and rtg[-1] == pytest.approx(-np.linalg.norm(dv[-1]))
-        assert np.array_equal(horizon.propagate(chance["roe0_m"][i], dv), roe)
+        # SCVx* trajectories: the deputy-aware model (CVX above: the linear one)
+        assert np.array_equal(horizon.propagate_nonlinear(chance["roe0_m"][i], dv), roe)
         assert np.array_equal(horizon.to_rtn(roe), chance["rtn"][i])
-        assert np.allclose(horizon.final_post_burn(roe, dv), chance["roe_f_m"][i], atol=1e-3)
+        assert np.allclose(horizon.final_post_burn_nonlinear(roe, dv), chance["roe_f_m"][i],
+                           atol=1e-3)
         ctg = chance["constraint_to_go"][i]
         assert np.all(np.diff(ctg) <= 0) and ctg[-1] in (0, 1)
         assert np.array_equal(ctg, safety.evaluate(roe, dv).constraint_to_go)

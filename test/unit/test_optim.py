@@ -87,11 +87,13 @@ def test_scp_satisfies_nonlinear_passive_safety(setup, mode, seed):
     if res.status is ScpStatus.CONVERGED:
         assert ev.margin.min() >= 0.0 and ev.violation.sum() == 0
     assert ev.margin.min() >= -cfg.eps_feas
-    # dynamics exactly, the terminal condition to 0.1 mm (interior-point equality residual)
-    assert np.allclose(horizon.propagate(x0, res.dv_rtn_mps), res.roe_m)
-    assert np.abs(horizon.final_post_burn(res.roe_m, res.dv_rtn_mps) - xf).max() < 1e-4
-    # the safe plan costs at least the convex lower bound
-    assert res.cost_mps >= cvx.cost_mps - 1e-6
+    # the plan's states are the deputy-aware model's rollout of its controls, and they meet
+    # the model's terminal condition (Gauss-Newton projection of every iterate, 1e-5 m)
+    assert np.array_equal(horizon.propagate_nonlinear(x0, res.dv_rtn_mps), res.roe_m)
+    assert np.abs(horizon.final_post_burn_nonlinear(res.roe_m, res.dv_rtn_mps) - xf).max() <= 1e-5
+    # the safe plan costs at least the convex lower bound (of the linear model: B at the deputy's
+    # state can save ~1e-4 of it)
+    assert res.cost_mps >= cvx.cost_mps * (1 - 1e-3)
     # the CVX warm start itself violates the constraint in most of these cases
     assert len(res.history) == res.iterations
 

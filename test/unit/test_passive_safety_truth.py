@@ -11,9 +11,9 @@ the refinement error is < 1 cm).
 
 Error budget (measured here, first-order ROE -> RTN map and mean J2 STM against the truth):
 the position error along an arc grows with the largest separation rho reached so far: <= 5.3 m
-below 1.5 km, 7.6 m below 3 km, 14 m below 6 km, 25 m below 12 km, 61 m below 25 km (within
-``4 m + 2e-3 rho + rho^2 / a``). The minimum distance of truth and model differs by -5.4 ...
-+5.8 m (-15.7 ... +5.5 m on other runs of the planner), within ``BUDGET_M + BUDGET_REL * rho``
+below 1.5 km, 7.6 m below 3 km, 14 m below 6 km, 25 m below 12 km, 62 m below 25 km (within
+``4 m + 2e-3 rho + rho^2 / a``). The minimum distance of truth and model differs by -5.9 ...
++5.6 m (-15.7 ... +5.8 m on other runs of the planner), within ``BUDGET_M + BUDGET_REL * rho``
 (at most 0.77 of it): near the minimum the separation is small, first-order terms dominate.
 """
 from __future__ import annotations

@@ -9,6 +9,8 @@ import pytest
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
 from art_guidance.dynamics import (
     Horizon,
+    along_track_curvature_m,
+    control_matrix_deputy,
     eci_from_oe,
     mean_motion,
     oe_from_roe,
@@ -94,10 +96,16 @@ def test_drift_maps_match_absolute_j2_propagation(ps_det: PassiveSafety, horizon
 
 def test_post_burn(ps_det: PassiveSafety, horizon: Horizon,
                    approach: tuple[np.ndarray, np.ndarray]) -> None:
-    x, dv = approach
+    """The drift starts from the post-burn state of the planner's (deputy-aware) model."""
+    x = horizon.propagate_nonlinear(approach[0][0], approach[1])
+    dv = approach[1]
     z = ps_det.post_burn(x, dv)
-    np.testing.assert_allclose(z[7], x[7] + horizon.b[7] @ dv[7], rtol=1e-14)
-    np.testing.assert_allclose(horizon.stm[7] @ z[7], x[8], rtol=1e-12)
+    b7 = control_matrix_deputy(horizon.chief_oe[7], x[7])
+    np.testing.assert_allclose(z[7], x[7] + b7 @ dv[7], rtol=1e-14)
+    assert np.abs(b7 - horizon.b[7]).max() > 1e-4 * np.abs(horizon.b[7]).max()  # not B(0)
+    drift = along_track_curvature_m(horizon.chief_oe[7, 0], z[7, 0],
+                                    horizon.epochs_s[8] - horizon.epochs_s[7])
+    np.testing.assert_allclose(horizon.stm[7] @ z[7] + drift * np.eye(6)[1], x[8], rtol=1e-12)
 
 
 def test_zero_safety_time_is_plain_collision_avoidance(horizon: Horizon,
