@@ -30,14 +30,19 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
     held = heldout_scenarios(data)
     m = held["index"].size if n is None else min(n, held["index"].size)
     safety = build_safety(art)
+    # C_CVX(t_1) again under the current safety model (the labels may come from an older
+    # pipeline version), so both sides are judged by the same evaluation
+    keep = np.flatnonzero(data["is_test"] & (data["cvx_constraint_to_go0"] >= 0))[:m]
+    c_cvx_now = np.array([safety.evaluate(data["cvx_roe_m"][i], data["cvx_dv_rtn_mps"][i])
+                          .constraint_to_go[0] for i in keep])
     t0 = time.perf_counter()
     parts, batch = [], 50
     for s in tqdm(range(0, m, batch), desc=f"rollouts {Path(model_path).name}", unit="batch",
                   disable=not progress):
         sl = slice(s, min(s + batch, m))
         parts.append(evaluate_rollouts(art, safety, held["roe0_m"][sl], held["target_rtn"][sl],
-                                       held["cvx_cost_mps"][sl],
-                                       held["cvx_constraint_to_go0"][sl], batch_size=batch))
+                                       held["cvx_cost_mps"][sl], c_cvx_now[sl],
+                                       batch_size=batch))
     wall = time.perf_counter() - t0
     c_art = np.concatenate([p.c_art for p in parts])
     c_cvx = np.concatenate([p.c_cvx for p in parts])
@@ -49,6 +54,7 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
         "scenario_indices": [int(held["index"][0]), int(held["index"][m - 1])],
         "mode": "chance" if safety.uncertainty is not None else "deterministic",
         "c_art_t1": _distribution(c_art), "c_cvx_t1": _distribution(c_cvx),
+        "c_cvx_label_agreement": float(np.mean(c_cvx == held["cvx_constraint_to_go0"][:m])),
         "frac_c_art_zero": float(np.mean(c_art == 0)),
         "frac_c_cvx_zero": float(np.mean(c_cvx == 0)),
         "frac_c_art_below_cvx": float(np.mean(c_art < c_cvx)),
@@ -63,8 +69,9 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
 def run(args: argparse.Namespace) -> int:
     """Evaluate trained models on the held-out (test) split of a dataset: each model is rolled
     out from every held-out scenario conditioned on R(t_1) = -J_CVX and C(t_1) = 0, and its
-    realised C(t_1) and E_R are compared with the CVX solution of the same scenario (the
-    dataset's labels). Writes OUT/rollouts.json."""
+    realised C(t_1) and E_R are compared with the CVX solution of the same scenario (its C(t_1)
+    evaluated again by the current safety model; the share agreeing with the dataset's label
+    is reported). Writes OUT/rollouts.json."""
     from art_guidance.data.storage import load_dataset
 
     data = load_dataset(args.data)

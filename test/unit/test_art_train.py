@@ -123,7 +123,8 @@ def test_checkpoint_records_provenance_and_reruns_are_safe(dataset, tmp_path):
     raw = load_dataset(dataset)
     held = raw["is_test"] & (raw["cvx_constraint_to_go0"] >= 0)
     assert report["n_scenarios"] == held.sum() >= 1 and report["model_sha256"] == art.sha256
-    assert report["c_cvx_t1"]["mean"] == pytest.approx(raw["cvx_constraint_to_go0"][held].mean())
+    assert report["c_cvx_label_agreement"] == 1.0  # labels of this code = re-evaluation
+    assert report["c_cvx_t1"]["max"] <= 100
     assert sum(report["c_art_histogram"]) == held.sum()
     assert 0.0 <= report["frac_posthoc_accepted"] <= 1.0
 
