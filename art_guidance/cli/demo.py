@@ -111,7 +111,7 @@ def _warm_start_comparison(bag: object, args: argparse.Namespace, total_dv_mps: 
            "n_art_proposed": sum(bool(len(r.warm_start_art_dv_rtn_mps)) for r in records),
            "n_art_accepted": sum(r.warm_start == "art" for r in records)}
     print("flying the same seed with CVX warm starts only (in-process) for comparison ...")
-    params = dict(PARAMETERS, waypoint=args.waypoint, seed=args.seed, warm_start="cvx",
+    params = dict(PARAMETERS, rtn0=None, waypoint=args.waypoint, seed=args.seed, warm_start="cvx",
                   png_path="", summary_path="")
     loop = ClosedLoop(InProcessGuidance(GuidancePipeline(), SIM_EPOCH0_NS), params,
                       logging.getLogger("art_guidance.demo"), settle_s=0.0)
