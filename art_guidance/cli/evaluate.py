@@ -66,6 +66,38 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
     }
 
 
+def evaluate_warmstart(data: dict, model_path: str, n: int | None, threads: int,
+                       progress: bool = True) -> dict:
+    """Warm-start suite of one model on the held-out split (`art_guidance.eval.warmstart`)."""
+    import torch
+    from tqdm import tqdm
+
+    from art_guidance.art import build_safety, heldout_scenarios
+    from art_guidance.art.provider import ArtWarmStart
+    from art_guidance.config import GuidanceConfig
+    from art_guidance.eval.warmstart import compare, summarize
+    from art_guidance.planning import PlanRequest
+
+    torch.set_num_threads(threads)
+    provider = ArtWarmStart.load(model_path, threads=threads)
+    safety = build_safety(provider.art)
+    config = GuidanceConfig.load()
+    held = heldout_scenarios(data)
+    m = held["index"].size if n is None else min(n, held["index"].size)
+    chief = safety.horizon.chief_oe[0]
+    rows = []
+    t0 = time.perf_counter()
+    for i in tqdm(range(m), desc=f"warm starts {Path(model_path).name}", unit="scenario",
+                  disable=not progress):
+        req = PlanRequest(chief, held["roe0_m"][i], held["target_rtn"][i],
+                          chance_constrained=safety.uncertainty is not None)
+        rows.append(compare(req, safety, provider, config))
+    wall = time.perf_counter() - t0
+    return {"model": Path(model_path).name, "model_sha256": provider.sha256,
+            "n_scenarios": m, "wall_s": wall, "scenarios_per_s": m / wall,
+            **summarize(rows)}
+
+
 def run(args: argparse.Namespace) -> int:
     """Evaluate trained models on the held-out (test) split of a dataset: each model is rolled
     out from every held-out scenario conditioned on R(t_1) = -J_CVX and C(t_1) = 0, and its
@@ -77,6 +109,19 @@ def run(args: argparse.Namespace) -> int:
     data = load_dataset(args.data)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.suite == "warmstart":
+        report = {"data": str(args.data), "suite": args.suite,
+                  "models": [evaluate_warmstart(data, m, args.n, args.threads,
+                                                not args.no_progress) for m in args.model]}
+        write_json_atomic(out / "warmstart.json", report)
+        for r in report["models"]:
+            d = r["auto_minus_scp_cvx_mps"]
+            print(f"{r['model']} on {r['n_scenarios']} held-out scenarios: ART accepted "
+                  f"{r['accepted']}; auto - PS-CVX cost [mm/s] min {1e3 * d['min']:.2f} median "
+                  f"{1e3 * d['median']:.2f} max {1e3 * d['max']:.2f}; SCP iterations auto "
+                  f"{r['iterations_auto_mean']:.1f} vs CVX {r['iterations_cvx_mean']:.1f}")
+        print(f"report -> {out / 'warmstart.json'}")
+        return 0
     report = {"data": str(args.data), "suite": args.suite,
               "models": [evaluate_model(data, m, args.n, args.threads, not args.no_progress)
                          for m in args.model]}
@@ -100,8 +145,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, help="dataset directory (its test split is used)")
     p.add_argument("--model", action="append", required=True,
                    help="checkpoint (repeat for several models)")
-    p.add_argument("--suite", choices=["rollouts"], default="rollouts",
-                   help="what to evaluate: rollouts (ART vs CVX labels)")
+    p.add_argument("--suite", choices=["rollouts", "warmstart"], default="rollouts",
+                   help="rollouts: ART rollouts against the CVX labels (OUT/rollouts.json); "
+                   "warmstart: SCVx* from CVX and from ART per scenario, the post hoc "
+                   "decision and the auto plan, by C_CVX(t1) bin (OUT/warmstart.json)")
     p.add_argument("--n", type=int, default=None, help="at most this many held-out scenarios "
                    "(the first by sample index)")
     p.add_argument("--threads", type=int, default=2, help="torch threads")

@@ -83,9 +83,11 @@ class GuidancePipeline:
         """Plan one transfer; never raises for solver or model trouble (see
         `PlanResult.status` and `PlanResult.warm_start_reason`).
 
-        With a deadline and an ART warm start, SCVx* from ART may use `art_deadline_share` of
-        it; if that run does not converge, SCVx* is retried from CVX in the time left and the
-        better feasible plan (then the lower cost) is kept.
+        When the first SCVx* run (from the chosen warm start) does not converge and the other
+        warm start exists (CVX always; ART when the model proposed valid controls, even if the
+        post hoc check rejected them), SCVx* is retried from the other one in the time left and
+        the better feasible plan (then the lower cost) is kept. With a deadline, the first run
+        may use `art_deadline_share` of it when such a retry is possible.
         """
         t0 = time.perf_counter()
         horizon, safety = self._setup(request)
@@ -100,24 +102,25 @@ class GuidancePipeline:
         scvx = Scvx(safety, request.roe0_m, roe_f, self.scp_config,
                     samples_per_node=self.samples_per_node)
         source, reason, discarded = learned.source, learned.reason, None
-        if source == "art":
-            budget = None if self.deadline_s is None \
-                else self.deadline_s * self.config.planning.art_deadline_share
-            res = scvx.solve(learned.dv, deadline_s=budget)
-            if res.status is not ScpStatus.CONVERGED:
-                left = None if self.deadline_s is None \
-                    else max(self.deadline_s - (time.perf_counter() - t_art), 0.0)
-                retry = scvx.solve(cvx_dv, deadline_s=left)
-                keep_art = _better(res, retry)
-                kept, lost = (res, retry) if keep_art else (retry, res)
-                discarded = ScpAttempt("cvx" if keep_art else "art", lost.status, lost.cost_mps,
-                                       lost.iterations, lost.solve_time_ms)
-                reason += (f"; SCP from ART ended {res.status.name}, retried from CVX "
-                           f"({retry.status.name}): kept the {'ART' if keep_art else 'CVX'}"
-                           f"-warm-started plan")
-                source, res = ("art" if keep_art else "cvx"), kept
-        else:
-            res = scvx.solve(cvx_dv, deadline_s=self.deadline_s)
+        warm = {"cvx": cvx_dv, "art": learned.dv}
+        other = "cvx" if source == "art" else "art"
+        budget = self.deadline_s
+        if warm[other] is not None and budget is not None:
+            budget *= self.config.planning.art_deadline_share  # leave time for the retry
+        res = scvx.solve(warm[source], deadline_s=budget)
+        if res.status is not ScpStatus.CONVERGED and warm[other] is not None:
+            left = None if self.deadline_s is None \
+                else max(self.deadline_s - (time.perf_counter() - t_art), 0.0)
+            retry = scvx.solve(warm[other], deadline_s=left)
+            keep_first = _better(res, retry)
+            kept, lost = (res, retry) if keep_first else (retry, res)
+            lost_source = other if keep_first else source
+            discarded = ScpAttempt(lost_source, lost.status, lost.cost_mps, lost.iterations,
+                                   lost.solve_time_ms)
+            reason += (f"; SCP from {source.upper()} ended {res.status.name}, retried from "
+                       f"{other.upper()} ({retry.status.name}): kept the "
+                       f"{(source if keep_first else other).upper()}-warm-started plan")
+            source, res = (source if keep_first else other), kept
         t_end = time.perf_counter()
         margin = float(safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
         timings = {"setup": 1e3 * (t_setup - t0), "cvx": 1e3 * (t_cvx - t_setup),
@@ -160,7 +163,7 @@ class GuidancePipeline:
             return _Learned("art", f"ART forced although the post hoc check rejects it "
                             f"({posthoc.text()})", posthoc, proposal, dv)
         return _Learned("cvx", f"ART rejected by the post hoc check ({posthoc.text()}): CVX "
-                        "warm start", posthoc, proposal)
+                        "warm start", posthoc, proposal, dv)
 
 
 @dataclass(frozen=True)

@@ -197,3 +197,14 @@ def test_plan_cli_shows_both_warm_starts(model_path, tmp_path, capsys):
     data = json.loads(out.read_text())
     assert data["art_cost_mps"] > 0 and data["posthoc"] is not None
     assert data["model_sha256"] == ArtWarmStart.load(model_path).sha256
+
+
+def test_unconverged_cvx_scp_is_retried_from_a_rejected_rollout():
+    """A rollout the post hoc check rejects is still a second chance: when SCVx* from CVX does
+    not converge, it is retried from the rollout and the better feasible plan is kept."""
+    cfg = GuidanceConfig.load()
+    cfg = cfg.replace(scp=dataclasses.replace(cfg.scp, max_iterations=2))
+    result = GuidancePipeline(cfg, provider=Scaled(0.5)).plan(_request(4))
+    assert not result.posthoc.accepted
+    assert "retried from ART" in result.warm_start_reason and result.discarded is not None
+    assert {result.warm_start, result.discarded.warm_start} == {"art", "cvx"}
