@@ -4,8 +4,9 @@ For each scenario (paper section V, chance-constrained or deterministic by the s
 CVX is solved (J_CVX, C_CVX(t_1)); ART rolls out conditioned on R(t_1) = -J_CVX, C(t_1) = 0
 and is checked post hoc (E_R, E_C); SCVx* then runs once from CVX ("PS-CVX") and once from the
 ART rollout ("PS-ART"), both with the same configuration and no deadline. The `auto` plan is
-what the pipeline flies: PS-ART if the post hoc check accepts the rollout, else PS-CVX (the
-pipeline retries from CVX when PS-ART does not converge; `auto` here does the same).
+what the pipeline flies: PS-ART if the post hoc check accepts the rollout, else PS-CVX; when
+that run does not converge, the better of the two (`planning.pipeline.better_plan`), as the
+pipeline's retry from the other warm start gives (without a deadline).
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from art_guidance.config import GuidanceConfig
 from art_guidance.optim import ScpStatus, Scvx, solve_cvx
+from art_guidance.planning.pipeline import better_plan
 from art_guidance.planning.posthoc import posthoc_check
 from art_guidance.planning.types import PlanRequest
 from art_guidance.safety import PassiveSafety
@@ -67,12 +69,9 @@ def compare(request: PlanRequest, safety: PassiveSafety, provider: object,
                 samples_per_node=config.planning.samples_per_node)
     from_cvx = scvx.solve(cvx.dv_rtn_mps)
     from_art = scvx.solve(art_dv)
-    auto = from_cvx
-    if ph.accepted and from_art.status is ScpStatus.CONVERGED:
-        auto = from_art
-    elif ph.accepted and from_art.feasible and (not from_cvx.feasible
-                                                or from_art.cost_mps <= from_cvx.cost_mps):
-        auto = from_art
+    first, second = (from_art, from_cvx) if ph.accepted else (from_cvx, from_art)
+    auto = first if first.status is ScpStatus.CONVERGED or better_plan(first, second) \
+        else second
     return WarmStartRow(
         float(cvx.cost_mps), c_cvx, float(np.linalg.norm(art_dv, axis=1).sum()),
         int(prop.constraint_to_go[0]), float(ph.e_r), float(ph.e_c), bool(ph.accepted),

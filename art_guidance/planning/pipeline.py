@@ -112,7 +112,7 @@ class GuidancePipeline:
             left = None if self.deadline_s is None \
                 else max(self.deadline_s - (time.perf_counter() - t_art), 0.0)
             retry = scvx.solve(warm[other], deadline_s=left)
-            keep_first = _better(res, retry)
+            keep_first = better_plan(res, retry)
             kept, lost = (res, retry) if keep_first else (retry, res)
             lost_source = other if keep_first else source
             discarded = ScpAttempt(lost_source, lost.status, lost.cost_mps, lost.iterations,
@@ -177,7 +177,7 @@ class _Learned:
     dv: np.ndarray | None = None
 
 
-def _better(a: ScpResult, b: ScpResult) -> bool:
+def better_plan(a: ScpResult, b: ScpResult) -> bool:
     """True if `a` is at least as good as `b`: feasible first, then the lower cost (feasible)
     or the smaller violation (neither feasible)."""
     if a.feasible != b.feasible:
