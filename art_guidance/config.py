@@ -248,12 +248,16 @@ class PlanningConfig:
     samples_per_node: int = 3
     posthoc: PosthocThresholds = field(default_factory=PosthocThresholds)
     art_deadline_share: float = 0.6
+    also_solve_from_cvx: bool = True
 
     def __post_init__(self) -> None:
         k = self.samples_per_node
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ConfigError(f"samples_per_node must be an integer >= 1, "
                               f"got {self.samples_per_node!r}")
+        if not isinstance(self.also_solve_from_cvx, bool):
+            raise ConfigError(f"also_solve_from_cvx must be true or false, got "
+                              f"{self.also_solve_from_cvx!r}")
         share = self.art_deadline_share
         if isinstance(share, bool) or not isinstance(share, (int, float)) \
                 or not 0.0 < share < 1.0:

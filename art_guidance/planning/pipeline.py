@@ -121,6 +121,18 @@ class GuidancePipeline:
                        f"{other.upper()} ({retry.status.name}): kept the "
                        f"{(source if keep_first else other).upper()}-warm-started plan")
             source, res = (source if keep_first else other), kept
+        elif source == "art" and self.config.planning.also_solve_from_cvx:
+            left = None if self.deadline_s is None \
+                else self.deadline_s - (time.perf_counter() - t_art)
+            if left is None or left > 0.0:
+                alt = scvx.solve(cvx_dv, deadline_s=left)
+                keep_art = better_plan(res, alt)
+                kept, lost = (res, alt) if keep_art else (alt, res)
+                discarded = ScpAttempt("cvx" if keep_art else "art", lost.status,
+                                       lost.cost_mps, lost.iterations, lost.solve_time_ms)
+                reason += (f"; also solved from CVX ({alt.status.name}, {alt.cost_mps:.4f} "
+                           f"m/s): kept the {'ART' if keep_art else 'CVX'}-warm-started plan")
+                source, res = ("art" if keep_art else "cvx"), kept
         t_end = time.perf_counter()
         margin = float(safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
         timings = {"setup": 1e3 * (t_setup - t0), "cvx": 1e3 * (t_cvx - t_setup),
