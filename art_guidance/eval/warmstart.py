@@ -6,7 +6,8 @@ and is checked post hoc (E_R, E_C); SCVx* then runs once from CVX ("PS-CVX") and
 ART rollout ("PS-ART"), both with the same configuration and no deadline. The `auto` plan is
 what the pipeline flies: PS-ART if the post hoc check accepts the rollout, else PS-CVX; when
 that run does not converge, the better of the two (`planning.pipeline.better_plan`), as the
-pipeline's retry from the other warm start gives (without a deadline).
+pipeline's retry from the other warm start gives (without a deadline); with
+`also_solve_from_cvx`, an accepted rollout's plan is always compared with PS-CVX.
 """
 from __future__ import annotations
 
@@ -70,8 +71,11 @@ def compare(request: PlanRequest, safety: PassiveSafety, provider: object,
     from_cvx = scvx.solve(cvx.dv_rtn_mps)
     from_art = scvx.solve(art_dv)
     first, second = (from_art, from_cvx) if ph.accepted else (from_cvx, from_art)
-    auto = first if first.status is ScpStatus.CONVERGED or better_plan(first, second) \
-        else second
+    if ph.accepted and config.planning.also_solve_from_cvx:
+        auto = first if better_plan(first, second) else second
+    else:
+        auto = first if first.status is ScpStatus.CONVERGED or better_plan(first, second) \
+            else second
     return WarmStartRow(
         float(cvx.cost_mps), c_cvx, float(np.linalg.norm(art_dv, axis=1).sum()),
         int(prop.constraint_to_go[0]), float(ph.e_r), float(ph.e_c), bool(ph.accepted),
