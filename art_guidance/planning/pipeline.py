@@ -121,7 +121,8 @@ class GuidancePipeline:
                        f"{other.upper()} ({retry.status.name}): kept the "
                        f"{(source if keep_first else other).upper()}-warm-started plan")
             source, res = (source if keep_first else other), kept
-        elif source == "art" and self.config.planning.also_solve_from_cvx:
+        elif source == "art" and request.warm_start == WarmStart.AUTO.value \
+                and self.config.planning.also_solve_from_cvx:
             left = None if self.deadline_s is None \
                 else self.deadline_s - (time.perf_counter() - t_art)
             if left is None or left > 0.0:
