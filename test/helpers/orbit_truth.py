@@ -132,6 +132,15 @@ def deputy_from_roe(chief: np.ndarray, roe_m: np.ndarray) -> np.ndarray:
                      wd, ud - wd], -1)
 
 
+def rtn_basis(chief_state: np.ndarray) -> np.ndarray:
+    """Columns R, T, N of the chief's RTN frame, (3, 3), from one (6,) ECI state."""
+    r, v = chief_state[:3], chief_state[3:]
+    r_hat = r / np.linalg.norm(r)
+    n_hat = np.cross(r, v)
+    n_hat /= np.linalg.norm(n_hat)
+    return np.column_stack([r_hat, np.cross(n_hat, r_hat), n_hat])
+
+
 def rtn_position(chief_state: np.ndarray, deputy_state: np.ndarray) -> np.ndarray:
     """Deputy position relative to the chief in the chief's RTN axes [m], (..., 3)."""
     r, v = chief_state[..., :3], chief_state[..., 3:]

@@ -44,6 +44,7 @@ from helpers.orbit_truth import J2, MU, R_E
 from helpers.orbit_truth import accel as _accel
 from helpers.orbit_truth import cart_from_kep as _cart_from_kep
 from helpers.orbit_truth import deputy_from_roe as _deputy_from_roe
+from helpers.orbit_truth import rtn_basis as _rtn_basis
 from helpers.orbit_truth import roe as _roe
 from helpers.orbit_truth import wrap as _wrap
 from scipy.integrate import solve_ivp
@@ -113,15 +114,6 @@ def _kep_from_cart(state: np.ndarray) -> np.ndarray:
     two_pi = 2.0 * np.pi
     return np.stack([a, np.hypot(ex, ey), i, raan % two_pi, np.arctan2(ey, ex) % two_pi,
                      (ecc - esin_e) % two_pi], -1)
-
-
-def _rtn_basis(chief_state: np.ndarray) -> np.ndarray:
-    """Columns R, T, N of the chief's RTN frame."""
-    r, v = chief_state[:3], chief_state[3:]
-    r_hat = r / np.linalg.norm(r)
-    n_hat = np.cross(r, v)
-    n_hat /= np.linalg.norm(n_hat)
-    return np.column_stack([r_hat, np.cross(n_hat, r_hat), n_hat])
 
 
 def _kepler_period(a: np.ndarray) -> np.ndarray:

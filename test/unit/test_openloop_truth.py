@@ -31,14 +31,6 @@ MISS_M = 30.0
 LINEAR_MISS_M = 100.0  # the linear model's plans must miss by more (sensitivity)
 
 
-def _rtn_basis(chief_state: np.ndarray) -> np.ndarray:
-    r, v = chief_state[:3], chief_state[3:]
-    r_hat = r / np.linalg.norm(r)
-    n_hat = np.cross(r, v)
-    n_hat /= np.linalg.norm(n_hat)
-    return np.column_stack([r_hat, np.cross(n_hat, r_hat), n_hat])
-
-
 def _fly(chief: np.ndarray, roe0_m: np.ndarray, epochs_s: np.ndarray,
          dv_rtn_mps: np.ndarray) -> np.ndarray:
     """Final RTN positions (K, 3) [m] of K deputies (initial ROE (K, 6), burns (K, N, 3))."""
@@ -46,7 +38,7 @@ def _fly(chief: np.ndarray, roe0_m: np.ndarray, epochs_s: np.ndarray,
     mean = np.vstack([chief, truth.deputy_from_roe(np.broadcast_to(chief, (k, 6)), roe0_m)])
     states = truth.cart_from_kep(truth.osculating_from_mean(mean))
     for node, t in enumerate(epochs_s):
-        states[1:, 3:] += dv_rtn_mps[:, node] @ _rtn_basis(states[0]).T
+        states[1:, 3:] += dv_rtn_mps[:, node] @ truth.rtn_basis(states[0]).T
         if node + 1 < epochs_s.size:
             dt = float(epochs_s[node + 1] - t)
             states = truth.integrate(states, dt)(dt).reshape(-1, 6)
