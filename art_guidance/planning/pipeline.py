@@ -108,32 +108,24 @@ class GuidancePipeline:
         if warm[other] is not None and budget is not None:
             budget *= self.config.planning.art_deadline_share  # leave time for the retry
         res = scvx.solve(warm[source], deadline_s=budget)
+        second = None  # (warm start of a second SCVx* run, why)
         if res.status is not ScpStatus.CONVERGED and warm[other] is not None:
-            left = None if self.deadline_s is None \
-                else max(self.deadline_s - (time.perf_counter() - t_art), 0.0)
-            retry = scvx.solve(warm[other], deadline_s=left)
-            keep_first = better_plan(res, retry)
-            kept, lost = (res, retry) if keep_first else (retry, res)
-            lost_source = other if keep_first else source
-            discarded = ScpAttempt(lost_source, lost.status, lost.cost_mps, lost.iterations,
-                                   lost.solve_time_ms)
-            reason += (f"; SCP from {source.upper()} ended {res.status.name}, retried from "
-                       f"{other.upper()} ({retry.status.name}): kept the "
-                       f"{(source if keep_first else other).upper()}-warm-started plan")
-            source, res = (source if keep_first else other), kept
+            second = (other, f"SCP from {source.upper()} ended {res.status.name}, retried from "
+                             f"{other.upper()}")
         elif source == "art" and request.warm_start == WarmStart.AUTO.value \
-                and self.config.planning.also_solve_from_cvx:
-            left = None if self.deadline_s is None \
-                else self.deadline_s - (time.perf_counter() - t_art)
-            if left is None or left > 0.0:
-                alt = scvx.solve(cvx_dv, deadline_s=left)
-                keep_art = better_plan(res, alt)
-                kept, lost = (res, alt) if keep_art else (alt, res)
-                discarded = ScpAttempt("cvx" if keep_art else "art", lost.status,
-                                       lost.cost_mps, lost.iterations, lost.solve_time_ms)
-                reason += (f"; also solved from CVX ({alt.status.name}, {alt.cost_mps:.4f} "
-                           f"m/s): kept the {'ART' if keep_art else 'CVX'}-warm-started plan")
-                source, res = ("art" if keep_art else "cvx"), kept
+                and self.config.planning.also_solve_from_cvx and self._time_left(t_art) != 0.0:
+            second = ("cvx", "also solved from CVX")
+        if second is not None:
+            alt_source, why = second
+            alt = scvx.solve(warm[alt_source], deadline_s=self._time_left(t_art))
+            keep_first = better_plan(res, alt)
+            kept, lost = (res, alt) if keep_first else (alt, res)
+            discarded = ScpAttempt(alt_source if keep_first else source, lost.status,
+                                   lost.cost_mps, lost.iterations, lost.solve_time_ms)
+            source = source if keep_first else alt_source
+            reason += (f"; {why} ({alt.status.name}, {alt.cost_mps:.4f} m/s): kept the "
+                       f"{source.upper()}-warm-started plan")
+            res = kept
         t_end = time.perf_counter()
         margin = float(safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
         timings = {"setup": 1e3 * (t_setup - t0), "cvx": 1e3 * (t_cvx - t_setup),
@@ -143,6 +135,12 @@ class GuidancePipeline:
                           res.roe_m, horizon.to_rtn(res.roe_m), res.cost_mps, res, cvx, source,
                           learned.posthoc, margin, timings, request, learned.proposal, reason,
                           discarded)
+
+    def _time_left(self, t_start: float) -> float | None:
+        """What is left of the SCP deadline since `t_start` [s] (None: no deadline)."""
+        if self.deadline_s is None:
+            return None
+        return max(self.deadline_s - (time.perf_counter() - t_start), 0.0)
 
     def _learned(self, request: PlanRequest, horizon: Horizon, safety: PassiveSafety,
                  cvx: ConvexSolution) -> "_Learned":
