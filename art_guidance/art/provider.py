@@ -23,8 +23,7 @@ import torch
 
 from art_guidance.art.checkpoint import TrainedArt
 from art_guidance.art.checkpoint import load as load_checkpoint
-from art_guidance.art.rollout import rollout
-from art_guidance.config import GuidanceConfig
+from art_guidance.art.rollout import rollout, training_config
 from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import ModelError
 from art_guidance.optim import ConvexSolution
@@ -158,11 +157,11 @@ class ArtWarmStart:
 
 def _training_spacing_s(art: TrainedArt) -> float | None:
     """Node spacing of the horizon the model's dataset was generated on [s]."""
-    bundle = art.meta.get("dataset", {}).get("guidance_config")
-    if not bundle:
-        return None
     try:
-        sc = GuidanceConfig.from_json(bundle).scenario
+        config = training_config(art)
     except Exception:  # provenance is informative; a model without it is still usable
         return None
+    if config is None:
+        return None
+    sc = config.scenario
     return sc.n_orbits * orbital_period_s(sc.chief_oe[0]) / (sc.n_nodes - 1)

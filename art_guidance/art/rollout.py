@@ -72,6 +72,17 @@ class RolloutResult:
         return np.cumsum(self.violation[:, ::-1], axis=1)[:, ::-1]
 
 
+def training_config(art: TrainedArt) -> GuidanceConfig | None:
+    """The configuration bundle of the dataset the model was trained on (None if the
+    checkpoint does not record one).
+
+    Raises:
+        ConfigError: a recorded bundle that is malformed.
+    """
+    bundle = art.meta.get("dataset", {}).get("guidance_config")
+    return GuidanceConfig.from_json(bundle) if bundle else None
+
+
 def build_safety(art: TrainedArt, chance_constrained: bool | None = None) -> PassiveSafety:
     """The horizon and passive-safety model of the dataset the model was trained on.
 
@@ -81,8 +92,7 @@ def build_safety(art: TrainedArt, chance_constrained: bool | None = None) -> Pas
         chance_constrained: override the dataset's mode (None: chance if the dataset was).
     """
     data = art.meta.get("dataset", {})
-    bundle = data.get("guidance_config")
-    config = GuidanceConfig.from_json(bundle) if bundle else GuidanceConfig()
+    config = training_config(art) or GuidanceConfig()
     chance = data.get("mode") == "chance" if chance_constrained is None else chance_constrained
     scenario = config.scenario
     chief = np.array(scenario.chief_oe)
