@@ -50,19 +50,21 @@ class RolloutEvaluation:
                 "frac_posthoc_accepted": float(self.accepted.mean())}
 
 
-def heldout_scenarios(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+def heldout_scenarios(data: dict[str, np.ndarray],
+                      extra: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
     """The test-split scenarios of a loaded dataset whose CVX solve succeeded.
 
     Args:
         data: `art_guidance.data.storage.load_dataset` output.
+        extra: further dataset fields to select for the same scenarios (e.g. "cvx_roe_m").
 
     Returns:
         {"roe0_m": (M, 6), "target_rtn": (M, 6), "cvx_cost_mps": (M,),
-        "cvx_constraint_to_go0": (M,), "index": (M,)}.
+        "cvx_constraint_to_go0": (M,), "index": (M,)} and the `extra` fields.
     """
     keep = data["is_test"] & (data["cvx_constraint_to_go0"] >= 0)
     return {k: data[k][keep] for k in ("roe0_m", "target_rtn", "cvx_cost_mps",
-                                       "cvx_constraint_to_go0", "index")}
+                                       "cvx_constraint_to_go0", "index", *extra)}
 
 
 def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,

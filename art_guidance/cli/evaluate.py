@@ -27,14 +27,13 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
 
     torch.set_num_threads(threads)
     art = load(model_path)
-    held = heldout_scenarios(data)
+    held = heldout_scenarios(data, ("cvx_roe_m", "cvx_dv_rtn_mps"))
     m = held["index"].size if n is None else min(n, held["index"].size)
     safety = build_safety(art)
     # C_CVX(t_1) again under the current safety model (the labels may come from an older
     # pipeline version), so both sides are judged by the same evaluation
-    keep = np.flatnonzero(data["is_test"] & (data["cvx_constraint_to_go0"] >= 0))[:m]
-    c_cvx_now = np.array([safety.evaluate(data["cvx_roe_m"][i], data["cvx_dv_rtn_mps"][i])
-                          .constraint_to_go[0] for i in keep])
+    c_cvx_now = np.array([safety.evaluate(held["cvx_roe_m"][i], held["cvx_dv_rtn_mps"][i])
+                          .constraint_to_go[0] for i in range(m)])
     t0 = time.perf_counter()
     parts, batch = [], 50
     for s in tqdm(range(0, m, batch), desc=f"rollouts {Path(model_path).name}", unit="batch",
