@@ -44,6 +44,7 @@ from helpers.orbit_truth import J2, MU, R_E
 from helpers.orbit_truth import accel as _accel
 from helpers.orbit_truth import cart_from_kep as _cart_from_kep
 from helpers.orbit_truth import deputy_from_roe as _deputy_from_roe
+from helpers.orbit_truth import kep_from_nonsingular, nonsingular_from_cart
 from helpers.orbit_truth import rtn_basis as _rtn_basis
 from helpers.orbit_truth import roe as _roe
 from helpers.orbit_truth import wrap as _wrap
@@ -94,26 +95,11 @@ def _states(sol, t: float) -> np.ndarray:
 
 
 def _kep_from_cart(state: np.ndarray) -> np.ndarray:
-    """(..., 6) osculating Keplerian elements from inertial states (energy, h, e vector)."""
-    s = np.asarray(state, float)
-    r, v = s[..., :3], s[..., 3:]
-    rn = np.linalg.norm(r, axis=-1)
-    v2 = np.sum(v * v, -1)
-    rv = np.sum(r * v, -1)
-    h = np.cross(r, v)
-    hn = np.linalg.norm(h, axis=-1)
-    a = 1.0 / (2.0 / rn - v2 / MU)
-    i = np.arccos(h[..., 2] / hn)
-    raan = np.arctan2(h[..., 0], -h[..., 1])
-    e_vec = ((v2 - MU / rn)[..., None] * r - rv[..., None] * v) / MU
-    node = np.stack([np.cos(raan), np.sin(raan), np.zeros_like(raan)], -1)
-    m_hat = np.cross(h / hn[..., None], node)
-    ex, ey = np.sum(e_vec * node, -1), np.sum(e_vec * m_hat, -1)
-    esin_e, ecos_e = rv / np.sqrt(MU * a), 1.0 - rn / a
-    ecc = np.arctan2(esin_e, ecos_e)
-    two_pi = 2.0 * np.pi
-    return np.stack([a, np.hypot(ex, ey), i, raan % two_pi, np.arctan2(ey, ex) % two_pi,
-                     (ecc - esin_e) % two_pi], -1)
+    """(..., 6) osculating Keplerian elements from inertial states (energy, h, e vector), the
+    angles in [0, 2 pi)."""
+    oe = kep_from_nonsingular(nonsingular_from_cart(state))
+    oe[..., 3:] %= 2.0 * np.pi
+    return oe
 
 
 def _kepler_period(a: np.ndarray) -> np.ndarray:
