@@ -276,8 +276,16 @@ class DriftArcs:
         return d, g, np.sqrt(np.clip(var, 0.0, None))
 
     # ------------------------------------------------------------------ certified minimum
-    def minimum(self, it: ArcItems) -> ArcMinimum:
-        """Certified minimum of the margin on every arc of `it` (module docstring, step 3)."""
+    def minimum(self, it: ArcItems, sign_only: bool = False) -> ArcMinimum:
+        """Certified minimum of the margin on every arc of `it` (module docstring, step 3).
+
+        `sign_only`: decide only whether each minimum is below zero (the violation indicator),
+        which needs far fewer evaluations near the ellipsoid: an arc stops at its first
+        evaluated point with a negative margin, and an interval is closed once its bound is
+        >= 0. The returned margins then carry only their sign (the same as the full search's,
+        except for minima within the certification tolerance of zero); t* and the candidates
+        are those of the shortened search.
+        """
         m_items = it.node.size
         sel = np.arange(m_items)
         grid = self.points(it, sel, np.broadcast_to(self.tau_s, (m_items, self.n_samples)),
@@ -291,7 +299,7 @@ class DriftArcs:
             item = np.repeat(sel, self.n_samples - 1)
             lo, hi = _intervals(grid)
             levels = self._search(it, item, lo, hi, np.zeros(item.size, bool), best, floor,
-                                  cands)
+                                  cands, sign_only)
         c_item, c_tau, c_m, c_row = (np.concatenate(c) for c in zip(*cands))
         order = np.lexsort((c_m, c_item))
         first = order[np.searchsorted(c_item[order], sel)]
@@ -300,15 +308,17 @@ class DriftArcs:
                           c_tau[row], c_m[row], levels)
 
     def _search(self, it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints,
-                refined: np.ndarray, best: np.ndarray, floor: np.ndarray, cands: list) -> int:
+                refined: np.ndarray, best: np.ndarray, floor: np.ndarray, cands: list,
+                sign_only: bool = False) -> int:
         """Refine brackets and split uncertified intervals until all are certified.
 
         Updates in place `best` (M,), the smallest margin evaluated, and `floor` (M,), the
         smallest bound of the intervals left unsplit (>= best - tolerance once certified).
         """
+        target = _sign_target if sign_only else _target
         for level in range(MAX_LEVELS + 1):
-            lb = self.lower_bound(it, item, lo, hi, _target(best)[item])
-            open_ = lb < _target(best)[item]
+            lb = self.lower_bound(it, item, lo, hi, target(best)[item])
+            open_ = lb < target(best)[item]
             bracket = open_ & (lo.dm < 0.0) & (hi.dm > 0.0) & ~refined
             if bracket.any():  # a local minimum of m that may matter: refine it
                 idx = np.flatnonzero(bracket)
@@ -316,7 +326,7 @@ class DriftArcs:
                 cands.append((r_item, r_tau, r_m, np.ones(r_m.size, bool)))
                 np.minimum.at(best, r_item, r_m)
                 refined = refined | bracket
-                open_ = lb < _target(best)[item]  # bounds stay valid; the target went down
+                open_ = lb < target(best)[item]  # bounds stay valid; the target went down
             if not open_.any() or level == MAX_LEVELS:
                 np.minimum.at(floor, item, lb)
                 return level
@@ -386,6 +396,12 @@ def _take(arr: np.ndarray, idx: np.ndarray) -> np.ndarray:
 def _target(best: np.ndarray) -> np.ndarray:
     """Certification target: ``best - CERT_TOL - CERT_TOL_REL |best|``."""
     return best - CERT_TOL - CERT_TOL_REL * np.abs(best)
+
+
+def _sign_target(best: np.ndarray) -> np.ndarray:
+    """Target of the sign-only search: 0 (capped `_target`) until an evaluated margin is
+    negative, then -inf (the arc is decided: violated)."""
+    return np.where(best < 0.0, -np.inf, np.minimum(_target(best), 0.0))
 
 
 _FIELDS = tuple(ArcPoints.__dataclass_fields__)

@@ -24,7 +24,9 @@ writes the drift in closed form and returns the certified minimum (every sample 
 either refined or carries a lower bound above it; see that module for why a fast fly-by between
 samples cannot hide). Every public method here uses that one evaluation: the margins of
 `evaluate` and `node_margins` (and hence C(t_i), the dataset's constraint-to-go, the post hoc
-E_C and the plan's `constraint_margin_m`) and the linearisation points of SCVx*.
+E_C and the plan's `constraint_margin_m`), the sign of the transformer's C updates
+(`node_violations`: the same search, stopped once the sign is decided) and the linearisation
+points of SCVx*.
 
 Linearisation (paper eqs. a_ps, b_ps, beta, divided by b_ps so that it is well scaled): at the
 reference, ``a_i = g_i(tau*) = a_ps / b_ps`` and the convex constraint is
@@ -331,6 +333,29 @@ class PassiveSafety:
         Raises:
             InputError: on a bad node index, NaN/inf or shapes that do not match.
         """
+        return self.arcs.minimum(self._node_items(i, roe_m, dv_rtn_mps)).margin
+
+    def node_violations(self, i: int, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
+        """Violation indicators of B candidate (state, burn) pairs at one node.
+
+        ``node_margins(i, ...) < 0`` decided by the sign-only search (`DriftArcs.minimum`),
+        which stops at the first point found inside the ellipsoid and does not certify the
+        minimum of a safe arc beyond >= 0: the transformer's C update needs only this, and
+        it is the rollout's dominant cost near the ellipsoid. The decision equals
+        `node_margins`' except for minima within the certification tolerance of zero
+        (|margin| < CERT_TOL + CERT_TOL_REL |margin|).
+
+        Args and raises: as `node_margins`.
+
+        Returns:
+            (B,) bool, True where the passive-safety constraint is violated.
+        """
+        items = self._node_items(i, roe_m, dv_rtn_mps)
+        return self.arcs.minimum(items, sign_only=True).margin < 0.0
+
+    # ------------------------------------------------------------------ internals
+    def _node_items(self, i: int, roe_m: object, dv_rtn_mps: object) -> ArcItems:
+        """Validated drift arcs of B (state, burn) pairs at node i (see `node_margins`)."""
         if isinstance(i, bool) or int(i) != i or not 0 <= int(i) < self.n_nodes:
             raise InputError("i", f"must be a node index in [0, {self.n_nodes})", i)
         i = int(i)
@@ -341,10 +366,8 @@ class PassiveSafety:
         if self.uncertainty is not None:
             x_cov = post_burn_covariance(x, u, self.horizon.b[i], self.horizon.psi[i],
                                          self.uncertainty)
-        items = self.arcs.items(np.full(x.shape[0], i), z, x_cov, self.q_sigma)
-        return self.arcs.minimum(items).margin
+        return self.arcs.items(np.full(x.shape[0], i), z, x_cov, self.q_sigma)
 
-    # ------------------------------------------------------------------ internals
     def _check(self, roe_m: object, dv_rtn_mps: object) -> tuple[np.ndarray, np.ndarray]:
         x = as_finite_array("roe_m", roe_m, (self.n_nodes, 6))
         u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (self.n_nodes, 3))

@@ -5,8 +5,8 @@ passive-safety model, for the default (`small`) and the paper-size model on 1 an
 threads:
 - `*_rollout_ms`: median wall time of one 100-step rollout as the planner runs it (KV cache,
   dynamics in the loop, R and C updated every step), and `*_c_update_ms` the part of it spent
-  in the safety module's node margins;
-- `*_cached_model_ms` / `*_recompute_model_ms`: the same rollout with the recorded margins
+  in the safety module's violation decisions (`node_violations`);
+- `*_cached_model_ms` / `*_recompute_model_ms`: the same rollout with the recorded decisions
   replayed, i.e. transformer + dynamics alone, with the KV cache and recomputing the whole
   context at every step; `*_cache_speedup` is their ratio;
 - batch-64 rollout throughput (rollouts/s) of the default model, with and without the C update;
@@ -35,9 +35,9 @@ from art_guidance.dynamics import roe_from_rtn_linear
 
 
 class _RecordedSafety:
-    """Delegates to a PassiveSafety; times its node margins, or replays recorded ones.
+    """Delegates to a PassiveSafety; times its violation decisions, or replays recorded ones.
 
-    Replaying gives the same rollout (same margins, hence the same C history and controls)
+    Replaying gives the same rollout (same decisions, hence the same C history and controls)
     without the safety module's cost, so the transformer + dynamics time is measured alone.
     """
 
@@ -50,22 +50,17 @@ class _RecordedSafety:
         return getattr(self._safety, name)
 
     def rewind(self, replay: bool) -> None:
-        """Start a rollout: record (real margins, timed) or replay the last recording."""
+        """Start a rollout: record (real decisions, timed) or replay the last recording."""
         self.replay, self.seconds, self._next = replay, 0.0, 0
         if not replay:
             self._tape = []
 
-    def node_margins(self, i, roe_m, dv_rtn_mps):
+    def node_violations(self, i, roe_m, dv_rtn_mps):
         if self.replay:
             self._next += 1
             return self._tape[self._next - 1]
         t = time.perf_counter()
-        if hasattr(self._safety, "node_margins"):
-            out = self._safety.node_margins(i, roe_m, dv_rtn_mps)
-        else:  # the rollout's fallback: evaluate on full-length arrays
-            n = self._safety.n_nodes
-            out = np.array([self._safety.evaluate(np.broadcast_to(x, (n, 6)), np.broadcast_to(
-                u, (n, 3))).margin[i] for x, u in zip(roe_m, dv_rtn_mps)])
+        out = self._safety.node_violations(i, roe_m, dv_rtn_mps)
         self.seconds += time.perf_counter() - t
         self._tape.append(out)
         return out
@@ -98,7 +93,7 @@ def _time_rollouts(art: TrainedArt, safety: _RecordedSafety, x0: np.ndarray,
                    replay: bool) -> tuple[float, float]:
     """Median wall time [ms] of a rollout and of the safety module's share of it."""
     total, part = [], []
-    for k in range(repeats + 1):  # the first run warms up (and records the margins)
+    for k in range(repeats + 1):  # the first run warms up (and records the decisions)
         safety.rewind(replay)
         t = time.perf_counter()
         rollout(art, safety, x0, targets, -0.3, use_cache=use_cache)

@@ -4,9 +4,11 @@ At every planned node i (from `start_node` to the last node N - 1), for a batch 
 
 1. the transformer predicts the control u_i from the goal, R(t_i), C(t_i) and the state x(t_i)
    (and everything before them in the context);
-2. the passive-safety margin of node i is evaluated for (x_i, u_i) with the project's safety
-   model (chance-constrained with the covariance recovered from x_i and u_i, or
-   deterministic, whichever `safety` is), and the violation indicator v_i = [margin < 0];
+2. the violation indicator v_i = [margin < 0] of node i is decided for (x_i, u_i) with the
+   project's safety model (chance-constrained with the covariance recovered from x_i and u_i,
+   or deterministic, whichever `safety` is), by its sign-only search
+   (`PassiveSafety.node_violations`: the continuous minimum of `evaluate`, stopped once its
+   sign is known);
 3. the performance parameters are updated, R(t_{i+1}) = R(t_i) + ||u_i||,
    C(t_{i+1}) = C(t_i) - v_i, and the state propagated in ROE,
    x_{i+1} = Phi_i (x_i + B_i u_i) (the RTN representation feeds Psi_{i+1} x_{i+1}).
@@ -43,8 +45,7 @@ class RolloutResult:
         roe_m: (B, T, 6) pre-burn a-scaled ROE at the planned nodes [m].
         reward_to_go_mps: (B, T) R(t_i) fed to the model (conditioning history) [m/s].
         constraint_to_go: (B, T) C(t_i) fed to the model (conditioning history).
-        margin: (B, T) normalised passive-safety margin of each node [-], < 0 violated.
-        violation: (B, T) int 0/1 violation indicator.
+        violation: (B, T) int 0/1 violation indicator v_i.
     """
 
     nodes: np.ndarray
@@ -52,7 +53,6 @@ class RolloutResult:
     roe_m: np.ndarray
     reward_to_go_mps: np.ndarray
     constraint_to_go: np.ndarray
-    margin: np.ndarray
     violation: np.ndarray
 
     @property
@@ -209,7 +209,8 @@ def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: o
     goal = target if rtn_repr else np.linalg.solve(horizon.psi[-1], target.T).T  # (B, 6)
     norm = art.normalizer
     dv, roe = np.empty((b, n_steps, 3)), np.empty((b, n_steps, 6))
-    rs, cs, margins = np.empty((b, n_steps)), np.empty((b, n_steps)), np.empty((b, n_steps))
+    rs, cs = np.empty((b, n_steps)), np.empty((b, n_steps))
+    viol = np.empty((b, n_steps), dtype=int)
     with torch.inference_mode():
         policy = (_CachedPolicy if use_cache else _RecomputePolicy)(
             art, norm.normalize("goal", goal), k - n_steps, n_steps)
@@ -219,11 +220,10 @@ def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: o
             u_n = policy.control(j, norm.normalize("reward", r), norm.normalize("constraint", c),
                                  norm.normalize("state", state), u_n)  # (B, 3)
             u = norm.denormalize("control", u_n.astype(float))  # (B, 3) [m/s]
-            margin = safety.node_margins(node, x, u)  # (B,)
-            dv[:, j], roe[:, j], rs[:, j], cs[:, j], margins[:, j] = u, x, r, c, margin
+            v = safety.node_violations(node, x, u)  # (B,) bool
+            dv[:, j], roe[:, j], rs[:, j], cs[:, j], viol[:, j] = u, x, r, c, v
             r = r + np.sqrt(np.einsum("bi,bi->b", u, u))  # R(t_{i+1}) = R(t_i) + ||u_i||
-            c = c - (margin < 0.0)  # C(t_{i+1}) = C(t_i) - v_i
+            c = c - v  # C(t_{i+1}) = C(t_i) - v_i
             if node < n_nodes - 1:
                 x = (x + u @ horizon.b[node].T) @ horizon.stm[node].T  # (B, 6)
-    return RolloutResult(np.arange(start, n_nodes), dv, roe, rs, cs, margins,
-                         (margins < 0.0).astype(int))
+    return RolloutResult(np.arange(start, n_nodes), dv, roe, rs, cs, viol)

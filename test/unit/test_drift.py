@@ -221,6 +221,36 @@ def test_node_margins_equal_evaluate(models: dict, approach: tuple, plans: list,
         assert batch[b] == pytest.approx(ps.evaluate(x_full, u_full).margin[i], abs=1e-12)
 
 
+@pytest.mark.parametrize("kind", ["det", "cc"])
+def test_node_violations_decide_the_sign_of_node_margins(models: dict, approach: tuple,
+                                                         plans: list, kind: str) -> None:
+    """The sign-only search gives node_margins(...) < 0 for every candidate whose margin is
+    outside the certification tolerance of zero: 3 trajectories x 100 nodes and 400 random
+    candidates around a converged plan's active nodes (fly-bys, near misses, clear arcs)."""
+    ps = models[kind]
+    rng = np.random.default_rng(7)
+    checked = {True: 0, False: 0}
+    cases = [(np.arange(N), roe_m, dv) for roe_m, dv in (approach, plans[0], plans[1])]
+    roe_m, dv = plans[1]
+    for i in (20, 55, 60, 78):
+        xs = roe_m[i] + rng.normal(0.0, 30.0, (100, 6))
+        us = dv[i] + rng.normal(0.0, 0.1, (100, 3))
+        cases.append((np.full(100, i), xs, us))
+    for nodes, xs, us in cases:
+        for i in np.unique(nodes):
+            sel = nodes == i
+            margin = ps.node_margins(i, xs[sel], us[sel])
+            violated = ps.node_violations(i, xs[sel], us[sel])
+            assert violated.dtype == bool and violated.shape == margin.shape
+            clear = np.abs(margin) > 2.0 * (CERT_TOL + CERT_TOL_REL * np.abs(margin))
+            np.testing.assert_array_equal(violated[clear], margin[clear] < 0.0)
+            for v in (True, False):
+                checked[v] += int(np.sum(clear & (violated == v)))
+    assert checked[True] > 50 and checked[False] > 50, checked  # both outcomes exercised
+    with pytest.raises(InputError):
+        ps.node_violations(N, np.ones((1, 6)), np.zeros((1, 3)))
+
+
 def test_node_margins_bad_inputs(models: dict) -> None:
     ps = models["cc"]
     for node in (-1, N, 2.5, True):
