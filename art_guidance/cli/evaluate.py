@@ -2,11 +2,15 @@
 from __future__ import annotations
 
 import argparse
+import inspect
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from art_guidance.data.generate import ENGINES, default_workers
+from art_guidance.errors import InputError
 from art_guidance.files import write_json_atomic
 
 
@@ -65,63 +69,74 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
     }
 
 
-def evaluate_warmstart(data: dict, model_path: str, n: int | None, threads: int,
-                       progress: bool = True) -> dict:
-    """Warm-start suite of one model on the held-out split (`art_guidance.eval.warmstart`)."""
-    import torch
-    from tqdm import tqdm
-
-    from art_guidance.art import build_safety, heldout_scenarios
-    from art_guidance.art.provider import ArtWarmStart
-    from art_guidance.config import GuidanceConfig
-    from art_guidance.eval.warmstart import compare, summarize
-    from art_guidance.planning import PlanRequest
-
-    torch.set_num_threads(threads)
-    provider = ArtWarmStart.load(model_path, threads=threads)
-    safety = build_safety(provider.art)
-    config = GuidanceConfig.load()
-    held = heldout_scenarios(data)
-    m = held["index"].size if n is None else min(n, held["index"].size)
-    chief = safety.horizon.chief_oe[0]
-    rows = []
-    t0 = time.perf_counter()
-    for i in tqdm(range(m), desc=f"warm starts {Path(model_path).name}", unit="scenario",
-                  disable=not progress):
-        req = PlanRequest(chief, held["roe0_m"][i], held["target_rtn"][i],
-                          chance_constrained=safety.uncertainty is not None)
-        rows.append(compare(req, safety, provider, config))
-    wall = time.perf_counter() - t0
-    return {"model": Path(model_path).name, "model_sha256": provider.sha256,
-            "n_scenarios": m, "wall_s": wall, "scenarios_per_s": m / wall,
-            **summarize(rows)}
-
-
 def run(args: argparse.Namespace) -> int:
-    """Evaluate trained models on the held-out (test) split of a dataset: each model is rolled
-    out from every held-out scenario conditioned on R(t_1) = -J_CVX and C(t_1) = 0, and its
-    realised C(t_1) and E_R are compared with the CVX solution of the same scenario (its C(t_1)
+    """Evaluate trained models on the held-out (test) split of their datasets.
+
+    --suite warmstart (the paper's warm-start analysis, section V): every model is evaluated on
+    the test split of each --data dataset of its own mode (the mode of its training data: a
+    deterministic model gives PS-CVX-D / PS-ART-D, a chance-constrained one PS-CVX-C /
+    PS-ART-C). Per scenario: CVX, the ART rollout conditioned on R(t1) = -J_CVX, C(t1) = 0 and
+    its post hoc check (E_R, E_C), SCVx* from CVX and from ART. OUT/summary.json gives per model
+    and per cumulative bin of C_CVX(t1) (>= 0, 10, 20, 30, 40) the absolute suboptimality
+    J_SCP - J_CVX, the improvement ratio (J_SCP,CVX - J_SCP,ART) / (J_SCP,CVX - J_CVX), SCP
+    iterations, median runtimes (warm start + SCP, measured in the same worker), the
+    infeasibility rate (infeasible or not converged); the histogram of J_SCP,CVX - J_SCP,ART
+    with its min and max, without and with the post hoc check; the (E_R, E_C) maps; checksums,
+    sizes and throughput (scenarios/s). OUT/figures/*.png are the paper's figures, including
+    the scenario with the largest ART gain (solved once more). Scenarios run on --workers
+    processes (1 torch thread each) or Ray, and are committed to OUT in shards: re-running the
+    same command resumes an interrupted run; another command on the same OUT is refused.
+    --figures-only re-renders summary.json and the figures from OUT without solving.
+
+    --suite rollouts: each model is rolled out from every held-out scenario and its realised
+    C(t1) and E_R are compared with the CVX solution of the same scenario (its C(t1)
     evaluated again by the current safety model; the share agreeing with the dataset's label
-    is reported). Writes OUT/rollouts.json."""
+    is reported). One --data; writes OUT/rollouts.json.
+    """
+    try:
+        if args.figures_only:
+            return _figures_only(args)
+        if not args.data or not args.model:
+            raise InputError("--data/--model", "both are required (except with --figures-only)")
+        if args.suite == "warmstart":
+            return _warmstart(args)
+        return _rollouts(args)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def _warmstart(args: argparse.Namespace) -> int:
+    from art_guidance.eval.runner import evaluate
+
+    summary = evaluate(args.out, args.data, args.model, n=args.n,
+                       workers=args.workers or default_workers(), engine=args.engine,
+                       ray_address=args.ray_address, shard_size=args.shard_size,
+                       figures=not args.no_figures, progress=not args.no_progress,
+                       command=["art-guidance", *sys.argv[1:]])
+    print(f"summary -> {Path(args.out) / 'summary.json'}")
+    return 130 if summary["status"] == "interrupted" else 0
+
+
+def _figures_only(args: argparse.Namespace) -> int:
+    from art_guidance.data.storage import MANIFEST
+    from art_guidance.eval.runner import rerender
+
+    if not (Path(args.out) / MANIFEST).is_file():
+        raise InputError("--out", "holds no evaluation to render", args.out)
+    rerender(args.out)
+    return 0
+
+
+def _rollouts(args: argparse.Namespace) -> int:
     from art_guidance.data.storage import load_dataset
 
-    data = load_dataset(args.data)
+    if len(args.data) != 1:
+        raise InputError("--data", "the rollouts suite takes one dataset", args.data)
+    data = load_dataset(args.data[0])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    if args.suite == "warmstart":
-        report = {"data": str(args.data), "suite": args.suite,
-                  "models": [evaluate_warmstart(data, m, args.n, args.threads,
-                                                not args.no_progress) for m in args.model]}
-        write_json_atomic(out / "warmstart.json", report)
-        for r in report["models"]:
-            d = r["auto_minus_scp_cvx_mps"]
-            print(f"{r['model']} on {r['n_scenarios']} held-out scenarios: ART accepted "
-                  f"{r['accepted']}; auto - PS-CVX cost [mm/s] min {1e3 * d['min']:.2f} median "
-                  f"{1e3 * d['median']:.2f} max {1e3 * d['max']:.2f}; SCP iterations auto "
-                  f"{r['iterations_auto_mean']:.1f} vs CVX {r['iterations_cvx_mean']:.1f}")
-        print(f"report -> {out / 'warmstart.json'}")
-        return 0
-    report = {"data": str(args.data), "suite": args.suite,
+    report = {"data": str(args.data[0]), "suite": args.suite,
               "models": [evaluate_model(data, m, args.n, args.threads, not args.no_progress)
                          for m in args.model]}
     write_json_atomic(out / "rollouts.json", report)
@@ -137,20 +152,53 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+_EPILOG = """\
+examples:
+  art-guidance evaluate --data data/chance --data data/deterministic \\
+      --model roe_c.pt --model rtn_c.pt --model roe_d.pt --model rtn_d.pt \\
+      --n 1000 --workers 8 --out eval/paper     (Ctrl-C, then the same command resumes)
+  art-guidance evaluate --figures-only --out eval/paper
+  art-guidance evaluate --suite rollouts --data data/chance --model roe_c.pt --out eval/rollouts
+
+exit codes: 0 done, 130 interrupted (re-run the same command to resume), 2 bad input (e.g. a
+model whose mode matches no dataset, an OUT holding another evaluation or a dataset, a corrupt
+dataset or checkpoint).
+"""
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    p = sub.add_parser("evaluate", help="held-out evaluation of trained models",
-                       description=run.__doc__ + " Exit 0 done, 2 bad input.")
-    p.add_argument("--data", required=True, help="dataset directory (its test split is used)")
-    p.add_argument("--model", action="append", required=True,
-                   help="checkpoint (repeat for several models)")
-    p.add_argument("--suite", choices=["rollouts", "warmstart"], default="rollouts",
-                   help="rollouts: ART rollouts against the CVX labels (OUT/rollouts.json); "
-                   "warmstart: SCVx* from CVX and from ART per scenario, the post hoc "
-                   "decision and the auto plan, by C_CVX(t1) bin (OUT/warmstart.json)")
+    p = sub.add_parser("evaluate", help="held-out evaluation of trained models against CVX",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description=inspect.cleandoc(run.__doc__), epilog=_EPILOG)
+    p.add_argument("--data", action="append", default=[],
+                   help="dataset directory, its test split is used (repeat: e.g. a chance and "
+                   "a deterministic dataset; each model uses those of its mode)")
+    p.add_argument("--model", action="append", default=[],
+                   help="checkpoint (repeat for several models, e.g. ROE and RTN, -C and -D)")
+    p.add_argument("--suite", choices=["rollouts", "warmstart"], default="warmstart",
+                   help="warmstart (default): the paper's warm-start analysis (CVX, PS-CVX, "
+                   "PS-ART per scenario; resumable, parallel; OUT/summary.json, OUT/figures); "
+                   "rollouts: ART rollouts against the CVX labels (OUT/rollouts.json)")
     p.add_argument("--n", type=int, default=None, help="at most this many held-out scenarios "
-                   "(the first by sample index)")
-    p.add_argument("--threads", type=int, default=2, help="torch threads")
-    p.add_argument("--out", required=True, help="output directory")
+                   "per model and dataset (the first by sample index); default: all")
+    p.add_argument("--out", required=True, help="output directory (warmstart: created, or "
+                   "resumed if it holds the same evaluation)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="warmstart: processes (local; 1 = in this process) or CPUs (local Ray "
+                   "instance), 1 torch thread each; default: all CPUs")
+    p.add_argument("--engine", choices=ENGINES, default="local",
+                   help="warmstart: local process pool (default) or Ray "
+                   "('pip install .[distributed]')")
+    p.add_argument("--ray-address", default=None,
+                   help="warmstart: Ray cluster address (default: start a local instance)")
+    p.add_argument("--shard-size", type=int, default=4,
+                   help="warmstart: scenarios per task and per committed shard")
+    p.add_argument("--figures-only", action="store_true",
+                   help="warmstart: rebuild OUT/summary.json and OUT/figures from the stored "
+                   "results without solving (no --data/--model needed)")
+    p.add_argument("--no-figures", action="store_true",
+                   help="warmstart: skip the figures and the example scenario")
+    p.add_argument("--threads", type=int, default=2, help="rollouts: torch threads")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

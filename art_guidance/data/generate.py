@@ -3,7 +3,9 @@
 The driver opens (creates or resumes) the dataset directory, splits the missing sample indices
 into chunks of `shard_size`, hands each chunk to an engine as one task
 (`dataset.generate_chunk`), and commits every finished chunk as one shard. Both engines run the
-same task function on the same inputs, so they produce the same data.
+same task function on the same inputs, so they produce the same data. The engines take any
+picklable task `task(spec, chunk) -> dict` (`run_chunks`, `commit_results`): the evaluation
+driver (`art_guidance.eval.runner`) runs its scenarios on them too.
 
 - local: a process pool of `workers` processes (forked where available; each worker dies with
   the driver) or, with one worker, the driver process itself;
@@ -20,7 +22,7 @@ import sys
 import time
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 from tqdm import tqdm
@@ -33,7 +35,8 @@ from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import FEASIBLE_STATUSES, ScpStatus
 from art_guidance.data.storage import SUMMARY, DatasetWriter, aggregate_stats
 
-Engine = Callable[[GenerationSpec, list[list[int]], int, str | None], Iterator[dict]]
+Task = Callable[[Any, list[int]], dict]
+Engine = Callable[[Task, Any, list[list[int]], int, str | None], Iterator[dict]]
 ENGINES = ("local", "ray")
 _PR_SET_PDEATHSIG = 1
 _FEASIBLE = [s.value for s in FEASIBLE_STATUSES]
@@ -60,16 +63,16 @@ def _worker_init(parent_pid: int) -> None:
         os._exit(1)
 
 
-def _local_engine(spec: GenerationSpec, chunks: list[list[int]], workers: int,
+def _local_engine(task: Task, spec: Any, chunks: list[list[int]], workers: int,
                   address: str | None = None) -> Iterator[dict]:
     """Run the chunks on `workers` processes (in this process when workers == 1)."""
     if workers == 1 or len(chunks) == 1:
-        return (generate_chunk(spec, c) for c in chunks)
+        return (task(spec, c) for c in chunks)
     methods = mp.get_all_start_methods()
     ctx = mp.get_context("fork" if "fork" in methods else "spawn")
     pool = ProcessPoolExecutor(min(workers, len(chunks)), mp_context=ctx,
                                initializer=_worker_init, initargs=(os.getpid(),))
-    futures = [pool.submit(generate_chunk, spec, c) for c in chunks]  # workers start here
+    futures = [pool.submit(task, spec, c) for c in chunks]  # workers start here
     return _drain_pool(pool, futures)
 
 
@@ -89,7 +92,7 @@ def _drain_pool(pool: ProcessPoolExecutor, futures: list[Future]) -> Iterator[di
 
 
 # --------------------------------------------------------------------------- ray engine
-def _ray_engine(spec: GenerationSpec, chunks: list[list[int]], workers: int,
+def _ray_engine(task: Task, spec: Any, chunks: list[list[int]], workers: int,
                 address: str | None = None) -> Iterator[dict]:
     """Run the chunks as Ray tasks of one CPU each."""
     try:
@@ -101,9 +104,9 @@ def _ray_engine(spec: GenerationSpec, chunks: list[list[int]], workers: int,
     if started:
         kwargs = {"address": address} if address else {"num_cpus": workers}
         ray.init(include_dashboard=False, log_to_driver=False, **kwargs)
-    task = ray.remote(num_cpus=1)(generate_chunk)
+    remote = ray.remote(num_cpus=1)(task)
     spec_ref = ray.put(spec)
-    pending = [task.remote(spec_ref, c) for c in chunks]
+    pending = [remote.remote(spec_ref, c) for c in chunks]
     return _drain_ray(ray, pending, started)
 
 
@@ -120,6 +123,63 @@ def _drain_ray(ray, pending: list, started: bool) -> Iterator[dict]:
 
 
 _ENGINES: dict[str, Engine] = {"local": _local_engine, "ray": _ray_engine}
+
+
+def run_chunks(task: Task, spec: Any, chunks: list[list[int]], workers: int,
+               engine: str = "local", address: str | None = None) -> Iterator[dict]:
+    """Run `task(spec, chunk)` for every chunk on an engine; results in completion order.
+
+    Args:
+        task: a picklable module-level function (it runs in worker processes or Ray tasks).
+        spec: its first argument, identical for every chunk (sent once per worker).
+        chunks: the second arguments.
+        workers: processes (local; 1 runs in this process) or CPUs of a local Ray instance.
+        engine: "local" or "ray".
+        address: Ray cluster address (engine "ray"); None starts a local instance.
+
+    Returns:
+        An iterator of the task results; closing it stops the workers.
+
+    Raises:
+        ConfigError: engine "ray" without Ray installed.
+    """
+    return _ENGINES[engine](task, spec, chunks, workers, address)
+
+
+def progress_bar(total: int, initial: int, unit: str, desc: str, enabled: bool) -> tqdm:
+    """The drivers' tqdm bar on stderr (rate, ETA)."""
+    return tqdm(total=total, initial=initial, unit=unit, desc=desc, disable=not enabled,
+                smoothing=0.05, dynamic_ncols=True)
+
+
+def commit_results(results: Iterator[dict], commit: Callable[[dict], None],
+                   bar: tqdm | None = None) -> str:
+    """Pass every finished result to `commit` as it arrives (and advance `bar` by its
+    "index" size).
+
+    Returns:
+        "complete", or "interrupted" on Ctrl-C (the engine is closed, so the workers stop;
+        what was committed stays committed).
+    """
+    try:
+        for result in results:
+            commit(result)
+            if bar is not None:
+                bar.update(int(result["index"].size))
+    except KeyboardInterrupt:
+        results.close()
+        return "interrupted"
+    return "complete"
+
+
+def check_run_options(counts: dict[str, object], engine: str) -> None:
+    """Raise InputError unless every count ({option: value}) is an integer >= 1 and the
+    engine is one of ENGINES."""
+    for name, value in counts.items():
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise InputError(name, "must be an integer >= 1", value)
+    if engine not in ENGINES:
+        raise InputError("--engine", f"must be one of {ENGINES}", engine)
 
 
 # --------------------------------------------------------------------------- statistics
@@ -219,18 +279,15 @@ def generate(out_dir: str | Path, n: int, mode: str, *, base_seed: int = 0,
         if done.size:
             log(f"resuming {out_dir}: {done.size} of {n} samples present, {todo.size} to go")
         chunks = [todo[i:i + shard_size].tolist() for i in range(0, todo.size, shard_size)]
-        status, run, t0 = "complete", [], time.perf_counter()
-        results = _ENGINES[engine](spec, chunks, workers, ray_address)
-        with tqdm(total=n, initial=int(done.size), unit="traj", desc=f"generate {mode}",
-                  disable=not progress, smoothing=0.05, dynamic_ncols=True) as bar:
-            try:
-                for arrays in results:
-                    writer.write_shard(arrays, shard_stats(arrays))
-                    run.append({k: arrays[k] for k in ("kept_stage", "stage_time_ms")})
-                    bar.update(int(arrays["index"].size))
-            except KeyboardInterrupt:
-                status = "interrupted"
-                results.close()
+        run, t0 = [], time.perf_counter()
+        results = run_chunks(generate_chunk, spec, chunks, workers, engine, ray_address)
+
+        def commit(arrays: dict) -> None:
+            writer.write_shard(arrays, shard_stats(arrays))
+            run.append({k: arrays[k] for k in ("kept_stage", "stage_time_ms")})
+
+        with progress_bar(n, int(done.size), "traj", f"generate {mode}", progress) as bar:
+            status = commit_results(results, commit, bar)
         summary = dict(_summary(writer, run, time.perf_counter() - t0, engine, workers),
                        status=status)
         writer.write_json(SUMMARY, summary)
@@ -241,10 +298,6 @@ def generate(out_dir: str | Path, n: int, mode: str, *, base_seed: int = 0,
 
 
 def _check_options(n: int, workers: int, engine: str, shard_size: int) -> None:
-    for name, value in (("--n", n), ("--workers", workers), ("--shard-size", shard_size)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            raise InputError(name, "must be an integer >= 1", value)
+    check_run_options({"--n": n, "--workers": workers, "--shard-size": shard_size}, engine)
     if n > SEED_STRIDE:
         raise InputError("--n", f"must be <= {SEED_STRIDE} (seed rule: {SEED_RULE})", n)
-    if engine not in ENGINES:
-        raise InputError("--engine", f"must be one of {ENGINES}", engine)

@@ -8,27 +8,48 @@ what the pipeline flies: PS-ART if the post hoc check accepts the rollout, else 
 that run does not converge, the better of the two (`planning.pipeline.better_plan`), as the
 pipeline's retry from the other warm start gives (without a deadline); with
 `also_solve_from_cvx`, an accepted rollout's plan is always compared with PS-CVX.
+
+`summarize` turns rows into the paper's numbers: per cumulative bin of C_CVX(t_1) (">= value",
+BINS) the absolute suboptimality J_SCP - J_CVX, the improvement ratio
+(J_SCP,CVX - J_SCP,ART) / (J_SCP,CVX - J_CVX), SCP iterations, runtimes and the infeasibility
+rate (infeasible or not converged: any status but CONVERGED); the histogram of
+J_SCP,CVX - J_SCP,ART without and with the post hoc check (a rejected rollout flies PS-CVX, so
+its difference is 0); and the post hoc maps over the (100 E_R, E_C) grid.
 """
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, fields
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from art_guidance.config import GuidanceConfig
-from art_guidance.optim import ScpStatus, Scvx, solve_cvx
+from art_guidance.errors import GuidanceError
+from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
 from art_guidance.planning.pipeline import better_plan
 from art_guidance.planning.posthoc import posthoc_check
-from art_guidance.planning.types import PlanRequest
+from art_guidance.planning.types import PlanRequest, PosthocDecision, WarmStartProposal
 from art_guidance.safety import PassiveSafety
 
 BINS = (0, 10, 20, 30, 40)  # the paper's cumulative C_CVX(t_1) >= value bins
+GAP_TOL_MPS = 1e-6  # J_SCP,CVX - J_CVX below this: no improvement ratio for the scenario [m/s]
+HIST_BINS = 40      # bins of the J_SCP,CVX - J_SCP,ART histograms
+# Post hoc map cells: 100 E_R [%] (paper's acceptance region -1.5 .. 3.5 is inside one row of
+# cells) and E_C = C_ART(t_1) [nodes], integer-valued, cells 0, 1, 2-4, 5-10, 11-20, > 20.
+ER_PCT_EDGES = (-math.inf, -50.0, -25.0, -12.5, -7.5, -2.5, 2.5, 7.5, 12.5, 25.0, 50.0, math.inf)
+EC_EDGES = (-0.5, 0.5, 1.5, 4.5, 10.5, 20.5, math.inf)
+_CONVERGED = ScpStatus.CONVERGED.value
 
 
 @dataclass(frozen=True)
 class WarmStartRow:
-    """One scenario's numbers (costs [m/s], times [ms])."""
+    """One scenario's numbers (costs [m/s], times [ms], statuses `ScpStatus` values).
+
+    `ms_art` is the rollout plus the post hoc check; `ok_*` means feasible (`ScpStatus.feasible`),
+    `st_* == ScpStatus.CONVERGED.value` converged.
+    """
 
     j_cvx: float
     c_cvx: int
@@ -50,11 +71,69 @@ class WarmStartRow:
     j_auto: float
     ok_auto: bool
     it_auto: int
+    st_scp_cvx: int
+    st_scp_art: int
 
 
-def compare(request: PlanRequest, safety: PassiveSafety, provider: object,
-            config: GuidanceConfig) -> WarmStartRow:
-    """Both warm starts for one request on `safety.horizon` (see the module docstring)."""
+ROW_FIELDS = tuple(f.name for f in fields(WarmStartRow))
+
+
+@dataclass(frozen=True)
+class WarmStartRun:
+    """Everything one comparison produced (the trajectories, for plots and checks).
+
+    Attributes:
+        cvx: the convex TPBVP solution (the warm start "CVX").
+        proposal: the ART rollout (the warm start "ART").
+        art_roe_m: (N, 6) the rollout's states [m], propagated from its controls.
+        posthoc: its post hoc decision.
+        from_cvx: SCVx* warm-started by CVX (PS-CVX).
+        from_art: SCVx* warm-started by ART (PS-ART).
+        auto: the plan the pipeline flies (one of the two).
+        c_cvx: C_CVX(t_1) under `safety`.
+        ms_cvx: CVX solve time [ms].
+        ms_art: rollout plus post hoc check [ms].
+    """
+
+    cvx: ConvexSolution
+    proposal: WarmStartProposal
+    art_roe_m: np.ndarray
+    posthoc: PosthocDecision
+    from_cvx: ScpResult
+    from_art: ScpResult
+    auto: ScpResult
+    c_cvx: int
+    ms_cvx: float
+    ms_art: float
+
+    def row(self) -> WarmStartRow:
+        """The scenario's numbers."""
+        a, b, p = self.from_cvx, self.from_art, self.posthoc
+        return WarmStartRow(
+            j_cvx=float(self.cvx.cost_mps), c_cvx=self.c_cvx,
+            art_cost=float(np.linalg.norm(self.proposal.dv_rtn_mps, axis=1).sum()),
+            c_art=int(self.proposal.constraint_to_go[0]), e_r=float(p.e_r), e_c=float(p.e_c),
+            accepted=bool(p.accepted), j_scp_cvx=float(a.cost_mps), j_scp_art=float(b.cost_mps),
+            it_scp_cvx=a.iterations, it_scp_art=b.iterations, ms_cvx=self.ms_cvx,
+            ms_art=self.ms_art, ms_scp_cvx=a.solve_time_ms, ms_scp_art=b.solve_time_ms,
+            ok_scp_cvx=a.feasible, ok_scp_art=b.feasible, j_auto=float(self.auto.cost_mps),
+            ok_auto=self.auto.feasible, it_auto=self.auto.iterations,
+            st_scp_cvx=a.status.value, st_scp_art=b.status.value)
+
+
+def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
+               config: GuidanceConfig) -> WarmStartRun:
+    """Both warm starts and both SCVx* runs for one request on `safety.horizon`.
+
+    Args:
+        request: initial state and target (its chief elements must be the horizon's).
+        safety: the passive-safety model (deterministic or chance-constrained).
+        provider: a `WarmStartProvider` (e.g. `art.provider.ArtWarmStart`).
+        config: SCP, post hoc and planning settings.
+
+    Raises:
+        GuidanceError: CVX or the rollout failed (a SCVx* failure is a SOLVER_ERROR result).
+    """
     horizon = safety.horizon
     roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
     t0 = time.perf_counter()
@@ -62,63 +141,171 @@ def compare(request: PlanRequest, safety: PassiveSafety, provider: object,
     t1 = time.perf_counter()
     prop = provider.propose(request, safety, cvx)
     art_dv = np.asarray(prop.dv_rtn_mps, float)
-    ph = posthoc_check(art_dv, horizon.propagate(request.roe0_m, art_dv), cvx.cost_mps, safety,
-                       config.planning.posthoc)
+    art_roe = horizon.propagate(request.roe0_m, art_dv)
+    ph = posthoc_check(art_dv, art_roe, cvx.cost_mps, safety, config.planning.posthoc)
     t2 = time.perf_counter()
     c_cvx = int(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0])
     scvx = Scvx(safety, request.roe0_m, roe_f, config.scp,
                 samples_per_node=config.planning.samples_per_node)
-    from_cvx = scvx.solve(cvx.dv_rtn_mps)
-    from_art = scvx.solve(art_dv)
+    from_cvx = _solve(scvx, cvx.dv_rtn_mps)
+    from_art = _solve(scvx, art_dv)
     first, second = (from_art, from_cvx) if ph.accepted else (from_cvx, from_art)
     if ph.accepted and config.planning.also_solve_from_cvx:
         auto = first if better_plan(first, second) else second
     else:
         auto = first if first.status is ScpStatus.CONVERGED or better_plan(first, second) \
             else second
-    return WarmStartRow(
-        float(cvx.cost_mps), c_cvx, float(np.linalg.norm(art_dv, axis=1).sum()),
-        int(prop.constraint_to_go[0]), float(ph.e_r), float(ph.e_c), bool(ph.accepted),
-        float(from_cvx.cost_mps), float(from_art.cost_mps), from_cvx.iterations,
-        from_art.iterations, 1e3 * (t1 - t0), 1e3 * (t2 - t1), from_cvx.solve_time_ms,
-        from_art.solve_time_ms, from_cvx.feasible, from_art.feasible, float(auto.cost_mps),
-        auto.feasible, auto.iterations)
+    return WarmStartRun(cvx, prop, art_roe, ph, from_cvx, from_art, auto, c_cvx,
+                        1e3 * (t1 - t0), 1e3 * (t2 - t1))
 
 
-def summarize(rows: list[WarmStartRow]) -> dict:
-    """Per cumulative C_CVX(t_1) bin: suboptimality, improvement ratio, iterations, runtimes,
-    infeasibility, and the `auto` - PS-CVX cost distribution (JSON-ready)."""
-    data = {k: np.array([getattr(r, k) for r in rows]) for k in asdict(rows[0])}
-    out: dict = {"n": len(rows), "bins": {}}
-    for low in BINS:
-        m = data["c_cvx"] >= low
-        both = m & data["ok_scp_cvx"] & data["ok_scp_art"]
-        if not m.any():
-            continue
-        gap = data["j_scp_cvx"][both] - data["j_cvx"][both]
-        gain = data["j_scp_cvx"][both] - data["j_scp_art"][both]
-        ratio = np.where(gap > 1e-9, gain / np.maximum(gap, 1e-12), 0.0)
-        out["bins"][f">={low}"] = {
-            "n": int(m.sum()),
-            "subopt_scp_cvx_mps_median": float(np.median(gap)) if both.any() else None,
-            "subopt_scp_art_mps_median": (float(np.median(data["j_scp_art"][both]
-                                                          - data["j_cvx"][both]))
-                                          if both.any() else None),
-            "improvement_ratio_mean": float(np.mean(ratio)) if both.any() else None,
-            "iterations_cvx_mean": float(np.mean(data["it_scp_cvx"][m])),
-            "iterations_art_mean": float(np.mean(data["it_scp_art"][m])),
-            "runtime_cvx_ms_median": float(np.median((data["ms_cvx"] + data["ms_scp_cvx"])[m])),
-            "runtime_art_ms_median": float(np.median((data["ms_cvx"] + data["ms_art"]
-                                                      + data["ms_scp_art"])[m])),
-            "infeasible_cvx": float(np.mean(~data["ok_scp_cvx"][m])),
-            "infeasible_art": float(np.mean(~data["ok_scp_art"][m])),
-        }
-    both = data["ok_auto"] & data["ok_scp_cvx"]
+def compare(request: PlanRequest, safety: PassiveSafety, provider: object,
+            config: GuidanceConfig) -> WarmStartRow:
+    """Both warm starts for one request on `safety.horizon` (see `solve_both`)."""
+    return solve_both(request, safety, provider, config).row()
+
+
+def _solve(scvx: Scvx, warm_dv: np.ndarray) -> ScpResult:
+    """SCVx* from a warm start; a solver failure becomes a SOLVER_ERROR result."""
+    t0 = time.perf_counter()
+    try:
+        return scvx.solve(warm_dv)
+    except GuidanceError:
+        n = warm_dv.shape[0]
+        return ScpResult(ScpStatus.SOLVER_ERROR, np.full((n, 6), np.nan), np.array(warm_dv),
+                         math.nan, 0, math.inf,
+                         solve_time_ms=1e3 * (time.perf_counter() - t0))
+
+
+# =========================================================================== metrics
+def columns(rows: Sequence[WarmStartRow] | Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """{field: (M,) array} of rows (a mapping of arrays is passed through, fields only)."""
+    if isinstance(rows, Mapping):
+        return {k: np.asarray(rows[k]) for k in ROW_FIELDS}
+    return {k: np.array([getattr(r, k) for r in rows]) for k in ROW_FIELDS}
+
+
+def _stat(values: np.ndarray, how: str) -> float | None:
+    return float(getattr(np, how)(values)) if values.size else None
+
+
+def gains(data: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per-scenario differences (M,), NaN where undefined.
+
+    Returns:
+        {"gain_mps": J_SCP,CVX - J_SCP,ART (both converged), "gap_mps": J_SCP,CVX - J_CVX (both
+        converged), "ratio": gain / gap (gap > GAP_TOL_MPS), "gain_posthoc_mps": the gain of
+        the plan flown with the post hoc check (accepted: gain; rejected: 0 if PS-CVX
+        converged), "iterations_saved": it_SCP,CVX - it_SCP,ART (both converged)}.
+    """
+    conv_cvx = data["st_scp_cvx"] == _CONVERGED
+    both = conv_cvx & (data["st_scp_art"] == _CONVERGED)
+    gain = np.where(both, data["j_scp_cvx"] - data["j_scp_art"], np.nan)
+    gap = np.where(both, data["j_scp_cvx"] - data["j_cvx"], np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(gap > GAP_TOL_MPS, gain / gap, np.nan)
+    posthoc = np.where(data["accepted"].astype(bool), gain, np.where(conv_cvx, 0.0, np.nan))
+    saved = np.where(both, data["it_scp_cvx"] - data["it_scp_art"], np.nan)
+    return {"gain_mps": gain, "gap_mps": gap, "ratio": ratio, "gain_posthoc_mps": posthoc,
+            "iterations_saved": saved}
+
+
+def _bin(data: Mapping[str, np.ndarray], g: Mapping[str, np.ndarray], m: np.ndarray) -> dict:
+    """The paper's metrics over the scenarios `m` (a bool mask)."""
+    both = m & np.isfinite(g["gain_mps"])
+    ratio = g["ratio"][both & np.isfinite(g["ratio"])]
+    gap, gain = g["gap_mps"][both], g["gain_mps"][both]
+    total_cvx = data["ms_cvx"] + data["ms_scp_cvx"]
+    total_art = data["ms_cvx"] + data["ms_art"] + data["ms_scp_art"]
+    out: dict = {"n": int(m.sum()), "n_both_converged": int(both.sum())}
+    for name, j in (("cvx", data["j_scp_cvx"]), ("art", data["j_scp_art"])):
+        sub = (j - data["j_cvx"])[both]
+        out[f"subopt_{name}_mps"] = {"mean": _stat(sub, "mean"), "median": _stat(sub, "median")}
+    out["improvement_ratio"] = {
+        "mean": _stat(ratio, "mean"), "median": _stat(ratio, "median"), "n": int(ratio.size),
+        "of_means": float(gain.sum() / gap.sum()) if gap.size and gap.sum() > GAP_TOL_MPS
+        else None}
+    for name in ("cvx", "art"):
+        it = data[f"it_scp_{name}"][m]
+        out[f"iterations_{name}"] = {"mean": _stat(it, "mean"), "median": _stat(it, "median")}
+        out[f"infeasible_rate_{name}"] = _stat(data[f"st_scp_{name}"][m] != _CONVERGED, "mean")
+        out[f"not_feasible_rate_{name}"] = _stat(~data[f"ok_scp_{name}"][m].astype(bool),
+                                                 "mean")
+    times = {"ws_cvx": data["ms_cvx"], "ws_art": data["ms_art"], "scp_cvx": data["ms_scp_cvx"],
+             "scp_art": data["ms_scp_art"], "total_cvx": total_cvx, "total_art": total_art}
+    out["runtime_ms_median"] = {k: _stat(v[m], "median") for k, v in times.items()}
+    return out
+
+
+def histogram(values: np.ndarray, bins: int = HIST_BINS) -> dict | None:
+    """Counts of the finite `values` [m/s] with min, max and median (None if there are none)."""
+    v = values[np.isfinite(values)]
+    if not v.size:
+        return None
+    counts, edges = np.histogram(v, bins=bins)
+    return {"n": int(v.size), "min_mps": float(v.min()), "max_mps": float(v.max()),
+            "median_mps": float(np.median(v)), "mean_mps": float(v.mean()),
+            "n_art_better_1mm": int(np.sum(v > 1e-3)), "n_art_worse_1mm": int(np.sum(v < -1e-3)),
+            "edges_mps": edges.tolist(), "counts": counts.tolist()}
+
+
+def posthoc_maps(data: Mapping[str, np.ndarray], g: Mapping[str, np.ndarray]) -> dict:
+    """The paper's post hoc figure over (100 E_R, E_C) cells (rows: E_C, columns: 100 E_R).
+
+    Returns:
+        edges, "population" (counts), "improvement_ratio_mean" and "iterations_saved_mean"
+        (means over the converged pairs of each cell; None where a cell has none).
+    """
+    er = 100.0 * data["e_r"].astype(float)
+    ec = data["e_c"].astype(float)
+    ok = np.isfinite(er) & np.isfinite(ec)
+    col = np.digitize(er, ER_PCT_EDGES[1:-1], right=True)  # (lo, hi] cells
+    row = np.digitize(ec, EC_EDGES[1:-1])
+    shape = (len(EC_EDGES) - 1, len(ER_PCT_EDGES) - 1)
+    pop = np.zeros(shape, dtype=int)
+    np.add.at(pop, (row[ok], col[ok]), 1)
+
+    def cell_mean(values: np.ndarray) -> list:
+        sel = ok & np.isfinite(values)
+        total, count = np.zeros(shape), np.zeros(shape, dtype=int)
+        np.add.at(total, (row[sel], col[sel]), values[sel])
+        np.add.at(count, (row[sel], col[sel]), 1)
+        return [[float(total[i, j] / count[i, j]) if count[i, j] else None
+                 for j in range(shape[1])] for i in range(shape[0])]
+
+    return {"e_r_pct_edges": list(ER_PCT_EDGES), "e_c_edges": list(EC_EDGES),
+            "population": pop.tolist(), "improvement_ratio_mean": cell_mean(g["ratio"]),
+            "iterations_saved_mean": cell_mean(g["iterations_saved"])}
+
+
+def summarize(rows: Sequence[WarmStartRow] | Mapping[str, np.ndarray]) -> dict:
+    """The paper's warm-start analysis of some scenarios (JSON-ready; see the module docstring).
+
+    Args:
+        rows: the scenarios' rows, or their `columns`.
+
+    Returns:
+        {"n", "bins": {">=b": per-bin metrics for b in BINS}, "gain_histogram",
+        "gain_histogram_posthoc", "posthoc_maps", "auto_minus_scp_cvx_mps", and shares of the
+        post hoc decisions}.
+    """
+    data = columns(rows)
+    n = int(data["j_cvx"].size)
+    if n == 0:
+        return {"n": 0, "bins": {}}
+    g = gains(data)
+    out: dict = {"n": n, "bins": {f">={low}": _bin(data, g, data["c_cvx"] >= low)
+                                  for low in BINS}}
+    out["gain_histogram"] = histogram(g["gain_mps"])
+    out["gain_histogram_posthoc"] = histogram(g["gain_posthoc_mps"])
+    out["posthoc_maps"] = posthoc_maps(data, g)
+    both = data["ok_auto"].astype(bool) & data["ok_scp_cvx"].astype(bool)
     d = data["j_auto"][both] - data["j_scp_cvx"][both]
     out["auto_minus_scp_cvx_mps"] = {
-        "min": float(d.min()), "median": float(np.median(d)), "max": float(d.max()),
+        "min": _stat(d, "min"), "median": _stat(d, "median"), "max": _stat(d, "max"),
         "n_better_by_1mm": int(np.sum(d < -1e-3)), "n_worse_by_1mm": int(np.sum(d > 1e-3))}
     out["accepted"] = int(data["accepted"].sum())
+    out["frac_accepted"] = float(np.mean(data["accepted"]))
     out["c_art_zero"] = float(np.mean(data["c_art"] == 0))
     out["e_r_pct_median"] = float(np.median(100 * data["e_r"]))
     out["iterations_auto_mean"] = float(np.mean(data["it_auto"]))

@@ -117,8 +117,9 @@ def test_checkpoint_records_provenance_and_reruns_are_safe(dataset, tmp_path):
     # the held-out evaluation reads the test split only, and reports against CVX's labels
     from art_guidance.cli import main as cli_main
 
-    assert cli_main(["evaluate", "--data", str(dataset), "--model", str(out), "--threads", "1",
-                     "--out", str(tmp_path / "eval"), "--no-progress"]) == 0
+    assert cli_main(["evaluate", "--suite", "rollouts", "--data", str(dataset), "--model",
+                     str(out), "--threads", "1", "--out", str(tmp_path / "eval"),
+                     "--no-progress"]) == 0
     report = json.loads((tmp_path / "eval" / "rollouts.json").read_text())["models"][0]
     raw = load_dataset(dataset)
     held = raw["is_test"] & (raw["cvx_constraint_to_go0"] >= 0)

@@ -1,0 +1,273 @@
+"""Warm-start evaluation: real solvers and real (tiny, untrained) checkpoints, resume, workers,
+the paper's metrics on constructed rows, figures, refusals."""
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from art_guidance.art.checkpoint import model_payload, save
+from art_guidance.cli import main
+from art_guidance.config import GuidanceConfig
+from art_guidance.data.stages import GenerationSpec, sample_scenario, sample_seed
+from art_guidance.data.storage import DatasetWriter
+from art_guidance.dynamics import roe_from_rtn_linear
+from art_guidance.errors import InputError
+from art_guidance.eval import runner
+from art_guidance.eval.warmstart import ROW_FIELDS, WarmStartRow, summarize
+from art_guidance.optim import ScpStatus
+from helpers.art_models import untrained_art
+
+N_DATA, N_EVAL = 30, 2  # 3 held-out scenarios per dataset, 2 evaluated per model
+TIMING = {"ms_cvx", "ms_art", "ms_scp_cvx", "ms_scp_art", "ms_task"}
+
+
+def _dataset(root: Path, mode: str, seed: int) -> Path:
+    """A dataset directory holding what the evaluation reads of a sample (initial state,
+    target, a CVX label marking a solvable scenario): the scenarios of the seed rule, without
+    solving the three stages."""
+    spec = GenerationSpec.build(mode, seed)
+    chief = np.array(spec.scenario.chief_oe)
+    samples = [sample_scenario(spec.scenario, sample_seed(seed, i)) for i in range(N_DATA)]
+    arrays = {"index": np.arange(N_DATA),
+              "roe0_m": np.array([roe_from_rtn_linear(chief, s.rtn0) for s in samples]),
+              "target_rtn": np.array([s.target_rtn for s in samples]),
+              "cvx_cost_mps": np.ones(N_DATA), "cvx_constraint_to_go0": np.zeros(N_DATA, int)}
+    with DatasetWriter(root, spec.header(N_DATA)) as writer:
+        writer.write_shard(arrays)
+    return root
+
+
+def _checkpoint(path: Path, mode: str, representation: str, seed: int) -> Path:
+    art = untrained_art("tiny", representation, seed)
+    meta = {"dataset": {"mode": mode, "guidance_config": GuidanceConfig.load().to_json()}}
+    save(path, model_payload(art.model, art.normalizer, meta))
+    return path
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory) -> dict:
+    root = tmp_path_factory.mktemp("inputs")
+    return {"chance": _dataset(root / "chance", "chance", 3),
+            "det": _dataset(root / "det", "deterministic", 4),
+            "model_c": _checkpoint(root / "roe_c.pt", "chance", "roe", 0),
+            "model_d": _checkpoint(root / "rtn_d.pt", "deterministic", "rtn", 1)}
+
+
+def _run(inputs: dict, out: Path, **kw) -> dict:
+    kw = {"n": N_EVAL, "workers": 1, "progress": False, "figures": False,
+          "log": lambda _: None, **kw}
+    return runner.evaluate(out, [inputs["chance"], inputs["det"]],
+                           [inputs["model_c"], inputs["model_d"]], **kw)
+
+
+def _rows(out: Path) -> dict:
+    return runner.read_results(out)[1]
+
+
+def _assert_same_rows(a: dict, b: dict) -> None:
+    assert set(a) == set(b)
+    for key in a:
+        if key not in TIMING:
+            assert np.array_equal(a[key], b[key], equal_nan=a[key].dtype.kind == "f"), key
+
+
+@pytest.fixture(scope="module")
+def ref(inputs, tmp_path_factory) -> Path:
+    """Both models, both datasets, one process, with figures."""
+    out = tmp_path_factory.mktemp("ref") / "eval"
+    assert _run(inputs, out, figures=True)["status"] == "complete"
+    return out
+
+
+def test_each_model_runs_on_the_datasets_of_its_mode(ref, inputs):
+    summary = json.loads((ref / "summary.json").read_text())
+    assert summary["complete"] and summary["n_done"] == summary["n_scenarios"] == 2 * N_EVAL
+    chance, det = summary["models"]
+    assert (chance["mode"], chance["representation"], chance["datasets"]) == ("chance", "roe", [0])
+    assert (det["mode"], det["representation"], det["datasets"]) == ("deterministic", "rtn", [1])
+    assert chance["n"] == det["n"] == N_EVAL
+    assert [d["mode"] for d in summary["datasets"]] == ["chance", "deterministic"]
+    assert all(len(d["sha256"]) == 64 for d in summary["datasets"])
+    assert all(len(m["sha256"]) == 64 for m in summary["models"])
+    assert summary["this_run"]["scenarios"] == 2 * N_EVAL
+    assert summary["this_run"]["scenarios_per_s"] > 0 and summary["sizes"]["bytes"] > 0
+    for m in summary["models"]:
+        b = m["bins"][">=0"]
+        assert b["n"] == N_EVAL and b["runtime_ms_median"]["total_art"] > 0
+        assert b["iterations_cvx"]["mean"] >= 1 and 0 <= b["infeasible_rate_art"] <= 1
+    rows = _rows(ref)
+    assert set(ROW_FIELDS) <= set(rows)
+    assert np.array_equal(rows["model"], [0, 0, 1, 1])
+    assert np.array_equal(rows["dataset"], [0, 0, 1, 1])
+
+
+def test_figures_and_the_recomputed_example(ref, monkeypatch):
+    summary = json.loads((ref / "summary.json").read_text())
+    names = summary["figures"]
+    for kind in ("warmstart", "posthoc-maps", "posthoc-hist"):
+        assert f"{kind}-0-roe-chance.png" in names and f"{kind}-1-rtn-deterministic.png" in names
+    for name in names:
+        data = (ref / "figures" / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    examples = [m["example"] for m in summary["models"] if "example" in m]
+    assert examples, "no scenario with both SCVx* runs converged"
+    assert all(e["reproduced"] for e in examples)  # solving again gives the stored row
+    rows = _rows(ref)
+    for m in summary["models"]:
+        if "example" in m:
+            sel = rows["model"] == m["k"]
+            gain = rows["j_scp_cvx"][sel] - rows["j_scp_art"][sel]
+            assert m["example"]["gain_mps"] == pytest.approx(np.nanmax(gain), abs=1e-9)
+    # re-rendering from the stored results solves nothing
+    shutil.rmtree(ref / "figures")
+
+    def no_solving(*_):
+        raise AssertionError("figures-only must not solve")
+
+    monkeypatch.setattr(runner, "load_model", no_solving)
+    assert main(["evaluate", "--figures-only", "--out", str(ref)]) == 0
+    assert sorted(p.name for p in (ref / "figures").iterdir()) == sorted(names)
+
+
+def test_two_workers_give_the_same_results(ref, inputs, tmp_path):
+    out = tmp_path / "w2"
+    assert _run(inputs, out, workers=2, shard_size=1)["status"] == "complete"
+    _assert_same_rows(_rows(ref), _rows(out))
+
+
+def test_resume_after_an_interruption_loses_nothing(ref, inputs, tmp_path, monkeypatch):
+    out = tmp_path / "resumed"
+    real, calls = runner.evaluate_chunk, []
+
+    def interrupted(spec, indices):
+        calls.append(list(indices))
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(spec, indices)
+
+    monkeypatch.setattr(runner, "evaluate_chunk", interrupted)
+    cmd = ["evaluate", "--suite", "warmstart", "--data", str(inputs["chance"]), "--data",
+           str(inputs["det"]), "--model", str(inputs["model_c"]), "--model",
+           str(inputs["model_d"]), "--n", str(N_EVAL), "--workers", "1", "--shard-size", "1",
+           "--no-figures", "--no-progress", "--out", str(out)]
+    assert main(cmd) == 130
+    assert json.loads((out / "summary.json").read_text())["n_done"] == 1
+    monkeypatch.setattr(runner, "evaluate_chunk", real)
+    summary = _run(inputs, out, shard_size=1)
+    assert summary["status"] == "complete" and summary["this_run"]["scenarios"] == 2 * N_EVAL - 1
+    assert [r["status"] for r in summary["runs"]] == ["interrupted", "complete"]
+    _assert_same_rows(_rows(ref), _rows(out))
+    again = _run(inputs, out)
+    assert again["status"] == "already_complete" and again["this_run"]["scenarios"] == 0
+
+
+def test_another_command_on_the_same_out_is_refused(ref, inputs, tmp_path, capsys):
+    copy = tmp_path / "copy"
+    shutil.copytree(ref, copy)
+    with pytest.raises(InputError, match="--n"):
+        _run(inputs, copy, n=1)
+    with pytest.raises(InputError, match="--model"):
+        runner.evaluate(copy, [inputs["chance"]], [inputs["model_c"]], n=N_EVAL,
+                        progress=False, log=lambda _: None)
+    with pytest.raises(InputError, match="holds a dataset"):
+        _run(inputs, inputs["chance"])
+    assert main(["evaluate", "--suite", "warmstart", "--data", str(inputs["chance"]),
+                 "--data", str(inputs["det"]), "--model", str(inputs["model_c"]), "--n", "1",
+                 "--out", str(copy), "--no-progress"]) == 2
+    assert "another command" in capsys.readouterr().err
+
+
+def test_a_model_whose_mode_matches_no_dataset_is_refused(inputs, tmp_path, capsys):
+    with pytest.raises(InputError, match="deterministic data"):
+        runner.evaluate(tmp_path / "x", [inputs["chance"]], [inputs["model_d"]], n=1,
+                        progress=False, log=lambda _: None)
+    assert main(["evaluate", "--suite", "warmstart", "--data", str(inputs["chance"]),
+                 "--model", str(inputs["model_c"]), "--model", str(inputs["model_d"]),
+                 "--out", str(tmp_path / "y"), "--no-progress"]) == 2
+    assert "no --data dataset is deterministic" in capsys.readouterr().err
+    assert not (tmp_path / "y").exists()
+
+
+# --------------------------------------------------------------------------- metrics
+_BASE = WarmStartRow(j_cvx=1.0, c_cvx=0, art_cost=1.0, c_art=0, e_r=0.0, e_c=0.0,
+                     accepted=True, j_scp_cvx=1.2, j_scp_art=1.1, it_scp_cvx=10, it_scp_art=6,
+                     ms_cvx=10.0, ms_art=50.0, ms_scp_cvx=300.0, ms_scp_art=200.0,
+                     ok_scp_cvx=True, ok_scp_art=True, j_auto=1.1, ok_auto=True, it_auto=6,
+                     st_scp_cvx=0, st_scp_art=0)
+_INF = ScpStatus.INFEASIBLE.value
+_MAXIT = ScpStatus.MAX_ITERATIONS.value
+
+
+def _constructed() -> list[WarmStartRow]:
+    return [
+        # C_CVX 0: gap 0.2, gain 0.1 -> ratio 0.5
+        _BASE,
+        # C_CVX 15: gap 0.4, gain 0.4 -> ratio 1; rejected by the post hoc check
+        replace(_BASE, c_cvx=15, j_scp_cvx=1.4, j_scp_art=1.0, accepted=False, e_r=-0.3,
+                e_c=3.0, it_scp_cvx=20, it_scp_art=5),
+        # C_CVX 25: ART not converged (iteration limit, still feasible) -> infeasible for ART
+        replace(_BASE, c_cvx=25, j_scp_art=1.05, st_scp_art=_MAXIT, it_scp_art=50),
+        # C_CVX 45: gap 0.1, ART worse by 0.2 -> ratio -2; CVX infeasible in the next row
+        replace(_BASE, c_cvx=45, j_scp_cvx=1.1, j_scp_art=1.3, e_r=0.02, e_c=1.0),
+        replace(_BASE, c_cvx=45, ok_scp_cvx=False, st_scp_cvx=_INF, j_scp_cvx=9.0),
+    ]
+
+
+def test_bins_ratios_and_infeasibility_on_constructed_rows():
+    s = summarize(_constructed())
+    assert s["n"] == 5 and [s["bins"][f">={b}"]["n"] for b in (0, 10, 20, 30, 40)] == \
+        [5, 4, 3, 2, 2]
+    b0, b10, b40 = s["bins"][">=0"], s["bins"][">=10"], s["bins"][">=40"]
+    assert b0["n_both_converged"] == 3  # rows 0, 1, 3
+    assert b0["improvement_ratio"]["mean"] == pytest.approx((0.5 + 1.0 - 2.0) / 3)
+    assert b0["improvement_ratio"]["of_means"] == pytest.approx((0.1 + 0.4 - 0.2) / 0.7)
+    assert b10["improvement_ratio"]["median"] == pytest.approx(-0.5)  # rows 1, 3
+    assert b0["subopt_cvx_mps"]["mean"] == pytest.approx((0.2 + 0.4 + 0.1) / 3)
+    assert b0["subopt_art_mps"]["median"] == pytest.approx(0.1)
+    assert b0["infeasible_rate_art"] == pytest.approx(1 / 5)   # iteration limit counts
+    assert b0["not_feasible_rate_art"] == 0.0
+    assert b0["infeasible_rate_cvx"] == pytest.approx(1 / 5)
+    assert b40["infeasible_rate_cvx"] == pytest.approx(1 / 2)
+    assert b0["iterations_cvx"]["mean"] == pytest.approx((10 + 20 + 10 + 10 + 10) / 5)
+    assert b0["runtime_ms_median"]["total_art"] == pytest.approx(260.0)
+    assert b0["runtime_ms_median"]["total_cvx"] == pytest.approx(310.0)
+
+
+def test_histograms_with_and_without_the_posthoc_check():
+    s = summarize(_constructed())
+    h, ph = s["gain_histogram"], s["gain_histogram_posthoc"]
+    assert h["n"] == 3 and sum(h["counts"]) == 3
+    assert (h["min_mps"], h["max_mps"]) == (pytest.approx(-0.2), pytest.approx(0.4))
+    # the rejected row flies PS-CVX (difference 0); the not-converged-ART row is accepted and
+    # has no defined difference; the infeasible-CVX row has none either
+    assert ph["n"] == 3
+    assert (ph["min_mps"], ph["max_mps"]) == (pytest.approx(-0.2), pytest.approx(0.1))
+    maps = s["posthoc_maps"]
+    pop = np.array(maps["population"])
+    assert pop.sum() == 5 and pop.shape == (6, 11)
+    # E_C 3 (cell "2-4"), 100 E_R -30 (cell (-50, -25]): the rejected row, ratio 1, 15 saved
+    assert pop[2, 1] == 1 and maps["improvement_ratio_mean"][2][1] == pytest.approx(1.0)
+    assert maps["iterations_saved_mean"][2][1] == pytest.approx(15.0)
+    assert maps["improvement_ratio_mean"][5][0] is None  # no data
+
+
+def test_summary_of_stored_columns_equals_summary_of_rows():
+    rows = _constructed()
+    cols = {k: np.array([getattr(r, k) for r in rows]) for k in ROW_FIELDS}
+    assert json.dumps(summarize(cols)) == json.dumps(summarize(rows))
+
+
+def test_heldout_reads_the_same_scenarios_as_the_full_load(inputs):
+    from art_guidance.art.evaluate import heldout_scenarios
+    from art_guidance.data.storage import load_dataset
+
+    full = heldout_scenarios(load_dataset(inputs["chance"]))
+    lean = runner.heldout(inputs["chance"])
+    assert set(full) == set(lean) and full["index"].size == N_DATA // 10
+    for key in full:
+        assert np.array_equal(full[key], lean[key]), key
