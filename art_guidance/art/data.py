@@ -69,7 +69,7 @@ def _read_dir(root: str) -> tuple[dict, dict[str, np.ndarray], dict]:
     digest = hashlib.sha256((Path(root) / MANIFEST).read_bytes()[:valid]).hexdigest()
     data = load_dataset(root)
     keep = ~data["is_test"] & data["feasible"]
-    info = {"dir": str(Path(root).resolve()), "manifest_sha256": digest, "n": int(header["n"]),
+    info = {"dir": str(root), "manifest_sha256": digest, "n": int(header["n"]),
             "train_feasible": int(keep.sum()), "test_skipped": int(data["is_test"].sum())}
     return header, {k: v[keep] for k, v in data.items()}, info
 

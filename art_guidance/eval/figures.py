@@ -289,7 +289,7 @@ def plot_example_constraints(path: Path, ex: dict, m: dict) -> str:
         if chance:
             a.plot(node, ex[f"{key}_margin_mean_m"], color=_COLORS[key], lw=1.0, alpha=0.35,
                    label=f"{name}, mean state (no uncertainty margin)")
-    a.axhspan(-1e9, 0.0, color="tab:green", alpha=0.15, label="constraint violated (< 0)")
+    a.axhspan(-1e9, 0.0, color="tab:red", alpha=0.08, label="constraint violated (< 0)")
     a.axhline(0.0, color="black", lw=0.8)
     a.set_yscale("symlog", linthresh=10.0)
     finite = np.concatenate([ex[f"{k}_margin_m"] for k in names])
