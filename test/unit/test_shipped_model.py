@@ -1,15 +1,18 @@
-"""The shipped default model (`art_guidance/models/`), on scenarios it never saw in training.
+"""The shipped models (`art_guidance/models/`), on scenarios they never saw in training.
 
-The default model was trained on the train split of `generate --n 20000 --mode chance --seed 0`
-(scenario seeds 0..19999). The held-out scenarios here are that dataset's own test split
-(`train_test_split(0, 20000)`; the training never reads it), drawn again from their seeds.
+The models (the ROE default and the RTN one) were trained on the train split of `generate --n
+20000 --mode chance --seed 0` (scenario seeds 0..19999). The held-out scenarios here are that
+dataset's own test split (`train_test_split(0, 20000)`; the training never reads it), drawn
+again from their seeds.
 """
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from art_guidance.art.provider import ArtWarmStart, default_model_path, shipped_models
+from art_guidance.art.provider import (
+    ArtWarmStart, default_model_path, models_dir, shipped_models,
+)
 from art_guidance.art.rollout import rollout
 from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.data.stages import sample_scenario
@@ -38,23 +41,31 @@ def _heldout(n: int) -> list[PlanRequest]:
     return out
 
 
-def test_shipped_model_is_pinned_and_described(provider, tmp_path):
-    entry = shipped_models()[default_model_path().name]
-    assert provider.sha256 == entry["sha256"]
-    assert provider.art.config.representation == "roe"
-    assert provider.art.meta["dataset"]["mode"] == "chance"
-    assert sum(m["n"] for m in provider.art.meta["dataset"]["manifests"]) >= 20_000
-    assert default_model_path().stat().st_size < 8 * 2**20  # a few MB at most
+SHIPPED = sorted(shipped_models())
+
+
+def test_shipped_models_are_pinned_and_described(provider):
+    assert provider.art.config.representation == "roe"  # the default
+    assert {shipped_models()[name]["representation"] for name in SHIPPED} == {"roe", "rtn"}
+    for name in SHIPPED:
+        entry = shipped_models()[name]
+        model = ArtWarmStart.load(models_dir() / name)
+        assert model.sha256 == entry["sha256"]
+        assert model.art.config.representation == entry["representation"]
+        assert model.art.meta["dataset"]["mode"] == "chance"
+        assert sum(m["n"] for m in model.art.meta["dataset"]["manifests"]) >= 20_000
+        assert (models_dir() / name).stat().st_size < 8 * 2**20  # a few MB at most
     # a shipped model that is not the pinned one is refused
     with pytest.raises(CheckpointError, match="not the expected model"):
         ArtWarmStart.load(default_model_path(), expected_sha256="0" * 64)
 
 
-def test_rollouts_are_more_passively_safe_than_cvx(provider):
+@pytest.mark.parametrize("name", SHIPPED)
+def test_rollouts_are_more_passively_safe_than_cvx(name):
     """On 40 held-out scenarios: C(t1) of the rollouts (conditioned on C = 0) is below the CVX
     solutions' (which violate at almost every scenario), and a share of them is passively safe
-    throughout. (Measured on all 2,000 held-out scenarios: mean C(t1) 14.7 vs 19.2, C(t1) = 0
-    in 20.2 % vs 2.1 %; see the README.)"""
+    throughout (the numbers on all 2,000 held-out scenarios are in the README)."""
+    provider = ArtWarmStart.load(models_dir() / name)
     pipeline = GuidancePipeline(GuidanceConfig.load())
     requests = _heldout(40)
     horizon, safety = pipeline._setup(requests[0])
