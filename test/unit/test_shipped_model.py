@@ -62,12 +62,12 @@ def test_shipped_models_are_pinned_and_described(provider):
 
 @pytest.mark.parametrize("name", SHIPPED)
 def test_rollouts_are_more_passively_safe_than_cvx(name):
-    """On 40 held-out scenarios: C(t1) of the rollouts (conditioned on C = 0) is below the CVX
+    """On 100 held-out scenarios: C(t1) of the rollouts (conditioned on C = 0) is below the CVX
     solutions' (which violate at almost every scenario), and a share of them is passively safe
     throughout (the numbers on all 2,000 held-out scenarios are in the README)."""
     provider = ArtWarmStart.load(models_dir() / name)
     pipeline = GuidancePipeline(GuidanceConfig.load())
-    requests = _heldout(40)
+    requests = _heldout(100)
     horizon, safety = pipeline._setup(requests[0])
     c_cvx, j_cvx = [], []
     for req in requests:
