@@ -28,7 +28,7 @@ import numpy as np
 from art_guidance.config import GuidanceConfig
 from art_guidance.errors import GuidanceError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
-from art_guidance.planning.pipeline import better_plan
+from art_guidance.planning.pipeline import better_plan, second_run
 from art_guidance.planning.posthoc import posthoc_check
 from art_guidance.planning.types import PlanRequest, PosthocDecision, WarmStartProposal
 from art_guidance.safety import PassiveSafety
@@ -149,12 +149,10 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
                 samples_per_node=config.planning.samples_per_node)
     from_cvx = _solve(scvx, cvx.dv_rtn_mps)
     from_art = _solve(scvx, art_dv)
+    source = "art" if ph.accepted else "cvx"
     first, second = (from_art, from_cvx) if ph.accepted else (from_cvx, from_art)
-    if ph.accepted and config.planning.also_solve_from_cvx:
-        auto = first if better_plan(first, second) else second
-    else:
-        auto = first if first.status is ScpStatus.CONVERGED or better_plan(first, second) \
-            else second
+    again = second_run(first, source, True, config.planning.also_solve_from_cvx)
+    auto = second if again is not None and not better_plan(first, second) else first
     return WarmStartRun(cvx, prop, art_roe, ph, from_cvx, from_art, auto, c_cvx,
                         1e3 * (t1 - t0), 1e3 * (t2 - t1))
 

@@ -108,13 +108,10 @@ class GuidancePipeline:
         if warm[other] is not None and budget is not None:
             budget *= self.config.planning.art_deadline_share  # leave time for the retry
         res = scvx.solve(warm[source], deadline_s=budget)
-        second = None  # (warm start of a second SCVx* run, why)
-        if res.status is not ScpStatus.CONVERGED and warm[other] is not None:
-            second = (other, f"SCP from {source.upper()} ended {res.status.name}, retried from "
-                             f"{other.upper()}")
-        elif source == "art" and request.warm_start == WarmStart.AUTO.value \
-                and self.config.planning.also_solve_from_cvx and self._time_left(t_art) != 0.0:
-            second = ("cvx", "also solved from CVX")
+        second = second_run(res, source, warm[other] is not None,
+                            request.warm_start == WarmStart.AUTO.value
+                            and self.config.planning.also_solve_from_cvx
+                            and self._time_left(t_art) != 0.0)
         if second is not None:
             alt_source, why = second
             alt = scvx.solve(warm[alt_source], deadline_s=self._time_left(t_art))
@@ -186,6 +183,24 @@ class _Learned:
     posthoc: PosthocDecision | None = None
     proposal: WarmStartProposal | None = None
     dv: np.ndarray | None = None
+
+
+def second_run(first: ScpResult, source: str, other_exists: bool,
+               also_from_cvx: bool) -> tuple[str, str] | None:
+    """Whether SCVx* runs a second time after `first` (warm-started from `source`, "cvx" or
+    "art"): (the other warm start, why), or None.
+
+    A run that did not converge is retried from the other warm start when there is one
+    (`other_exists`); a converged run from ART is also solved from CVX when `also_from_cvx`
+    (the caller's `also_solve_from_cvx` conditions: warm start "auto", time left).
+    """
+    other = "cvx" if source == "art" else "art"
+    if first.status is not ScpStatus.CONVERGED and other_exists:
+        return other, (f"SCP from {source.upper()} ended {first.status.name}, retried from "
+                       f"{other.upper()}")
+    if source == "art" and also_from_cvx:
+        return "cvx", "also solved from CVX"
+    return None
 
 
 def better_plan(a: ScpResult, b: ScpResult) -> bool:
