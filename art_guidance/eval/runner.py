@@ -61,12 +61,16 @@ class ModelInfo:
         sha256: its payload checksum (workers refuse a file that changed since).
         mode: "deterministic" or "chance", the mode of its training data.
         representation: "roe" or "rtn", its state representation.
+        train_n: trajectories it was trained on (train + validation share; 0: not recorded).
+        n_parameters: its parameter count.
     """
 
     path: str
     sha256: str
     mode: str
     representation: str
+    train_n: int = 0
+    n_parameters: int = 0
 
     @property
     def label(self) -> str:
@@ -187,7 +191,11 @@ def model_info(path: str | Path) -> ModelInfo:
 
     art = load(path)
     mode = "chance" if build_safety(art).uncertainty is not None else "deterministic"
-    return ModelInfo(str(path), str(art.sha256), mode, art.config.representation)
+    data = (art.meta or {}).get("dataset", {})
+    train_n = int(data.get("n_train", 0)) + int(data.get("n_val", 0))
+    n_parameters = sum(int(p.numel()) for p in art.model.parameters())
+    return ModelInfo(str(path), str(art.sha256), mode, art.config.representation, train_n,
+                     n_parameters)
 
 
 def heldout(path: str | Path) -> dict[str, np.ndarray]:
@@ -418,6 +426,7 @@ def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequ
         this["scenarios_per_s"] = this["scenarios"] / wall if wall > 0 else None
         summary = build_summary(out, this, held)
         writer.write_json(SUMMARY, summary)
+        write_report(out, summary)
     if summary["complete"] and figures:
         from art_guidance.eval.figures import render
 
@@ -483,10 +492,19 @@ def _read_summary(out: Path) -> dict:
 
 
 def write_summary(out: str | Path, summary: dict) -> None:
-    """Atomically (re)write OUT/summary.json."""
+    """Atomically (re)write OUT/summary.json and OUT/report.md."""
     from art_guidance.files import write_atomic
 
     write_atomic(Path(out) / SUMMARY, json.dumps(summary, indent=1, sort_keys=True).encode())
+    write_report(out, summary)
+
+
+def write_report(out: str | Path, summary: dict) -> None:
+    """Atomically (re)write OUT/report.md (`eval.report`: our numbers beside the paper's)."""
+    from art_guidance.eval.report import REPORT, report_markdown
+    from art_guidance.files import write_atomic
+
+    write_atomic(Path(out) / REPORT, report_markdown(summary).encode())
 
 
 def rerender(out: str | Path, log: Callable[[str], None] = print) -> dict:

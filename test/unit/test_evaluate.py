@@ -18,6 +18,7 @@ from art_guidance.data.storage import DatasetWriter
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import InputError
 from art_guidance.eval import runner
+from art_guidance.eval.report import REPORT, high_bin, report_markdown
 from art_guidance.eval.warmstart import ROW_FIELDS, WarmStartRow, summarize
 from art_guidance.optim import ScpStatus
 from helpers.art_models import untrained_art
@@ -132,6 +133,27 @@ def test_figures_and_the_recomputed_example(ref, monkeypatch):
     monkeypatch.setattr(runner, "load_model", no_solving)
     assert main(["evaluate", "--figures-only", "--out", str(ref)]) == 0
     assert sorted(p.name for p in (ref / "figures").iterdir()) == sorted(names)
+
+
+def test_report_puts_each_mode_beside_the_paper(ref):
+    summary = json.loads((ref / "summary.json").read_text())
+    text = (ref / REPORT).read_text()
+    assert text == report_markdown(summary)  # written with the summary
+    det = text.index("## Deterministic")
+    chance = text.index("## Chance-constrained")
+    assert "up to 35 % at high C_CVX" in text[det:] and "up to 22 % at high C_CVX" in text[chance:]
+    assert "### roe-chance (roe_c.pt)" in text and "### rtn-deterministic (rtn_d.pt)" in text
+    m = summary["models"][0]
+    b = m["bins"][">=0"]
+    row = next(line for line in text[text.index("### roe-chance"):].splitlines()
+               if line.startswith("| >= 0 |"))
+    assert row.startswith(f"| >= 0 | {b['n']} | {b['n_both_converged']} |")
+    assert f"{b['iterations_cvx']['mean']:.1f} / {b['iterations_art']['mean']:.1f}" in row
+    assert m["train_n"] == 0 and m["n_parameters"] > 0  # the test checkpoints record no data
+    # the high bin needs MIN_PAIRS converged pairs; none here, so the >= 0 bin stands in
+    assert high_bin(m["bins"]) is None
+    assert high_bin({">=0": {"n_both_converged": 30}, ">=10": {"n_both_converged": 20},
+                     ">=20": {"n_both_converged": 5}}) == ">=10"
 
 
 def test_two_workers_give_the_same_results(ref, inputs, tmp_path):
