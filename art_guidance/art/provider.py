@@ -31,6 +31,8 @@ from art_guidance.planning.types import PlanRequest, WarmStartProposal
 from art_guidance.safety import PassiveSafety
 
 DEFAULT_MODEL = "art_small_chance_roe.pt"
+# The shipped default per passive-safety mode (the mode of the model's training data).
+DEFAULT_MODELS = {"chance": DEFAULT_MODEL, "deterministic": "art_small_det_roe.pt"}
 SPACING_REL_TOL = 0.01  # node spacing of a request vs the training horizon's [-]
 
 
@@ -39,9 +41,25 @@ def models_dir() -> Path:
     return Path(__file__).resolve().parent.parent / "models"
 
 
-def default_model_path() -> Path:
-    """The shipped default model: small preset, ROE representation, chance-constrained data."""
-    return models_dir() / DEFAULT_MODEL
+def default_model_path(mode: str = "chance") -> Path:
+    """The shipped default model of a passive-safety mode ("chance" or "deterministic"):
+    small preset, ROE representation, trained on data of that mode.
+
+    Raises:
+        ValueError: an unknown mode.
+    """
+    if mode not in DEFAULT_MODELS:
+        raise ValueError(f"unknown passive-safety mode {mode!r}; choose from "
+                         f"{sorted(DEFAULT_MODELS)}")
+    return models_dir() / DEFAULT_MODELS[mode]
+
+
+def shipped_model_with_sha256(sha256: str) -> Path | None:
+    """The shipped model whose pinned checksum is `sha256` (None: no shipped model has it)."""
+    for name, entry in shipped_models().items():
+        if isinstance(entry, dict) and entry.get("sha256") == sha256:
+            return models_dir() / name
+    return None
 
 
 def shipped_models() -> dict[str, dict]:
@@ -64,11 +82,11 @@ def pinned_sha256(path: str | Path) -> str | None:
     return None if not isinstance(entry, dict) else entry.get("sha256")
 
 
-def resolve_model_path(spec: str | None) -> Path | None:
-    """A model path from a parameter value: "" or None = the shipped default, "none" = no
-    model (CVX only), anything else a file path."""
+def resolve_model_path(spec: str | None, mode: str = "chance") -> Path | None:
+    """A model path from a parameter value: "" or None = the shipped default of `mode`
+    ("chance" or "deterministic"), "none" = no model (CVX only), anything else a file path."""
     if spec is None or str(spec).strip() == "":
-        return default_model_path()
+        return default_model_path(mode)
     if str(spec).strip().lower() == "none":
         return None
     return Path(spec).expanduser()

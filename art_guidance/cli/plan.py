@@ -56,7 +56,7 @@ def _provider(args: argparse.Namespace) -> tuple[object | None, str]:
     from art_guidance.art.provider import ArtWarmStart, resolve_model_path
     from art_guidance.errors import GuidanceError
 
-    path = resolve_model_path(args.model)
+    path = resolve_model_path(args.model, "deterministic" if args.deterministic else "chance")
     if path is None:
         if args.warm_start == "art":
             raise InputError("model", "--warm-start art needs a model", args.model)
@@ -85,8 +85,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="warm start for SCP: auto = ART if its rollout passes the post hoc "
                    "check, else CVX; art = ART even if the check fails; cvx = CVX (no model "
                    "loaded)")
-    p.add_argument("--model", default="", help="ART checkpoint ('' = the shipped default, "
-                   "'none' = no model)")
+    p.add_argument("--model", default="", help="ART checkpoint ('' = the shipped default of the "
+                   "mode: chance-constrained or, with --deterministic, deterministic; 'none' = "
+                   "no model)")
     p.add_argument("--waypoint", default=None, help="override the sampled waypoint")
     p.add_argument("--scenario", default=None, help="scenario YAML (default: packaged)")
     p.add_argument("--json", required=True, help="output path of the plan JSON")

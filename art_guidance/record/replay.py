@@ -127,16 +127,20 @@ def _replay_provider(log: RecordedLog, model: str | Path | None) -> tuple[object
     """The warm-start provider to replay with, and a note on how it relates to the log's.
 
     A log recorded without a model replays CVX-only (a given model is ignored). A log recorded
-    with a model replays with `model`, or with the shipped default when its checksum is the
-    recorded one; a different checksum is reported, never a silent mismatch.
+    with a model replays with `model`, or else with the shipped model whose pinned checksum is
+    the recorded one (the shipped chance-constrained default if none is); a different checksum
+    is reported, never a silent mismatch.
     """
     recorded = str(log.metadata.get("model_checksum", "none") or "none")
     if recorded == "none":
         note = "recorded without a learned model: replayed CVX-only"
         return None, note + ("; the given model is not used" if model else "")
-    from art_guidance.art.provider import ArtWarmStart, default_model_path
+    from art_guidance.art.provider import (
+        ArtWarmStart, default_model_path, shipped_model_with_sha256,
+    )
 
-    path = Path(model) if model else default_model_path()
+    path = Path(model) if model else (shipped_model_with_sha256(recorded)
+                                      or default_model_path())
     try:
         provider = ArtWarmStart.load(path)
     except GuidanceError as exc:

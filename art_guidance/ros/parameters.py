@@ -88,9 +88,9 @@ SPECS: dict[str, ParamSpec] = {
     "warm_start": ParamSpec("SCP warm start until a replan request says otherwise", "str",
                             WARM_STARTS),
     "model_path": ParamSpec("ART checkpoint for the learned warm start, loaded and checked "
-                            "once at start-up ('' = the shipped default model, 'none' = CVX "
-                            "only); a model that fails to load leaves the node in CVX-only "
-                            "mode with a warning", "str"),
+                            "once at start-up ('' = the shipped default model of the "
+                            "chance_constrained mode, 'none' = CVX only); a model that fails "
+                            "to load leaves the node in CVX-only mode with a warning", "str"),
     "replan_sigma_threshold": ParamSpec("replan when any ROE axis deviates from the plan by "
                                         "more than this [navigation sigma]", "float",
                                         minimum=0.0, exclusive_minimum=True, dynamic=True),
