@@ -118,6 +118,12 @@ def _headline(models: Sequence[dict], mode: str) -> list[str]:
         lambda m: " / ".join(_f(m["gain_histogram_posthoc"][k], "{:.0f}", 1e3)
                              for k in ("min_mps", "max_mps"))
         + f", {m['accepted']} of {m['n']} ({_pct(m['frac_accepted'])})")
+    row("the plan flown (`auto`, PS-CVX also solved) - PS-CVX: min / max [mm/s], better / "
+        "worse by > 1 mm/s", "-",
+        lambda m: " / ".join(_f(m["auto_minus_scp_cvx_mps"][k], "{:.0f}", 1e3)
+                             for k in ("min", "max"))
+        + f", {m['auto_minus_scp_cvx_mps']['n_better_by_1mm']} / "
+          f"{m['auto_minus_scp_cvx_mps']['n_worse_by_1mm']}")
     row("rollouts with E_C = C_ART(t_1) = 0", "majority", lambda m: _pct(m["c_art_zero"]))
     return lines
 

@@ -293,3 +293,24 @@ def test_heldout_reads_the_same_scenarios_as_the_full_load(inputs):
     assert set(full) == set(lean) and full["index"].size == N_DATA // 10
     for key in full:
         assert np.array_equal(full[key], lean[key]), key
+
+
+def test_the_committed_results_are_complete_and_match_the_shipped_models():
+    """benchmarks/results/warmstart: the README's results table is `report.md`, which is the
+    report of the committed summary.json; it covers >= 1,000 held-out scenarios per mode with
+    the shipped models (their pinned checksums), and every figure it lists is there."""
+    from art_guidance.art.provider import shipped_models
+
+    root = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "warmstart"
+    summary = json.loads((root / "summary.json").read_text())
+    assert (root / REPORT).read_text() == report_markdown(summary)
+    assert summary["complete"] and summary["n_done"] == summary["n_scenarios"]
+    pinned = {e["sha256"]: name for name, e in shipped_models().items()}
+    assert sorted(pinned[m["sha256"]] for m in summary["models"]) == sorted(pinned.values())
+    for mode in ("chance", "deterministic"):
+        models = [m for m in summary["models"] if m["mode"] == mode]
+        assert {m["representation"] for m in models} == {"roe", "rtn"}
+        assert all(m["n"] >= 1000 for m in models)
+    for name in summary["figures"]:
+        data = (root / "figures" / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) < 400_000

@@ -1,28 +1,29 @@
 """The shipped models (`art_guidance/models/`), on scenarios they never saw in training.
 
-The models (the ROE default and the RTN one) were trained on the train split of `generate --n
-20000 --mode chance --seed 0` (scenario seeds 0..19999). The held-out scenarios here are that
-dataset's own test split (`train_test_split(0, 20000)`; the training never reads it), drawn
-again from their seeds.
+Per passive-safety mode (chance-constrained and deterministic) an ROE model (the mode's
+default) and an RTN model are shipped, each trained on the train split of `generate --n N
+--mode MODE --seed 0` (scenario seeds 0..N-1). The held-out scenarios here are that dataset's
+own test split (`train_test_split(0, N)`; the training never reads it), drawn again from their
+seeds.
 """
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
 
 from art_guidance.art.provider import (
-    ArtWarmStart, default_model_path, models_dir, shipped_models,
+    DEFAULT_MODELS, ArtWarmStart, default_model_path, models_dir,
+    shipped_model_with_sha256, shipped_models,
 )
 from art_guidance.art.rollout import rollout
-from art_guidance.config import GuidanceConfig, ScenarioConfig
-from art_guidance.data.stages import sample_scenario
-from art_guidance.data.storage import train_test_split
-from art_guidance.dynamics import roe_from_rtn_linear
+from art_guidance.cli import main
+from art_guidance.config import GuidanceConfig
 from art_guidance.errors import CheckpointError
 from art_guidance.optim import solve_cvx
-from art_guidance.planning import GuidancePipeline, PlanRequest
-
-FLOOR_MPS = 0.010  # the paper's post hoc floor: auto never worse than CVX by more than this
+from art_guidance.planning import GuidancePipeline
+from helpers.shipped import heldout_requests
 
 
 @pytest.fixture(scope="module")
@@ -30,30 +31,27 @@ def provider() -> ArtWarmStart:
     return ArtWarmStart.load()
 
 
-def _heldout(n: int) -> list[PlanRequest]:
-    scenario = ScenarioConfig.from_yaml()
-    chief = np.array(scenario.chief_oe)
-    _, test = train_test_split(0, 20_000)
-    out = []
-    for seed in test[:n]:
-        s = sample_scenario(scenario, int(seed))
-        out.append(PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn))
-    return out
-
-
 SHIPPED = sorted(shipped_models())
 
 
 def test_shipped_models_are_pinned_and_described(provider):
     assert provider.art.config.representation == "roe"  # the default
-    assert {shipped_models()[name]["representation"] for name in SHIPPED} == {"roe", "rtn"}
+    entries = shipped_models()
+    assert {(e["dataset"]["mode"], e["representation"]) for e in entries.values()} == {
+        (mode, r) for mode in DEFAULT_MODELS for r in ("roe", "rtn")}
+    for mode, name in DEFAULT_MODELS.items():  # each mode's default is its ROE model
+        assert default_model_path(mode).name == name
+        assert (entries[name]["dataset"]["mode"], entries[name]["representation"]) == (
+            mode, "roe")
     for name in SHIPPED:
-        entry = shipped_models()[name]
+        entry = entries[name]
         model = ArtWarmStart.load(models_dir() / name)
         assert model.sha256 == entry["sha256"]
+        assert shipped_model_with_sha256(model.sha256) == models_dir() / name
         assert model.art.config.representation == entry["representation"]
-        assert model.art.meta["dataset"]["mode"] == "chance"
-        assert sum(m["n"] for m in model.art.meta["dataset"]["manifests"]) >= 20_000
+        assert model.art.meta["dataset"]["mode"] == entry["dataset"]["mode"]
+        assert sum(m["n"] for m in model.art.meta["dataset"]["manifests"]) == (
+            entry["dataset"]["n"]) >= 10_000
         assert (models_dir() / name).stat().st_size < 8 * 2**20  # a few MB at most
     # a shipped model that is not the pinned one is refused
     with pytest.raises(CheckpointError, match="not the expected model"):
@@ -67,7 +65,7 @@ def test_rollouts_are_more_passively_safe_than_cvx(name):
     throughout (the numbers on all 2,000 held-out scenarios are in the README)."""
     provider = ArtWarmStart.load(models_dir() / name)
     pipeline = GuidancePipeline(GuidanceConfig.load())
-    requests = _heldout(100)
+    requests = heldout_requests(100, name)
     horizon, safety = pipeline._setup(requests[0])
     c_cvx, j_cvx = [], []
     for req in requests:
@@ -86,26 +84,12 @@ def test_rollouts_are_more_passively_safe_than_cvx(name):
     assert np.mean(c_art == 0) >= 0.1 > np.mean(c_cvx == 0)
 
 
-@pytest.mark.slow
-def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(provider):
-    """50 held-out chance-constrained scenarios: the `auto` plan (ART if accepted post hoc,
-    retried from CVX if its SCP does not converge) costs at most 10 mm/s more than the
-    CVX-warm-started plan, and is feasible whenever that one is."""
-    config = GuidanceConfig.load()
-    auto = GuidancePipeline(config, provider=provider)
-    cvx_only = GuidancePipeline(config)
-    rows = []
-    for req in _heldout(50):
-        a, c = auto.plan(req), cvx_only.plan(req)
-        rows.append((a.cost_mps - c.cost_mps, a.scp.feasible, c.scp.feasible,
-                     a.warm_start == "art", a.scp.iterations, c.scp.iterations))
-        if c.scp.feasible:
-            assert a.scp.feasible, a.warm_start_reason
-            assert a.cost_mps <= c.cost_mps + FLOOR_MPS, a.warm_start_reason
-    d = np.array([r[0] for r in rows if r[1] and r[2]])
-    accepted = np.array([r[3] for r in rows])
-    print(f"\nauto - cvx cost [mm/s] over {d.size} feasible pairs: min {1e3 * d.min():.2f} "
-          f"p5 {1e3 * np.percentile(d, 5):.2f} median {1e3 * np.median(d):.2f} "
-          f"p95 {1e3 * np.percentile(d, 95):.2f} max {1e3 * d.max():.2f}; ART accepted "
-          f"{accepted.sum()}/{accepted.size}; iterations auto {np.mean([r[4] for r in rows]):.1f}"
-          f" cvx {np.mean([r[5] for r in rows]):.1f}")
+@pytest.mark.parametrize("mode", sorted(DEFAULT_MODELS))
+def test_plan_loads_the_default_model_of_its_mode(mode, tmp_path):
+    """`plan` without --model rolls out the shipped default of the planned mode."""
+    out = tmp_path / "plan.json"
+    flags = ["--deterministic"] if mode == "deterministic" else []
+    assert main(["plan", "--seed", "4", *flags, "--json", str(out)]) in (0, 1)
+    data = json.loads(out.read_text())
+    assert data["mode"] == mode
+    assert data["model_sha256"] == shipped_models()[DEFAULT_MODELS[mode]]["sha256"]

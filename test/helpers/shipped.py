@@ -1,0 +1,26 @@
+"""Held-out scenarios of the shipped models' datasets, as plan requests."""
+from __future__ import annotations
+
+import numpy as np
+
+from art_guidance.art.provider import DEFAULT_MODEL, shipped_models
+from art_guidance.config import ScenarioConfig
+from art_guidance.data.stages import sample_scenario
+from art_guidance.data.storage import train_test_split
+from art_guidance.dynamics import roe_from_rtn_linear
+from art_guidance.planning import PlanRequest
+
+
+def heldout_requests(n: int, name: str = DEFAULT_MODEL) -> list[PlanRequest]:
+    """The first n held-out scenarios of the dataset the shipped model `name` was trained on,
+    as requests of its mode."""
+    data = shipped_models()[name]["dataset"]
+    scenario = ScenarioConfig.from_yaml()
+    chief = np.array(scenario.chief_oe)
+    _, test = train_test_split(0, data["n"])
+    out = []
+    for seed in test[:n]:
+        s = sample_scenario(scenario, int(seed))
+        out.append(PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
+                               chance_constrained=data["mode"] == "chance"))
+    return out
