@@ -157,8 +157,9 @@ def plot_posthoc_maps(path: Path, m: dict, thresholds: dict) -> str:
     er = [_interval(a, b) for a, b in zip(ER_PCT_EDGES[:-1], ER_PCT_EDGES[1:])]
     ec = ["0", "1", "2-4", "5-10", "11-20", "> 20"][:len(EC_EDGES) - 1]
     panels = ((maps["population"], "data population [scenarios]", "viridis", False),
-              (maps["improvement_ratio_mean"], "suboptimality improvement: mean of "
-               "(J_SCP,CVX - J_SCP,ART) / (J_SCP,CVX - J_CVX) [%] (red: ART better)",
+              (maps.get("improvement_ratio_of_sums", maps["improvement_ratio_mean"]),
+               "suboptimality improvement: sum of (J_SCP,CVX - J_SCP,ART) / sum of "
+               "(J_SCP,CVX - J_CVX) per cell [%] (red: ART better)",
                "RdBu_r", True),
               (maps["iterations_saved_mean"], "iteration improvement: mean of it_SCP,CVX - "
                "it_SCP,ART [iterations] (red: ART faster)", "RdBu_r", True))
@@ -184,13 +185,13 @@ def plot_posthoc_maps(path: Path, m: dict, thresholds: dict) -> str:
             a.add_patch(Rectangle((c0 - 0.5, r0 - 0.5), c1 - c0 + 1, r1 - r0 + 1, fill=False,
                                   ec="black", lw=2, ls="--",
                                   label="cells overlapping the acceptance region"))
-            a.legend(fontsize=7, loc="upper right")
+            a.legend(fontsize=7, loc="lower left")
         a.set_xticks(range(len(er)), er, fontsize=7, rotation=30)
         a.set_yticks(range(len(ec)), ec, fontsize=7)
         a.set_xlabel("100 E_R = 100 (R_ART - R_des) / R_des [%]", fontsize=8)
         a.set_ylabel("E_C = C_ART(t_1) [nodes]", fontsize=8)
         a.set_title(title + " (gray: no data)", fontsize=9)
-    fig.suptitle(f"ART rollouts by post hoc criterion, {m['label']}, {m['n']} scenarios "
+    fig.suptitle(f"ART rollouts by post hoc criterion, {m['label']}, {m['n']} scenarios\n"
                  f"(acceptance: {thresholds['e_r_pct_min']:g} <= 100 E_R <= "
                  f"{thresholds['e_r_pct_max']:g}, {thresholds['e_c_min']:g} <= E_C <= "
                  f"{thresholds['e_c_max']:g})", fontsize=10)

@@ -276,6 +276,8 @@ def test_histograms_with_and_without_the_posthoc_check():
     assert pop[2, 1] == 1 and maps["improvement_ratio_mean"][2][1] == pytest.approx(1.0)
     assert maps["iterations_saved_mean"][2][1] == pytest.approx(15.0)
     assert maps["improvement_ratio_mean"][5][0] is None  # no data
+    assert maps["improvement_ratio_of_sums"][2][1] == pytest.approx(1.0)
+    assert maps["improvement_ratio_of_sums"][5][0] is None
 
 
 def test_summary_of_stored_columns_equals_summary_of_rows():
