@@ -82,11 +82,12 @@ def pinned_sha256(path: str | Path) -> str | None:
     return None if not isinstance(entry, dict) else entry.get("sha256")
 
 
-def resolve_model_path(spec: str | None, mode: str = "chance") -> Path | None:
-    """A model path from a parameter value: "" or None = the shipped default of `mode`
-    ("chance" or "deterministic"), "none" = no model (CVX only), anything else a file path."""
+def resolve_model_path(spec: str | None, chance_constrained: bool = True) -> Path | None:
+    """A model path from a parameter value: "" or None = the shipped default of the planning
+    mode (chance-constrained or deterministic), "none" = no model (CVX only), anything else a
+    file path."""
     if spec is None or str(spec).strip() == "":
-        return default_model_path(mode)
+        return default_model_path("chance" if chance_constrained else "deterministic")
     if str(spec).strip().lower() == "none":
         return None
     return Path(spec).expanduser()
@@ -132,7 +133,7 @@ class ArtWarmStart:
     def describe(self) -> str:
         """One line: file, preset size, representation, checksum."""
         cfg = self.art.config
-        n_params = sum(p.numel() for p in self.art.model.parameters())
+        n_params = self.art.model.n_parameters()
         return (f"{Path(self.path).name or 'in-memory model'}: {cfg.n_layers}x{cfg.width} "
                 f"({n_params / 1e6:.2f} M parameters), {cfg.representation.upper()} states, "
                 f"sha256 {self.sha256[:12] or '-'}")

@@ -56,7 +56,7 @@ def _provider(args: argparse.Namespace) -> tuple[object | None, str]:
     from art_guidance.art.provider import ArtWarmStart, resolve_model_path
     from art_guidance.errors import GuidanceError
 
-    path = resolve_model_path(args.model, "deterministic" if args.deterministic else "chance")
+    path = resolve_model_path(args.model, chance_constrained=not args.deterministic)
     if path is None:
         if args.warm_start == "art":
             raise InputError("model", "--warm-start art needs a model", args.model)

@@ -157,7 +157,7 @@ def plot_posthoc_maps(path: Path, m: dict, thresholds: dict) -> str:
     er = [_interval(a, b) for a, b in zip(ER_PCT_EDGES[:-1], ER_PCT_EDGES[1:])]
     ec = ["0", "1", "2-4", "5-10", "11-20", "> 20"][:len(EC_EDGES) - 1]
     panels = ((maps["population"], "data population [scenarios]", "viridis", False),
-              (maps.get("improvement_ratio_of_sums", maps["improvement_ratio_mean"]),
+              (maps["improvement_ratio_of_sums"],
                "suboptimality improvement: sum of (J_SCP,CVX - J_SCP,ART) / sum of "
                "(J_SCP,CVX - J_CVX) per cell [%] (red: ART better)",
                "RdBu_r", True),

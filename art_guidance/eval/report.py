@@ -63,6 +63,24 @@ def _change(cvx: float, art: float) -> str:
     return f"{100.0 * (art - cvx) / cvx:+.0f} %"
 
 
+def _improvement(b: dict) -> str:
+    r = b["improvement_ratio"]
+    return f"{_pct(r['of_means'])} (median {_pct(r['median'])})"
+
+
+def _iterations(b: dict) -> str:
+    return f"{_f(b['iterations_cvx']['mean'])} -> {_f(b['iterations_art']['mean'])}"
+
+
+def _infeasible(b: dict) -> str:
+    cvx, art = b["infeasible_rate_cvx"], b["infeasible_rate_art"]
+    return f"{_pct(cvx)} -> {_pct(art)} ({_change(cvx, art)})"
+
+
+def _extremes(stats: dict, keys: Sequence[str]) -> str:
+    return " / ".join(_f(stats[k], "{:.0f}", 1e3) for k in keys)
+
+
 def _headline(models: Sequence[dict], mode: str) -> list[str]:
     head = "| | paper | " + " | ".join(m["representation"].upper() for m in models) + " |"
     lines = [head, "|---|---|" + "---|" * len(models)]
@@ -79,49 +97,40 @@ def _headline(models: Sequence[dict], mode: str) -> list[str]:
     def hb(m: dict) -> dict:
         return m["bins"][high_bin(m["bins"]) or ">=0"]
 
+    def every(m: dict) -> dict:
+        return m["bins"][">=0"]
+
     row("training data, model", PAPER["setting"],
         lambda m: f"{m['train_n']:,} trajectories, {m['n_parameters'] / 1e6:.2f} M parameters"
         if m.get("train_n") else "-")
     row("held-out scenarios evaluated", "11,500", lambda m: f"{m['n']:,}")
     row("high-C_CVX bin (>= 20 converged pairs)", "-",
         lambda m: f"C_CVX >= {(high_bin(m['bins']) or '>=0')[2:]}: {hb(m)['n']} scenarios")
-    row("suboptimality improvement, all", "-",
-        lambda m: f"{_pct(m['bins']['>=0']['improvement_ratio']['of_means'])} (median "
-                  f"{_pct(m['bins']['>=0']['improvement_ratio']['median'])})")
+    row("suboptimality improvement, all", "-", lambda m: _improvement(every(m)))
     row("suboptimality improvement, high bin", PAPER["improvement"][mode],
-        lambda m: f"{_pct(hb(m)['improvement_ratio']['of_means'])} (median "
-                  f"{_pct(hb(m)['improvement_ratio']['median'])})")
+        lambda m: _improvement(hb(m)))
     row("J_SCP - J_CVX median, CVX -> ART, high bin [mm/s]", "-",
         lambda m: f"{_f(hb(m)['subopt_cvx_mps']['median'], scale=1e3)} -> "
                   f"{_f(hb(m)['subopt_art_mps']['median'], scale=1e3)}")
-    row("SCP iterations (mean), CVX -> ART, all", PAPER["iterations"],
-        lambda m: f"{_f(m['bins']['>=0']['iterations_cvx']['mean'])} -> "
-                  f"{_f(m['bins']['>=0']['iterations_art']['mean'])}")
-    row("SCP iterations (mean), CVX -> ART, high bin", PAPER["iterations"],
-        lambda m: f"{_f(hb(m)['iterations_cvx']['mean'])} -> "
-                  f"{_f(hb(m)['iterations_art']['mean'])}")
-    for label, key in (("all", ">=0"), ("high bin", None)):
+    for label, pick in (("all", every), ("high bin", hb)):
+        row(f"SCP iterations (mean), CVX -> ART, {label}", PAPER["iterations"],
+            lambda m, pick=pick: _iterations(pick(m)))
+    for label, pick in (("all", every), ("high bin", hb)):
         row(f"infeasible or not converged, CVX -> ART, {label}", PAPER["infeasible"],
-            lambda m, key=key: (lambda b: f"{_pct(b['infeasible_rate_cvx'])} -> "
-                                f"{_pct(b['infeasible_rate_art'])} ("
-                                f"{_change(b['infeasible_rate_cvx'], b['infeasible_rate_art'])})")
-            (m["bins"][key] if key else hb(m)))
+            lambda m, pick=pick: _infeasible(pick(m)))
     row("median total runtime, CVX -> ART, high bin [ms]", PAPER["runtime"],
         lambda m: f"{_f(hb(m)['runtime_ms_median']['total_cvx'], '{:.0f}')} -> "
                   f"{_f(hb(m)['runtime_ms_median']['total_art'], '{:.0f}')} (rollout "
                   f"{_f(hb(m)['runtime_ms_median']['ws_art'], '{:.0f}')}, CVX "
                   f"{_f(hb(m)['runtime_ms_median']['ws_cvx'], '{:.1f}')})")
     row("J_SCP,CVX - J_SCP,ART: min / median / max [mm/s]", PAPER["gap"],
-        lambda m: " / ".join(_f(m["gain_histogram"][k], "{:.0f}", 1e3)
-                             for k in ("min_mps", "median_mps", "max_mps")))
+        lambda m: _extremes(m["gain_histogram"], ("min_mps", "median_mps", "max_mps")))
     row("with the post hoc check: min / max [mm/s], accepted", PAPER["posthoc"],
-        lambda m: " / ".join(_f(m["gain_histogram_posthoc"][k], "{:.0f}", 1e3)
-                             for k in ("min_mps", "max_mps"))
+        lambda m: _extremes(m["gain_histogram_posthoc"], ("min_mps", "max_mps"))
         + f", {m['accepted']} of {m['n']} ({_pct(m['frac_accepted'])})")
     row("the plan flown (`auto`, PS-CVX also solved) - PS-CVX: min / max [mm/s], better / "
         "worse by > 1 mm/s", "-",
-        lambda m: " / ".join(_f(m["auto_minus_scp_cvx_mps"][k], "{:.0f}", 1e3)
-                             for k in ("min", "max"))
+        lambda m: _extremes(m["auto_minus_scp_cvx_mps"], ("min", "max"))
         + f", {m['auto_minus_scp_cvx_mps']['n_better_by_1mm']} / "
           f"{m['auto_minus_scp_cvx_mps']['n_worse_by_1mm']}")
     row("rollouts with E_C = C_ART(t_1) = 0", "majority", lambda m: _pct(m["c_art_zero"]))

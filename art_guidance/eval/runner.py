@@ -193,9 +193,8 @@ def model_info(path: str | Path) -> ModelInfo:
     mode = "chance" if build_safety(art).uncertainty is not None else "deterministic"
     data = (art.meta or {}).get("dataset", {})
     train_n = int(data.get("n_train", 0)) + int(data.get("n_val", 0))
-    n_parameters = sum(int(p.numel()) for p in art.model.parameters())
     return ModelInfo(str(path), str(art.sha256), mode, art.config.representation, train_n,
-                     n_parameters)
+                     art.model.n_parameters())
 
 
 def heldout(path: str | Path) -> dict[str, np.ndarray]:

@@ -265,26 +265,25 @@ def posthoc_maps(data: Mapping[str, np.ndarray], g: Mapping[str, np.ndarray]) ->
     pop = np.zeros(shape, dtype=int)
     np.add.at(pop, (row[ok], col[ok]), 1)
 
-    def cell_mean(values: np.ndarray) -> list:
-        sel = ok & np.isfinite(values)
-        total, count = np.zeros(shape), np.zeros(shape, dtype=int)
-        np.add.at(total, (row[sel], col[sel]), values[sel])
-        np.add.at(count, (row[sel], col[sel]), 1)
-        return [[float(total[i, j] / count[i, j]) if count[i, j] else None
-                 for j in range(shape[1])] for i in range(shape[0])]
-
-    def cell_sum(values: np.ndarray) -> np.ndarray:
-        sel = ok & np.isfinite(g["gain_mps"])
+    def cell_sum(values: np.ndarray, sel: np.ndarray) -> np.ndarray:
         total = np.zeros(shape)
         np.add.at(total, (row[sel], col[sel]), values[sel])
         return total
 
-    gains_, gaps = cell_sum(g["gain_mps"]), cell_sum(g["gap_mps"])
-    of_sums = [[float(gains_[i, j] / gaps[i, j]) if gaps[i, j] > GAP_TOL_MPS else None
-                for j in range(shape[1])] for i in range(shape[0])]
+    def cell_ratio(num: np.ndarray, den: np.ndarray, floor: float) -> list:
+        """num / den per cell, None where den <= floor."""
+        return [[float(num[i, j] / den[i, j]) if den[i, j] > floor else None
+                 for j in range(shape[1])] for i in range(shape[0])]
+
+    def cell_mean(values: np.ndarray) -> list:
+        sel = ok & np.isfinite(values)
+        return cell_ratio(cell_sum(values, sel), cell_sum(np.ones_like(values), sel), 0.0)
+
+    both = ok & np.isfinite(g["gain_mps"])
     return {"e_r_pct_edges": list(ER_PCT_EDGES), "e_c_edges": list(EC_EDGES),
             "population": pop.tolist(), "improvement_ratio_mean": cell_mean(g["ratio"]),
-            "improvement_ratio_of_sums": of_sums,
+            "improvement_ratio_of_sums": cell_ratio(cell_sum(g["gain_mps"], both),
+                                                    cell_sum(g["gap_mps"], both), GAP_TOL_MPS),
             "iterations_saved_mean": cell_mean(g["iterations_saved"])}
 
 

@@ -125,8 +125,7 @@ class GuidanceCore:
         try:
             from art_guidance.art.provider import ArtWarmStart, resolve_model_path
 
-            mode = "chance" if self.p["chance_constrained"] else "deterministic"
-            provider = ArtWarmStart.load(resolve_model_path(spec, mode))
+            provider = ArtWarmStart.load(resolve_model_path(spec, self.p["chance_constrained"]))
         except Exception as exc:  # a model never takes the node down
             text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             status = f"cvx-only: the model did not load ({type(exc).__name__}: {text[:300]})"
