@@ -66,7 +66,7 @@ import numpy as np
 
 from art_guidance.drift_bounds import N_ORDERS, ArcItems, ArcPoints, lower_bound
 from art_guidance.dynamics import (
-    j2_secular_rates, mean_arg_latitude, psi_from_latitude, stm_basis, stm_j2_terms,
+    j2_secular_rates, mean_arg_latitude, psi_from_latitude, stm_j2_terms,
 )
 
 N_TERMS = 18        # 3 latitude functions x 6 STM time functions
@@ -158,20 +158,44 @@ class DriftArcs:
 
     # ------------------------------------------------------------------ basis
     def basis(self, node: np.ndarray, tau_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """b(tau) and b'(tau), each (M, K, 18), for arcs `node` (M,) at offsets (M, K) [s]."""
+        """b(tau) and b'(tau), each (M, K, 18), for arcs `node` (M,) at offsets (M, K) [s].
+
+        ``b = {1, cos u, sin u} x s`` with s the STM time functions (`dynamics.stm_basis`, order
+        0 and 1: the same arithmetic, written here into the output without intermediate
+        stacks: this runs a few times per arc minimum).
+        """
         udot = self._udot[node][:, None]
         u = self._u0[node][:, None] + udot * tau_s
         cu, su = np.cos(u), np.sin(u)
-        # basis-first layout (3|6, M, K): every broadcast below runs over M * K contiguous values
-        lat0 = np.stack([np.ones_like(u), cu, su])
-        lat1 = np.stack([np.zeros_like(u), -udot * su, udot * cu])
-        wdot = self._wdot[node][:, None]
-        s0, s1 = stm_basis(wdot, tau_s, 0, axis=0), stm_basis(wdot, tau_s, 1, axis=0)
-        b0 = (lat0[:, None] * s0[None]).reshape((N_TERMS,) + u.shape)
-        b1 = lat1[:, None] * s0[None]
-        b1 += lat0[:, None] * s1[None]  # in place: large temporaries cost page faults
-        return (np.ascontiguousarray(np.moveaxis(b0, 0, -1)),
-                np.ascontiguousarray(np.moveaxis(b1.reshape(b0.shape), 0, -1)))
+        w, tau = np.broadcast_arrays(self._wdot[node][:, None], np.asarray(tau_s, float))
+        wt = w * tau
+        c, s = np.cos(wt), np.sin(wt)
+        shape = u.shape
+        s0 = np.empty(shape + (6,))  # (1, tau, c, s, tau c, tau s)
+        s0[..., 0] = 1.0
+        s0[..., 1] = tau
+        s0[..., 2] = c
+        s0[..., 3] = s
+        s0[..., 4] = tau * c
+        s0[..., 5] = tau * s
+        s1 = np.empty(shape + (6,))  # its derivative
+        s1[..., 0] = 0.0
+        s1[..., 1] = 1.0
+        s1[..., 2] = -w * s
+        s1[..., 3] = w * c
+        s1[..., 4] = c - w * tau * s
+        s1[..., 5] = s + w * tau * c
+        b0 = np.empty(shape + (3, 6))
+        b0[..., 0, :] = s0
+        np.multiply(cu[..., None], s0, out=b0[..., 1, :])
+        np.multiply(su[..., None], s0, out=b0[..., 2, :])
+        b1 = np.empty(shape + (3, 6))  # (lat' s + lat s')
+        b1[..., 0, :] = s1
+        np.multiply((-udot * su)[..., None], s0, out=b1[..., 1, :])
+        b1[..., 1, :] += cu[..., None] * s1
+        np.multiply((udot * cu)[..., None], s0, out=b1[..., 2, :])
+        b1[..., 2, :] += su[..., None] * s1
+        return b0.reshape(shape + (N_TERMS,)), b1.reshape(shape + (N_TERMS,))
 
     def _sup_bounds(self) -> np.ndarray:
         """(N, 5, 18): sup over [0, T] of |b_k^(r)|, r = 0..4 (module docstring, step 1).

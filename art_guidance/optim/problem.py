@@ -17,10 +17,14 @@ of the convex problem (E = I, B = B(0), P = Phi, r = j = 0).
 
 The sparsity pattern is built once per horizon; per iteration only the dynamics and safety
 coefficients, the right-hand sides, the penalty multipliers and the weight change (updated in
-place).
+place). `pooled_subproblem` keeps the last subproblem (and its solver) of every shape per thread,
+so that consecutive SCVx* runs over one horizon (the dataset's stages, the pipeline's two warm
+starts) update it instead of assembling and factorising the pattern again: the solutions are
+bit-identical to a fresh build's (`test/unit/test_problem_pool.py`).
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -102,8 +106,6 @@ class ScpSubproblem:
         r = row + np.arange(6)[:, None]
         self._slot_fx = trip.add(r, self.ix[n - 1][None, :], eye6)
         self._slot_fu = trip.add(r, self.iu[n - 1][None, :], h.b[n - 1] / sx)
-        self._roe_f_m = roe_f_m
-        b_zero = [roe0_m / sx, np.zeros(6 * (n - 1)), roe_f_m / sx]
         row += 6
         n_zero = row
         # post-burn model z = e x + bu u - jx used by the safety rows (`set_dynamics`)
@@ -144,12 +146,20 @@ class ScpSubproblem:
         self._pattern = CscPattern(rows, cols, (row, self.n_var))
         self._a_vals = vals
         self._b = np.zeros(row)
-        self._b[:n_zero] = np.concatenate(b_zero)
+        self.set_boundary(roe0_m, roe_f_m)
         self._q = np.zeros(self.n_var)
         self._q[self.ic] = 1.0
         self._p_diag = np.zeros(self.n_var)
 
     # ------------------------------------------------------------------ updates
+    def set_boundary(self, roe0_m: np.ndarray, roe_f_m: np.ndarray) -> None:
+        """Initial state and terminal post-burn state [m] (the terminal rows take the latter at
+        the next `set_dynamics`)."""
+        n = self.n
+        self._b[:6] = np.asarray(roe0_m, float) / self.sx
+        self._roe_f_m = np.asarray(roe_f_m, float)
+        self._b[6 * n:6 * n + 6] = self._roe_f_m / self.sx
+
     def set_reference(self, roe_m: np.ndarray, dv_rtn_mps: np.ndarray, radius: float) -> None:
         """Trust region ||x - xbar||_inf <= r [m], ||u - ubar||_inf <= r [m/s]."""
         xs = roe_m.ravel() / self.sx
@@ -222,3 +232,30 @@ class ScpSubproblem:
         x = out.x
         return SubproblemSolution(out, x[self.ix] * self.sx, x[self.iu].copy(),
                                   np.maximum(x[self.iz], 0.0), float(x[self.ic].sum()))
+
+
+_POOL = threading.local()
+
+
+def pooled_subproblem(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
+                      norm: str = "l2", solver: str = "clarabel",
+                      samples_per_node: int = 1) -> ScpSubproblem:
+    """A subproblem for `horizon`, reused from the last one this thread built of that shape.
+
+    One subproblem per (norm, solver, rows per node) is kept per thread, for the last horizon
+    object it was built on; on reuse only the boundary conditions are reset, every other number
+    is set by the caller before each solve (`Scvx.solve`: `set_boundary`, `set_dynamics`,
+    `set_reference`, `set_safety`, `set_penalty`). Callers in one thread must not interleave
+    solves of two problems through the same subproblem without setting them again.
+    """
+    pool = getattr(_POOL, "subproblems", None)
+    if pool is None:
+        pool = _POOL.subproblems = {}
+    key = (norm, solver, int(samples_per_node))
+    sub = pool.get(key)
+    if sub is None or sub.horizon is not horizon:
+        sub = pool[key] = ScpSubproblem(horizon, roe0_m, roe_f_m, norm, solver,
+                                        samples_per_node)
+    else:
+        sub.set_boundary(roe0_m, roe_f_m)
+    return sub

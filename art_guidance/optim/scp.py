@@ -41,7 +41,7 @@ import numpy as np
 from art_guidance.config import ScpConfig
 from art_guidance.dynamics import DeputyLinearization, Horizon
 from art_guidance.optim.cvx import control_cost, terminal_maps
-from art_guidance.optim.problem import ScpSubproblem
+from art_guidance.optim.problem import pooled_subproblem
 from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus
 from art_guidance.safety import PassiveSafety
 
@@ -91,7 +91,9 @@ class Scvx:
         self.k = int(min(k + 2 if k > 1 else 1, safety.n_samples))
         # The convex model is tightened so converged plans keep a nonlinear margin >= 0.
         self.tighten = self.cfg.tightening
-        self.sub = ScpSubproblem(self.horizon, self.roe0_m, self.roe_f_m, norm, solver, self.k)
+        # reused across runs over this horizon (same pattern and solver, numbers updated)
+        self.sub = pooled_subproblem(self.horizon, self.roe0_m, self.roe_f_m, norm, solver,
+                                     self.k)
 
     # ------------------------------------------------------------------ dynamics
     def _propagate(self, dv_rtn_mps: np.ndarray) -> np.ndarray:
@@ -173,6 +175,7 @@ class Scvx:
         history: list[ScpIteration] = []
         status = None
         lin_dyn = self._linearize_dynamics(ref.roe_m, ref.dv_rtn_mps)
+        self.sub.set_boundary(self.roe0_m, self.roe_f_m)  # the subproblem may be shared
         self.sub.set_dynamics(lin_dyn)
         lin = self._linearize(ref)
         for it_no in range(1, cfg.max_iterations + 1):
