@@ -66,7 +66,7 @@ import numpy as np
 
 from art_guidance.drift_bounds import N_ORDERS, ArcItems, ArcPoints, lower_bound
 from art_guidance.dynamics import (
-    j2_secular_rates, mean_arg_latitude, psi_from_latitude, stm_j2_terms,
+    j2_secular_rates, mean_arg_latitude, psi_from_latitude, stm_basis, stm_j2_terms,
 )
 
 N_TERMS = 18        # 3 latitude functions x 6 STM time functions
@@ -160,36 +160,21 @@ class DriftArcs:
     def basis(self, node: np.ndarray, tau_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """b(tau) and b'(tau), each (M, K, 18), for arcs `node` (M,) at offsets (M, K) [s].
 
-        ``b = {1, cos u, sin u} x s`` with s the STM time functions (`dynamics.stm_basis`, order
-        0 and 1: the same arithmetic, written here into the output without intermediate
-        stacks: this runs a few times per arc minimum).
+        ``b = {1, cos u, sin u} x s`` with s the STM time functions (`dynamics.stm_basis`) and
+        ``b' = {0, -udot sin u, udot cos u} x s + {1, cos u, sin u} x s'``, written into the
+        output without intermediate stacks (this runs a few times per arc minimum).
         """
         udot = self._udot[node][:, None]
         u = self._u0[node][:, None] + udot * tau_s
         cu, su = np.cos(u), np.sin(u)
-        w, tau = np.broadcast_arrays(self._wdot[node][:, None], np.asarray(tau_s, float))
-        wt = w * tau
-        c, s = np.cos(wt), np.sin(wt)
+        wdot = self._wdot[node][:, None]
+        s0, s1 = stm_basis(wdot, tau_s, 0), stm_basis(wdot, tau_s, 1)  # (M, K, 6)
         shape = u.shape
-        s0 = np.empty(shape + (6,))  # (1, tau, c, s, tau c, tau s)
-        s0[..., 0] = 1.0
-        s0[..., 1] = tau
-        s0[..., 2] = c
-        s0[..., 3] = s
-        s0[..., 4] = tau * c
-        s0[..., 5] = tau * s
-        s1 = np.empty(shape + (6,))  # its derivative
-        s1[..., 0] = 0.0
-        s1[..., 1] = 1.0
-        s1[..., 2] = -w * s
-        s1[..., 3] = w * c
-        s1[..., 4] = c - w * tau * s
-        s1[..., 5] = s + w * tau * c
         b0 = np.empty(shape + (3, 6))
         b0[..., 0, :] = s0
         np.multiply(cu[..., None], s0, out=b0[..., 1, :])
         np.multiply(su[..., None], s0, out=b0[..., 2, :])
-        b1 = np.empty(shape + (3, 6))  # (lat' s + lat s')
+        b1 = np.empty(shape + (3, 6))
         b1[..., 0, :] = s1
         np.multiply((-udot * su)[..., None], s0, out=b1[..., 1, :])
         b1[..., 1, :] += cu[..., None] * s1

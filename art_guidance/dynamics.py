@@ -277,17 +277,19 @@ def stm_basis(wdot_rad_s: float | np.ndarray, tau_s: float | np.ndarray,
     """
     w, tau = np.broadcast_arrays(np.asarray(wdot_rad_s, float), np.asarray(tau_s, float))
     c, s = np.cos(w * tau), np.sin(w * tau)
-    one, zero = np.ones_like(tau), np.zeros_like(tau)
     if order == 0:
-        cols = (one, tau, c, s, tau * c, tau * s)
+        cols = (1.0, tau, c, s, tau * c, tau * s)
     elif order == 1:
-        cols = (zero, one, -w * s, w * c, c - w * tau * s, s + w * tau * c)
+        cols = (0.0, 1.0, -w * s, w * c, c - w * tau * s, s + w * tau * c)
     elif order == 2:
-        cols = (zero, zero, -w * w * c, -w * w * s, -2 * w * s - w * w * tau * c,
+        cols = (0.0, 0.0, -w * w * c, -w * w * s, -2 * w * s - w * w * tau * c,
                 2 * w * c - w * w * tau * s)
     else:
         raise InputError("order", "must be 0, 1 or 2", order)
-    return np.stack(cols, axis=axis)
+    out = np.empty(tau.shape + (6,))  # filled column by column: no stacked temporaries
+    for k, col in enumerate(cols):
+        out[..., k] = col
+    return out if axis in (-1, out.ndim - 1) else np.ascontiguousarray(np.moveaxis(out, -1, axis))
 
 
 def stm_j2_terms(chief_oe: object) -> tuple[np.ndarray, float]:

@@ -424,8 +424,7 @@ def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequ
                                              time.gmtime(time.time() - wall))}
         this["scenarios_per_s"] = this["scenarios"] / wall if wall > 0 else None
         summary = build_summary(out, this, held)
-        writer.write_json(SUMMARY, summary)
-        write_report(out, summary)
+        write_summary(out, summary)
     if summary["complete"] and figures:
         from art_guidance.eval.figures import render
 

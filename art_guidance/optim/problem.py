@@ -243,10 +243,10 @@ def pooled_subproblem(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
     """A subproblem for `horizon`, reused from the last one this thread built of that shape.
 
     One subproblem per (norm, solver, rows per node) is kept per thread, for the last horizon
-    object it was built on; on reuse only the boundary conditions are reset, every other number
-    is set by the caller before each solve (`Scvx.solve`: `set_boundary`, `set_dynamics`,
-    `set_reference`, `set_safety`, `set_penalty`). Callers in one thread must not interleave
-    solves of two problems through the same subproblem without setting them again.
+    object it was built on (`roe0_m`, `roe_f_m` only serve a new build). A reused one holds the
+    numbers of its last problem: the caller sets all of them before each run (`Scvx.solve`:
+    `set_boundary`, `set_dynamics`, then per iteration `set_reference`, `set_safety`,
+    `set_penalty`), so runs of several problems may share it in one thread.
     """
     pool = getattr(_POOL, "subproblems", None)
     if pool is None:
@@ -256,6 +256,4 @@ def pooled_subproblem(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
     if sub is None or sub.horizon is not horizon:
         sub = pool[key] = ScpSubproblem(horizon, roe0_m, roe_f_m, norm, solver,
                                         samples_per_node)
-    else:
-        sub.set_boundary(roe0_m, roe_f_m)
     return sub
