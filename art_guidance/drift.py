@@ -66,7 +66,7 @@ import numpy as np
 
 from art_guidance.drift_bounds import N_ORDERS, ArcItems, ArcPoints, lower_bound
 from art_guidance.dynamics import (
-    j2_secular_rates, mean_arg_latitude, psi_from_latitude, stm_basis, stm_j2_terms,
+    j2_secular_rates, mean_arg_latitude, psi_from_latitude, stm_basis_orders, stm_j2_terms,
 )
 
 N_TERMS = 18        # 3 latitude functions x 6 STM time functions
@@ -168,7 +168,7 @@ class DriftArcs:
         u = self._u0[node][:, None] + udot * tau_s
         cu, su = np.cos(u), np.sin(u)
         wdot = self._wdot[node][:, None]
-        s0, s1 = stm_basis(wdot, tau_s, 0), stm_basis(wdot, tau_s, 1)  # (M, K, 6)
+        s0, s1 = stm_basis_orders(wdot, tau_s, (0, 1))  # (M, K, 6)
         shape = u.shape
         b0 = np.empty(shape + (3, 6))
         b0[..., 0, :] = s0

@@ -275,21 +275,32 @@ def stm_basis(wdot_rad_s: float | np.ndarray, tau_s: float | np.ndarray,
     Returns:
         (..., 6) [-, s, -, -, s, s] divided by s^order.
     """
-    w, tau = np.broadcast_arrays(np.asarray(wdot_rad_s, float), np.asarray(tau_s, float))
-    c, s = np.cos(w * tau), np.sin(w * tau)
-    if order == 0:
-        cols = (1.0, tau, c, s, tau * c, tau * s)
-    elif order == 1:
-        cols = (0.0, 1.0, -w * s, w * c, c - w * tau * s, s + w * tau * c)
-    elif order == 2:
-        cols = (0.0, 0.0, -w * w * c, -w * w * s, -2 * w * s - w * w * tau * c,
-                2 * w * c - w * w * tau * s)
-    else:
+    if order not in (0, 1, 2):
         raise InputError("order", "must be 0, 1 or 2", order)
-    out = np.empty(tau.shape + (6,))  # filled column by column: no stacked temporaries
-    for k, col in enumerate(cols):
-        out[..., k] = col
+    out = stm_basis_orders(wdot_rad_s, tau_s, (order,))[0]
     return out if axis in (-1, out.ndim - 1) else np.ascontiguousarray(np.moveaxis(out, -1, axis))
+
+
+def stm_basis_orders(wdot_rad_s: float | np.ndarray, tau_s: float | np.ndarray,
+                     orders: tuple[int, ...]) -> list[np.ndarray]:
+    """`stm_basis` for several derivative orders (each (..., 6)), with one cos/sin evaluation."""
+    w, tau = np.asarray(wdot_rad_s, float), np.asarray(tau_s, float)
+    shape = np.broadcast_shapes(w.shape, tau.shape)
+    c, s = np.cos(w * tau), np.sin(w * tau)
+    outs = []
+    for order in orders:
+        if order == 0:
+            cols = (1.0, tau, c, s, tau * c, tau * s)
+        elif order == 1:
+            cols = (0.0, 1.0, -w * s, w * c, c - w * tau * s, s + w * tau * c)
+        else:
+            cols = (0.0, 0.0, -w * w * c, -w * w * s, -2 * w * s - w * w * tau * c,
+                    2 * w * c - w * w * tau * s)
+        out = np.empty(shape + (6,))  # filled column by column (broadcast): no temporaries
+        for k, col in enumerate(cols):
+            out[..., k] = col
+        outs.append(out)
+    return outs
 
 
 def stm_j2_terms(chief_oe: object) -> tuple[np.ndarray, float]:

@@ -123,13 +123,25 @@ def _plan_arrays(plan: object) -> tuple[float, np.ndarray]:
     return float(plan.cost_mps), np.asarray(plan.dv_rtn_mps, float).reshape(-1, 3)
 
 
+def recorded_mode(log: RecordedLog) -> str:
+    """Passive-safety mode of a log's solves: "deterministic" when every recorded request
+    planned deterministic passive safety, else "chance" (also for a log without solves)."""
+    modes = set()
+    for record, _ in log.solves():
+        try:
+            modes.add(bool(json.loads(record.request_json).get("chance_constrained", True)))
+        except (ValueError, AttributeError):  # unreadable request: judged when it is replayed
+            modes.add(True)
+    return "deterministic" if modes == {False} else "chance"
+
+
 def _replay_provider(log: RecordedLog, model: str | Path | None) -> tuple[object | None, str]:
     """The warm-start provider to replay with, and a note on how it relates to the log's.
 
     A log recorded without a model replays CVX-only (a given model is ignored). A log recorded
     with a model replays with `model`, or else with the shipped model whose pinned checksum is
-    the recorded one (the shipped chance-constrained default if none is); a different checksum
-    is reported, never a silent mismatch.
+    the recorded one, or else with the shipped default of the log's passive-safety mode
+    (`recorded_mode`); a different checksum is reported, never a silent mismatch.
     """
     recorded = str(log.metadata.get("model_checksum", "none") or "none")
     if recorded == "none":
@@ -140,7 +152,7 @@ def _replay_provider(log: RecordedLog, model: str | Path | None) -> tuple[object
     )
 
     path = Path(model) if model else (shipped_model_with_sha256(recorded)
-                                      or default_model_path())
+                                      or default_model_path(recorded_mode(log)))
     try:
         provider = ArtWarmStart.load(path)
     except GuidanceError as exc:

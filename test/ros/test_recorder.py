@@ -325,3 +325,33 @@ def test_replay_of_an_art_warm_started_log(tmp_path):
     assert mismatch["compared"] == 1  # the CVX-requested solve only
     assert {r["reason"] for r in mismatch["per_solve"] if r["match"] is None} == {
         "recorded with a different model"}
+
+
+@pytest.mark.parametrize("chance", [False, True])
+def test_replay_of_an_unknown_model_falls_back_to_the_default_of_the_log_mode(tmp_path, chance):
+    """A log whose model checksum no shipped model has, replayed without --model, is replayed
+    with the shipped default of its own passive-safety mode (deterministic logs with the
+    deterministic default), and the mismatch is reported."""
+    from helpers.art_models import write_untrained_checkpoint
+
+    from art_guidance.art.provider import DEFAULT_MODELS
+    from art_guidance.record.replay import recorded_mode
+
+    sha = write_untrained_checkpoint(tmp_path / "unknown.pt", seed=3)
+    scenario = ScenarioConfig.from_yaml()
+    pipeline = GuidancePipeline(GuidanceConfig.load())
+    chief = np.array(scenario.chief_oe)
+    s = sample_scenario(scenario, 5)
+    result = pipeline.plan(PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
+                                       chance_constrained=chance, warm_start="cvx"))
+    stamp = 1_800_000_000_000_000_000
+    bag = tmp_path / "bag"
+    with McapRecorder(bag, {"config": pipeline.config_json(), "model_checksum": sha}) as rec:
+        assert rec.record_solve([
+            ("/guidance/solve_record", solve_record_msg(result, stamp, "plan-5", "test")),
+            ("/guidance/maneuver_plan", plan_to_msg(result, stamp, "plan-5"))], stamp)
+    mode = "chance" if chance else "deterministic"
+    assert recorded_mode(read_log(bag)) == mode
+    report = replay(bag)
+    assert f"replayed with {DEFAULT_MODELS[mode]}" in report["model"], report["model"]
+    assert report["compared"] == 1 and report["matched"] == 1, report
