@@ -275,15 +275,20 @@ def stm_basis(wdot_rad_s: float | np.ndarray, tau_s: float | np.ndarray,
     Returns:
         (..., 6) [-, s, -, -, s, s] divided by s^order.
     """
-    if order not in (0, 1, 2):
-        raise InputError("order", "must be 0, 1 or 2", order)
     out = stm_basis_orders(wdot_rad_s, tau_s, (order,))[0]
     return out if axis in (-1, out.ndim - 1) else np.ascontiguousarray(np.moveaxis(out, -1, axis))
 
 
 def stm_basis_orders(wdot_rad_s: float | np.ndarray, tau_s: float | np.ndarray,
                      orders: tuple[int, ...]) -> list[np.ndarray]:
-    """`stm_basis` for several derivative orders (each (..., 6)), with one cos/sin evaluation."""
+    """`stm_basis` for several derivative orders (each (..., 6)), with one cos/sin evaluation.
+
+    Raises:
+        InputError: an order other than 0, 1 or 2.
+    """
+    for order in orders:
+        if order not in (0, 1, 2):
+            raise InputError("order", "must be 0, 1 or 2", order)
     w, tau = np.asarray(wdot_rad_s, float), np.asarray(tau_s, float)
     shape = np.broadcast_shapes(w.shape, tau.shape)
     c, s = np.cos(w * tau), np.sin(w * tau)

@@ -13,7 +13,8 @@ from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.data.stages import sample_scenario
 from art_guidance.drift import CERT_TOL, CERT_TOL_REL, ArcPoints
 from art_guidance.dynamics import (
-    Horizon, propagate_mean_oe, roe_from_rtn_linear, stm_basis, stm_j2, stm_j2_terms,
+    Horizon, propagate_mean_oe, roe_from_rtn_linear, stm_basis, stm_basis_orders, stm_j2,
+    stm_j2_terms,
 )
 from art_guidance.errors import InputError
 from art_guidance.optim import Scvx, solve_cvx
@@ -92,8 +93,13 @@ def test_stm_terms_and_basis_derivatives() -> None:
     for order in (1, 2):
         fd = (stm_basis(wdot, tau + h, order - 1) - stm_basis(wdot, tau - h, order - 1)) / (2 * h)
         np.testing.assert_allclose(stm_basis(wdot, tau, order), fd, rtol=1e-5, atol=1e-15)
+    together = stm_basis_orders(wdot, tau, (0, 1, 2))  # one cos/sin evaluation, same numbers
+    for order in (0, 1, 2):
+        np.testing.assert_array_equal(together[order], stm_basis(wdot, tau, order))
     with pytest.raises(InputError):
         stm_basis(wdot, tau, 3)
+    with pytest.raises(InputError):
+        stm_basis_orders(wdot, tau, (0, 3))
 
 
 @pytest.mark.parametrize("node", [0, 33, 54, 55, 99])
