@@ -693,6 +693,21 @@ class Horizon:
             out.append(x)
         return np.array(out)
 
+    def step_nonlinear(self, node: int, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
+        """One step of `propagate_nonlinear` for a batch: pre-burn states at `node` (B, 6) [m]
+        and burns (B, 3) [m/s] -> pre-burn states at `node + 1` (B, 6) [m].
+
+        The batched form the ART rollout advances with, so that a rollout driven by a plan's
+        own controls reproduces the plan's states (inputs are not validated: the caller's
+        arrays are finite by construction).
+        """
+        lat, n, a, inc = self._deputy_constants()
+        k = int(node)
+        z = roe_m + (_control_deputy(lat[k], n, a, inc, roe_m) @ dv_rtn_mps[:, :, None])[:, :, 0]
+        x1 = z @ self.stm[k].T  # (B, 6)
+        x1[:, 1] += along_track_curvature_m(a, z[:, 0], self.epochs_s[k + 1] - self.epochs_s[k])
+        return x1
+
     @functools.cached_property
     def _stm_rows(self) -> list:
         """`stm` as nested lists (float arithmetic in `propagate_nonlinear`)."""

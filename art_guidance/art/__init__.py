@@ -11,10 +11,12 @@ this package imports torch.
 
 from art_guidance.art.checkpoint import TrainedArt, load
 from art_guidance.art.config import PRESETS, ArtConfig, TrainConfig, preset
-from art_guidance.art.evaluate import RolloutEvaluation, evaluate_rollouts, heldout_scenarios
+from art_guidance.art.evaluate import (
+    RolloutEvaluation, evaluate_oracle, evaluate_rollouts, heldout_scenarios,
+)
 from art_guidance.art.model import ArtModel
 from art_guidance.art.rollout import RolloutResult, build_safety
 
 __all__ = ["PRESETS", "ArtConfig", "ArtModel", "RolloutEvaluation", "RolloutResult",
-           "TrainConfig", "TrainedArt", "build_safety", "evaluate_rollouts",
+           "TrainConfig", "TrainedArt", "build_safety", "evaluate_oracle", "evaluate_rollouts",
            "heldout_scenarios", "load", "preset"]

@@ -1,7 +1,8 @@
 """ART model and training configuration: frozen, validated, stored inside every checkpoint.
 
 Presets (`PRESETS`): ``paper`` is the appendix table of the paper (6 layers, 6 heads, 384 wide,
-K = 100, dropout 0.1 also on the attention, ReLU; 10.6 M parameters); ``small`` is the default,
+K = 100, dropout 0.1 also on the attention, ReLU; 10.6 M parameters); ``medium`` 6 layers,
+6 heads, 192 wide (2.7 M parameters); ``small`` is the default,
 sized so that a KV-cached 100-step rollout (transformer + dynamics) stays within 40 ms on one
 CPU thread of the shared 2-core development machine and trains on 2 CPU cores (3 layers,
 3 heads of 32, 96 wide, K = 100, residual/embedding dropout 0.1, none on the attention
@@ -17,6 +18,7 @@ from typing import Any
 from art_guidance.errors import ConfigError
 
 REPRESENTATIONS = ("roe", "rtn")
+NORMALIZATIONS = ("feature", "timestep")
 ACTIVATIONS = ("relu", "gelu")
 MODALITIES = ("goal", "reward", "constraint", "state", "control")  # token order in a step
 TOKENS_PER_STEP = len(MODALITIES)
@@ -49,6 +51,12 @@ class ArtConfig:
         representation: state (and goal) representation: "roe" (a-scaled ROE [m]) or "rtn"
             (Psi x [m, m/s]); controls are always RTN delta-v [m/s].
         mlp_ratio: hidden width of the MLP as a multiple of `width`.
+        normalization: "feature" (one mean/std per feature) or "timestep" (states and
+            controls z-scored per time-step index, as the original ART); see
+            `art_guidance.art.normalization`.
+        burn_gate: a fourth control output, the logit of "a burn at this node" (trained with a
+            binary cross-entropy against ||u|| > `TrainConfig.burn_threshold_mps`); a rollout
+            fires the predicted burn only where the logit is positive and coasts elsewhere.
     """
 
     n_layers: int = 3
@@ -60,8 +68,15 @@ class ArtConfig:
     activation: str = "relu"
     representation: str = "roe"
     mlp_ratio: int = 4
+    normalization: str = "feature"
+    burn_gate: bool = False
 
     def __post_init__(self) -> None:
+        if self.normalization not in NORMALIZATIONS:
+            raise ConfigError(f"art.normalization must be one of {NORMALIZATIONS}, got "
+                              f"{self.normalization!r}")
+        if not isinstance(self.burn_gate, bool):
+            raise ConfigError(f"art.burn_gate must be a bool, got {self.burn_gate!r}")
         for name in ("n_layers", "n_heads", "width", "context", "mlp_ratio"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -118,6 +133,13 @@ class TrainConfig:
             stopping (the dataset's test split is never read).
         suffix_fraction: share of the training sequences that start at a random node k > 0
             (teaches replanning over the remaining horizon).
+        burn_threshold_mps: a node "burns" when ||u|| exceeds this [m/s] (target of the burn
+            gate, models with `ArtConfig.burn_gate`).
+        gate_weight: weight of the gate's binary cross-entropy in the loss.
+        max_train: use at most this many training trajectories (the first of the seeded
+            train rows; 0: all): learning curves over the dataset size.
+        precision: "fp32", or "bf16" autocast of the forward pass on CUDA (weights, optimiser
+            and loss reduction stay fp32; ignored on CPU).
     """
 
     batch_size: int = 32
@@ -131,8 +153,19 @@ class TrainConfig:
     patience: int = 10
     val_fraction: float = 0.05
     suffix_fraction: float = 0.5
+    burn_threshold_mps: float = 1e-3
+    gate_weight: float = 0.1
+    max_train: int = 0
+    precision: str = "fp32"
 
     def __post_init__(self) -> None:
+        if self.precision not in ("fp32", "bf16"):
+            raise ConfigError(f"train.precision must be fp32 or bf16, got {self.precision!r}")
+        if not (self.burn_threshold_mps > 0 and self.gate_weight >= 0):
+            raise ConfigError("train needs burn_threshold_mps > 0 and gate_weight >= 0")
+        if isinstance(self.max_train, bool) or not isinstance(self.max_train, int) \
+                or self.max_train < 0:
+            raise ConfigError(f"train.max_train must be an integer >= 0, got {self.max_train!r}")
         for name in ("batch_size", "max_epochs", "patience"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -161,19 +194,32 @@ PRESETS: dict[str, tuple[ArtConfig, TrainConfig]] = {
     "paper": (ArtConfig(n_layers=6, n_heads=6, width=384, context=100, dropout=0.1,
                         attn_dropout=0.1),
               TrainConfig(batch_size=32, lr=2e-4, warmup_steps=500)),
+    "medium": (ArtConfig(n_layers=6, n_heads=6, width=192, context=100, dropout=0.1),
+               TrainConfig(batch_size=64, lr=3e-4, warmup_steps=300)),
     "small": (ArtConfig(), TrainConfig()),  # the dataclass defaults are the default model
     "tiny": (ArtConfig(n_layers=2, n_heads=2, width=32, context=100, dropout=0.0),
              TrainConfig(batch_size=8, lr=3e-3, warmup_steps=10, eval_every=20)),
 }
 
 
-def preset(name: str, representation: str = "roe") -> tuple[ArtConfig, TrainConfig]:
+def preset(name: str, representation: str = "roe", **model_changes: Any
+           ) -> tuple[ArtConfig, TrainConfig]:
     """The model and training configuration of a preset, in the chosen representation.
 
+    Args:
+        name: preset name.
+        representation: "roe" or "rtn".
+        model_changes: ArtConfig fields to change (e.g. normalization="timestep"); None
+            values are ignored.
+
     Raises:
-        ConfigError: unknown preset or representation.
+        ConfigError: unknown preset, representation or field value.
     """
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
     model, train = PRESETS[name]
-    return dataclasses.replace(model, representation=representation), train
+    changes = {k: v for k, v in model_changes.items() if v is not None}
+    try:
+        return dataclasses.replace(model, representation=representation, **changes), train
+    except TypeError as exc:
+        raise ConfigError(f"unknown ART config field: {exc}") from exc

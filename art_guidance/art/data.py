@@ -39,7 +39,8 @@ class TrainingData:
 
     Attributes:
         tensors: {"goal": (M, 6), "reward": (M, N), "constraint": (M, N),
-            "state": (M, N, 6), "control": (M, N, 3)} float32, normalised.
+            "state": (M, N, 6), "control": (M, N, 3)} float32, normalised, and
+            "burn_mps" (M, N) float32, the raw ||u|| [m/s] (target of the burn gate).
         train_rows, val_rows: int64 row indices into the tensors (disjoint).
         normalizer: statistics of the train rows.
         n_nodes: N, nodes per trajectory.
@@ -64,9 +65,15 @@ def _raw_arrays(data: dict[str, np.ndarray], representation: str) -> dict[str, n
             "control": data["dv_rtn_mps"]}
 
 
+def manifest_digest(root: str) -> str:
+    """sha256 of a dataset directory's manifest (what checkpoints record of their data)."""
+    _, _, valid = read_manifest(root)
+    return hashlib.sha256((Path(root) / MANIFEST).read_bytes()[:valid]).hexdigest()
+
+
 def _read_dir(root: str) -> tuple[dict, dict[str, np.ndarray], dict]:
-    header, _, valid = read_manifest(root)
-    digest = hashlib.sha256((Path(root) / MANIFEST).read_bytes()[:valid]).hexdigest()
+    header, _, _ = read_manifest(root)
+    digest = manifest_digest(root)
     data = load_dataset(root)
     keep = ~data["is_test"] & data["feasible"]
     info = {"dir": str(root), "manifest_sha256": digest, "n": int(header["n"]),
@@ -75,7 +82,8 @@ def _read_dir(root: str) -> tuple[dict, dict[str, np.ndarray], dict]:
 
 
 def load_training_data(dirs: list[str], representation: str, val_fraction: float,
-                       seed: int) -> TrainingData:
+                       seed: int, normalization: str = "feature", context: int | None = None,
+                       max_train: int = 0) -> TrainingData:
     """Read dataset directories, keep their feasible train-split samples, split, normalise.
 
     Args:
@@ -83,6 +91,10 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
         representation: "roe" or "rtn".
         val_fraction: share of the kept samples held out for validation.
         seed: seeds the validation split.
+        normalization: "feature" or "timestep" (see `Normalizer.fit`).
+        context: the model's K (time-step indices of the "timestep" scheme; default N).
+        max_train: keep at most this many training rows (a seeded subset; 0: all); the
+            validation rows do not change with it.
 
     Raises:
         InputError: no directory, directories of different modes or configurations, or fewer
@@ -110,15 +122,25 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), _VAL_STREAM]))
     perm = rng.permutation(m_rows)
     n_val = min(max(1, int(round(val_fraction * m_rows))), m_rows - 1)
-    val_rows, train_rows = np.sort(perm[:n_val]), np.sort(perm[n_val:])
-    normalizer = Normalizer.fit({m: raw[m][train_rows] for m in MODALITIES})
-    tensors = {m: torch.from_numpy(np.ascontiguousarray(normalizer.normalize(m, raw[m]),
-                                                        dtype=np.float32)) for m in MODALITIES}
+    val_rows, train_rows = np.sort(perm[:n_val]), perm[n_val:]
+    if max_train:
+        train_rows = train_rows[:max_train]
+    train_rows = np.sort(train_rows)
+    n_nodes = int(raw["state"].shape[1])
+    k = n_nodes if context is None else int(context)
+    normalizer = Normalizer.fit({m: raw[m][train_rows] for m in MODALITIES}, normalization, k)
+    t_index = np.arange(n_nodes) + (k - n_nodes)  # (N,) time-step index of each node
+    tensors = {m: torch.from_numpy(np.ascontiguousarray(
+        normalizer.normalize(m, raw[m], t_index if normalizer.per_step(m) else None),
+        dtype=np.float32)) for m in MODALITIES}
+    tensors["burn_mps"] = torch.from_numpy(np.linalg.norm(raw["control"], axis=-1)
+                                           .astype(np.float32))  # (M, N) ||u|| [m/s]
     provenance = {"mode": first["mode"], "config_sha256": first["config_sha256"],
                   "guidance_config": _guidance_config(first["config"]),
                   "manifests": infos, "n_nodes": int(raw["state"].shape[1]),
                   "n_train": int(train_rows.size), "n_val": int(val_rows.size),
-                  "representation": representation}
+                  "representation": representation, "normalization": normalization,
+                  "max_train": int(max_train)}
     return TrainingData(tensors, train_rows.astype(np.int64), val_rows.astype(np.int64),
                         normalizer, int(raw["state"].shape[1]), provenance)
 
@@ -177,7 +199,8 @@ def make_batch(tensors: dict[str, torch.Tensor], rows: np.ndarray, starts: np.nd
 
     Returns:
         "goal" (b, N, 6), "reward" (b, N), "constraint" (b, N), "state" (b, N, 6),
-        "control" (b, N, 3), "timestep" (b, N) int64, "mask" (b, N) bool.
+        "control" (b, N, 3), "burn_mps" (b, N) ||u|| [m/s], "timestep" (b, N) int64,
+        "mask" (b, N) bool.
     """
     n = tensors["state"].shape[1]
     r = torch.as_tensor(rows, dtype=torch.long)
@@ -185,7 +208,8 @@ def make_batch(tensors: dict[str, torch.Tensor], rows: np.ndarray, starts: np.nd
     mask = node < n  # (b, N)
     node = node.clamp(max=n - 1)
     rr = r[:, None].expand_as(node)  # (b, N)
-    batch = {m: tensors[m][rr, node] for m in ("reward", "constraint", "state", "control")}
+    batch = {m: tensors[m][rr, node] for m in ("reward", "constraint", "state", "control",
+                                               "burn_mps")}
     batch["goal"] = tensors["goal"][r][:, None].expand(len(r), n, -1)  # (b, N, 6)
     batch["timestep"] = node + (context - n)  # (b, N)
     batch["mask"] = mask

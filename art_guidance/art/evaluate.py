@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from art_guidance.art.checkpoint import TrainedArt
-from art_guidance.art.rollout import rollout
+from art_guidance.art.rollout import replay, rollout
 from art_guidance.checks import as_finite_array
 from art_guidance.config import PosthocThresholds
 from art_guidance.errors import InputError
@@ -50,19 +50,23 @@ class RolloutEvaluation:
                 "frac_posthoc_accepted": float(self.accepted.mean())}
 
 
-def heldout_scenarios(data: dict[str, np.ndarray],
-                      extra: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
-    """The test-split scenarios of a loaded dataset whose CVX solve succeeded.
+def heldout_scenarios(data: dict[str, np.ndarray], extra: tuple[str, ...] = (),
+                      split: str = "test") -> dict[str, np.ndarray]:
+    """The held-out scenarios of a loaded dataset whose CVX solve succeeded.
 
     Args:
         data: `art_guidance.data.storage.load_dataset` output.
         extra: further dataset fields to select for the same scenarios (e.g. "cvx_roe_m").
+        split: "test" (the dataset's test split) or "all" (every scenario: for a dataset
+            generated with a seed no model was trained on).
 
     Returns:
         {"roe0_m": (M, 6), "target_rtn": (M, 6), "cvx_cost_mps": (M,),
         "cvx_constraint_to_go0": (M,), "index": (M,)} and the `extra` fields.
     """
-    keep = data["is_test"] & (data["cvx_constraint_to_go0"] >= 0)
+    if split not in ("test", "all"):
+        raise InputError("split", "must be 'test' or 'all'", split)
+    keep = (data["is_test"] | (split == "all")) & (data["cvx_constraint_to_go0"] >= 0)
     return {k: data[k][keep] for k in ("roe0_m", "target_rtn", "cvx_cost_mps",
                                        "cvx_constraint_to_go0", "index", *extra)}
 
@@ -96,16 +100,44 @@ def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
     c_cvx = as_finite_array("cvx_constraint_to_go0", cvx_constraint_to_go0, (m,))
     if m == 0 or np.any(j_cvx <= 0):
         raise InputError("cvx_cost_mps", "need at least one scenario and J_CVX > 0", j_cvx)
-    t = thresholds or PosthocThresholds()
     c_art, cost = np.empty(m, dtype=int), np.empty(m)
     for s in range(0, m, batch_size):
         sl = slice(s, s + batch_size)
         res = rollout(art, safety, x0[sl], target[sl], -j_cvx[sl], 0.0)
         c_art[sl] = res.realised_constraint_to_go[:, 0]
         cost[sl] = res.cost_mps
+    return _judge(c_art, c_cvx, cost, j_cvx, thresholds)
+
+
+def evaluate_oracle(safety: PassiveSafety, roe0_m: object, dv_rtn_mps: object,
+                    cvx_cost_mps: object, cvx_constraint_to_go0: object,
+                    thresholds: PosthocThresholds | None = None) -> RolloutEvaluation:
+    """The metrics of `evaluate_rollouts` for a perfect model: the plans' own controls driven
+    through the rollout machinery (`replay`: same propagation, R and C updates).
+
+    Args:
+        safety: passive-safety model of the dataset's horizon and mode.
+        roe0_m: (M, 6) initial a-scaled ROE [m].
+        dv_rtn_mps: (M, N, 3) the plans' controls [m/s].
+        cvx_cost_mps: (M,) J_CVX [m/s], > 0.
+        cvx_constraint_to_go0: (M,) C(t_1) of the CVX solutions.
+        thresholds: post hoc acceptance region (default: the paper's).
+    """
+    x0 = as_finite_array("roe0_m", roe0_m, (None, 6))
+    m = x0.shape[0]
+    j_cvx = as_finite_array("cvx_cost_mps", cvx_cost_mps, (m,))
+    c_cvx = as_finite_array("cvx_constraint_to_go0", cvx_constraint_to_go0, (m,))
+    res = replay(safety, x0, dv_rtn_mps, -j_cvx, 0.0)
+    return _judge(res.realised_constraint_to_go[:, 0], c_cvx, res.cost_mps, j_cvx, thresholds)
+
+
+def _judge(c_art: np.ndarray, c_cvx: np.ndarray, cost: np.ndarray, j_cvx: np.ndarray,
+           thresholds: PosthocThresholds | None) -> RolloutEvaluation:
+    """E_R, E_C and the post hoc decision of realised rollouts against CVX."""
+    t = thresholds or PosthocThresholds()
     r_des = -j_cvx
     e_r = (-cost - r_des) / r_des
     e_c = c_art - 0
     accepted = ((t.e_r_pct_min <= 100.0 * e_r) & (100.0 * e_r <= t.e_r_pct_max)
                 & (t.e_c_min <= e_c) & (e_c <= t.e_c_max))
-    return RolloutEvaluation(c_art, c_cvx.astype(int), e_r, accepted, cost)
+    return RolloutEvaluation(c_art.astype(int), c_cvx.astype(int), e_r, accepted, cost)

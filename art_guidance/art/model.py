@@ -77,7 +77,7 @@ class ArtModel(nn.Module):
         self.drop = nn.Dropout(cfg.dropout)
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layers))
         self.ln_f = nn.LayerNorm(d)
-        self.head_control = nn.Linear(d, CONTROL_DIM)
+        self.head_control = nn.Linear(d, CONTROL_DIM + int(cfg.burn_gate))
         self.head_state = nn.Linear(d, STATE_DIM)
         self.apply(self._init_weights)
         for block in self.blocks:  # GPT-2: scale the residual projections by 1/sqrt(2 L)
@@ -110,7 +110,8 @@ class ArtModel(nn.Module):
             timestep: (B, T) int64 time-step indices in [0, K).
 
         Returns:
-            control_pred (B, T, 3): u(t_i) read from the state token of step i;
+            control_pred (B, T, 3) (or (B, T, 4) with the burn gate's logit last): u(t_i) read
+                from the state token of step i;
             state_pred (B, T, 6): x(t_{i+1}) read from the control token of step i.
         """
         b, t = reward.shape
@@ -128,35 +129,46 @@ class ArtModel(nn.Module):
         return control_pred, state_pred
 
 
-def loss_terms(model: ArtModel, batch: dict[str, torch.Tensor]
-               ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sums of squared errors of the paper's loss with teacher forcing (normalised units).
+def loss_terms(model: ArtModel, batch: dict[str, torch.Tensor], burn_threshold_mps: float = 1e-3
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Sums of the paper's loss terms with teacher forcing (normalised units).
 
     The control of step i is compared with the data wherever step i is valid; the next-state
-    prediction of step i with the data's state at step i + 1 wherever that step is valid.
+    prediction of step i with the data's state at step i + 1 wherever that step is valid. A
+    model with a burn gate also gets the binary cross-entropy of its gate logit against
+    ``||u_i|| > burn_threshold_mps`` (from the batch's "burn_mps", physical units).
 
     Args:
         model: the transformer.
         batch: "goal" (B, T, 6), "reward" (B, T), "constraint" (B, T), "state" (B, T, 6),
             "control" (B, T, 3), "timestep" (B, T) int64, "mask" (B, T) bool (valid steps;
             padding only at the end of a sequence, so causality keeps it out of the valid
-            predictions).
+            predictions), "burn_mps" (B, T) ||u_i|| [m/s] (burn-gate models).
+        burn_threshold_mps: what counts as a burn for the gate [m/s].
 
     Returns:
-        (sum of squared control errors, sum of squared next-state errors), scalars. Divide by
-        the number of valid entries of the whole (global) batch to get the MSE.
+        (sum of squared control errors, sum of squared next-state errors, sum of the gate's
+        cross-entropy over valid steps (0 without a gate)), fp32 scalars. Divide by the counts
+        of `loss_counts` over the whole (global) batch to get the means.
     """
     control_pred, state_pred = model(batch["goal"], batch["reward"], batch["constraint"],
                                      batch["state"], batch["control"], batch["timestep"])
+    control_pred, state_pred = control_pred.float(), state_pred.float()
     mask = batch["mask"].to(control_pred.dtype)  # (B, T)
-    sse_u = (((control_pred - batch["control"]) ** 2).sum(-1) * mask).sum()
+    sse_u = (((control_pred[..., :CONTROL_DIM] - batch["control"]) ** 2).sum(-1) * mask).sum()
     err_x = ((state_pred[:, :-1] - batch["state"][:, 1:]) ** 2).sum(-1)  # (B, T-1)
     sse_x = (err_x * mask[:, 1:]).sum()
-    return sse_u, sse_x
+    bce = sse_u.new_zeros(())
+    if model.cfg.burn_gate:
+        target = (batch["burn_mps"] > burn_threshold_mps).to(control_pred.dtype)  # (B, T)
+        bce = (F.binary_cross_entropy_with_logits(control_pred[..., CONTROL_DIM], target,
+                                                  reduction="none") * mask).sum()
+    return sse_u, sse_x, bce
 
 
 def loss_counts(mask: torch.Tensor) -> tuple[int, int]:
-    """Entries the two sums of `loss_terms` run over: (3 * valid steps, 6 * valid next steps).
+    """Entries the control and state sums of `loss_terms` run over: (3 * valid steps,
+    6 * valid next steps); the gate's sum runs over the valid steps (first count / 3).
 
     Args:
         mask: (B, T) bool valid steps.

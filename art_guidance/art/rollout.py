@@ -10,8 +10,11 @@ At every planned node i (from `start_node` to the last node N - 1), for a batch 
    (`PassiveSafety.node_violations`: the continuous minimum of `evaluate`, stopped once its
    sign is known);
 3. the performance parameters are updated, R(t_{i+1}) = R(t_i) + ||u_i||,
-   C(t_{i+1}) = C(t_i) - v_i, and the state propagated in ROE,
-   x_{i+1} = Phi_i (x_i + B_i u_i) (the RTN representation feeds Psi_{i+1} x_{i+1}).
+   C(t_{i+1}) = C(t_i) - v_i, and the state propagated in ROE with the planner's own
+   deputy-aware model (`Horizon.step_nonlinear`, one step of `Horizon.propagate_nonlinear`:
+   B at the deputy's pre-burn state, second-order along-track drift), the model the dataset's
+   trajectories were planned with (the RTN representation feeds Psi_{i+1} x_{i+1}). Driven by a
+   plan's own controls, the rollout reproduces the plan's states and constraint-to-go.
 
 Conditioning for a warm start: R(t_1) = -J_CVX, C(t_1) = 0, goal = the request's target. The
 horizon may be shorter than the context K; its nodes use the last time-step indices
@@ -130,7 +133,7 @@ class _CachedPolicy:
         x = self.feats_t[:, p0:base + 4]  # (B, n, 17)
         if not self.on_cpu:
             x = x.to(self.dec.device)
-        return self.dec.step(x, p0).cpu().numpy()  # (B, 3)
+        return self.dec.step(x, p0).cpu().numpy()  # (B, 3), (B, 4) with a burn gate
 
 
 class _RecomputePolicy:
@@ -159,7 +162,7 @@ class _RecomputePolicy:
         s = slice(0, j + 1)
         u_pred, _ = self.model(self.goal[:, s], self.reward[:, s], self.constraint[:, s],
                                self.state[:, s], self.ctrl[:, s], self.time[:, s])
-        return u_pred[:, j].cpu().numpy()  # (B, 3)
+        return u_pred[:, j].cpu().numpy()  # (B, 3), (B, 4) with a burn gate
 
 
 def _batch(field: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
@@ -179,7 +182,7 @@ def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: o
     Args:
         art: the trained model.
         safety: passive-safety model of the horizon (chance-constrained or deterministic); its
-            `horizon` gives Phi, B and Psi.
+            `horizon` gives the dynamics and Psi.
         roe_m: (B, 6) or (6,) pre-burn a-scaled ROE at `start_node` [m].
         target_rtn: (B, 6) or (6,) terminal RTN state after the last burn [m, m/s] (the goal).
         reward_mps: (B,) or scalar R at `start_node`, e.g. -J_CVX [m/s].
@@ -194,36 +197,94 @@ def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: o
         InputError: bad shapes or values, or more steps than the model's context K.
     """
     horizon = safety.horizon
+    x, target, r, c, start = _inputs(horizon, roe_m, target_rtn, reward_mps, constraint,
+                                     start_node, art.config.context)
+    n_steps = horizon.n_nodes - start
+    rtn_repr = art.config.representation == "rtn"
+    goal = target if rtn_repr else np.linalg.solve(horizon.psi[-1], target.T).T  # (B, 6)
+    norm = art.normalizer
+    t0 = art.config.context - n_steps  # time-step index of the first planned node
+    gate = art.config.burn_gate
+    with torch.inference_mode():
+        policy = (_CachedPolicy if use_cache else _RecomputePolicy)(
+            art, norm.normalize("goal", goal), t0, n_steps)
+        prev = [None]
+
+        def control(j: int, node: int, x: np.ndarray, r: np.ndarray, c: np.ndarray
+                    ) -> np.ndarray:
+            t = t0 + j
+            state = x @ horizon.psi[node].T if rtn_repr else x  # (B, 6)
+            out = policy.control(j, norm.normalize("reward", r), norm.normalize("constraint", c),
+                                 norm.normalize("state", state, t), prev[0])  # (B, 3 (+1))
+            u = norm.denormalize("control", out[:, :3].astype(float), t)  # (B, 3) [m/s]
+            if gate:  # coast where the gate says no burn
+                u[out[:, 3] <= 0.0] = 0.0
+            prev[0] = norm.normalize("control", u, t)  # the applied control, as fed back
+            return u
+
+        return _run(safety, x, r, c, start, control)
+
+
+def replay(safety: PassiveSafety, roe_m: object, dv_rtn_mps: object, reward_mps: object,
+           constraint: object = 0.0, start_node: int = 0) -> RolloutResult:
+    """The rollout machinery driven by given controls instead of a model (the oracle).
+
+    Same propagation, R and C updates as `rollout`: fed a plan's own controls, it must give
+    the plan's states and constraint-to-go, so a perfect model is judged as its teacher.
+
+    Args:
+        safety: passive-safety model of the horizon.
+        roe_m: (B, 6) or (6,) pre-burn a-scaled ROE at `start_node` [m].
+        dv_rtn_mps: (B, T, 3) or (T, 3) controls for nodes start_node .. N - 1 [m/s].
+        reward_mps: (B,) or scalar R at `start_node` [m/s].
+        constraint: (B,) or scalar C at `start_node`.
+        start_node: first node.
+
+    Raises:
+        InputError: bad shapes or values.
+    """
+    horizon = safety.horizon
+    x, _, r, c, start = _inputs(horizon, roe_m, np.zeros(6), reward_mps, constraint,
+                                start_node, horizon.n_nodes)
+    n_steps = horizon.n_nodes - start
+    u = np.asarray(dv_rtn_mps, dtype=float)
+    u = as_finite_array("dv_rtn_mps", u[None] if u.ndim == 2 else u, (x.shape[0], n_steps, 3))
+    return _run(safety, x, r, c, start, lambda j, node, x, r, c: u[:, j])
+
+
+def _inputs(horizon: Horizon, roe_m: object, target_rtn: object, reward_mps: object,
+            constraint: object, start_node: int, k: int) -> tuple:
+    """Validated batch inputs of a rollout: (x, target, r, c, start)."""
     n_nodes = horizon.n_nodes
     x = as_finite_array("roe_m", np.atleast_2d(np.asarray(roe_m, dtype=float)), (None, 6))
     b = x.shape[0]
     target = _batch("target_rtn", target_rtn, (b, 6))
     r, c = _batch("reward_mps", reward_mps, (b,)), _batch("constraint", constraint, (b,))
-    k = art.config.context
     if isinstance(start_node, bool) or int(start_node) != start_node \
             or not 0 <= start_node < n_nodes or n_nodes - start_node > k:
         raise InputError("start_node", f"must be an integer leaving 1..{k} nodes of the "
                          f"{n_nodes}-node horizon", start_node)
-    start, n_steps = int(start_node), n_nodes - int(start_node)
-    rtn_repr = art.config.representation == "rtn"
-    goal = target if rtn_repr else np.linalg.solve(horizon.psi[-1], target.T).T  # (B, 6)
-    norm = art.normalizer
+    return x.copy(), target, r, c, int(start_node)
+
+
+def _run(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.ndarray, start: int,
+         control) -> RolloutResult:
+    """The rollout loop: control, violation, R/C update, deputy-aware propagation.
+
+    `control(j, node, x, r, c)` returns the (B, 3) burn [m/s] of step j at `node`.
+    """
+    horizon = safety.horizon
+    n_nodes = horizon.n_nodes
+    b, n_steps = x.shape[0], n_nodes - start
     dv, roe = np.empty((b, n_steps, 3)), np.empty((b, n_steps, 6))
     rs, cs = np.empty((b, n_steps)), np.empty((b, n_steps))
     viol = np.empty((b, n_steps), dtype=int)
-    with torch.inference_mode():
-        policy = (_CachedPolicy if use_cache else _RecomputePolicy)(
-            art, norm.normalize("goal", goal), k - n_steps, n_steps)
-        u_n = None
-        for j, node in enumerate(range(start, n_nodes)):
-            state = x @ horizon.psi[node].T if rtn_repr else x  # (B, 6)
-            u_n = policy.control(j, norm.normalize("reward", r), norm.normalize("constraint", c),
-                                 norm.normalize("state", state), u_n)  # (B, 3)
-            u = norm.denormalize("control", u_n.astype(float))  # (B, 3) [m/s]
-            v = safety.node_violations(node, x, u)  # (B,) bool
-            dv[:, j], roe[:, j], rs[:, j], cs[:, j], viol[:, j] = u, x, r, c, v
-            r = r + np.sqrt(np.einsum("bi,bi->b", u, u))  # R(t_{i+1}) = R(t_i) + ||u_i||
-            c = c - v  # C(t_{i+1}) = C(t_i) - v_i
-            if node < n_nodes - 1:
-                x = (x + u @ horizon.b[node].T) @ horizon.stm[node].T  # (B, 6)
+    for j, node in enumerate(range(start, n_nodes)):
+        u = control(j, node, x, r, c)  # (B, 3) [m/s]
+        v = safety.node_violations(node, x, u)  # (B,) bool
+        dv[:, j], roe[:, j], rs[:, j], cs[:, j], viol[:, j] = u, x, r, c, v
+        r = r + np.sqrt(np.einsum("bi,bi->b", u, u))  # R(t_{i+1}) = R(t_i) + ||u_i||
+        c = c - v  # C(t_{i+1}) = C(t_i) - v_i
+        if node < n_nodes - 1:
+            x = horizon.step_nonlinear(node, x, u)  # (B, 6)
     return RolloutResult(np.arange(start, n_nodes), dv, roe, rs, cs, viol)

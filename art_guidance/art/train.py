@@ -62,6 +62,7 @@ class TrainOptions:
         max_minutes: stop (resumable) after this much wall time in this invocation.
         max_steps: stop (resumable) at this optimiser step (smoke runs and tests).
         overrides: TrainConfig fields to change (e.g. {"batch_size": 32}).
+        model_overrides: ArtConfig fields to change (e.g. {"normalization": "timestep"}).
         progress: show a progress bar.
         device: "cpu" or "cuda" (default: CUDA when available).
         command: the command line, stored in the checkpoint.
@@ -75,6 +76,7 @@ class TrainOptions:
     max_minutes: float | None = None
     max_steps: int | None = None
     overrides: dict[str, Any] = field(default_factory=dict)
+    model_overrides: dict[str, Any] = field(default_factory=dict)
     progress: bool = True
     device: str | None = None
     command: str = ""
@@ -170,7 +172,7 @@ class _Trainer:
                  stop: _StopOnSignal) -> None:
         self.opts, self.ctx, self.signals = opts, ctx, stop
         self.log = log if ctx.is_main else (lambda _: None)
-        self.cfg, tcfg = preset(opts.preset, opts.representation)
+        self.cfg, tcfg = preset(opts.preset, opts.representation, **opts.model_overrides)
         try:
             self.tcfg = tcfg.replace(**opts.overrides)
         except TypeError as exc:
@@ -178,7 +180,10 @@ class _Trainer:
         if opts.max_minutes is not None and not opts.max_minutes > 0:
             raise InputError("--max-minutes", "must be > 0", opts.max_minutes)
         self.data = load_training_data(list(opts.data), opts.representation,
-                                       self.tcfg.val_fraction, opts.seed)
+                                       self.tcfg.val_fraction, opts.seed,
+                                       self.cfg.normalization, self.cfg.context,
+                                       self.tcfg.max_train)
+        self.autocast = (self.tcfg.precision == "bf16" and ctx.device.type == "cuda")
         if self.data.n_nodes > self.cfg.context:
             raise InputError("--data", f"trajectories of {self.data.n_nodes} nodes exceed the "
                              f"model's context K = {self.cfg.context}")
@@ -313,8 +318,9 @@ class _Trainer:
         if mine.size:
             batch = make_batch(self.data.tensors, rows[mine], starts[mine], self.cfg.context,
                                self.ctx.device)
-            sse_u, sse_x = loss_terms(self.model, batch)
-            loss = sse_u / n_u + sse_x / n_x
+            with self._precision():
+                sse_u, sse_x, bce = loss_terms(self.model, batch, self.tcfg.burn_threshold_mps)
+            loss = sse_u / n_u + sse_x / n_x + self.tcfg.gate_weight * 3.0 * bce / n_u
             loss.backward()
             local = float(loss.detach())
         self.ctx.sum_gradients(self.params)
@@ -329,18 +335,25 @@ class _Trainer:
         rows, starts = self.data.val_rows, self.val_starts
         n_u, n_x = loss_counts(valid_mask(starts, self.data.n_nodes))
         mine = self.ctx.share(np.arange(rows.size))
-        sse = [0.0, 0.0]
+        sse = [0.0, 0.0, 0.0]
         self.model.eval()
         with torch.no_grad():
             for i in range(0, mine.size, self.tcfg.batch_size):
                 sel = mine[i:i + self.tcfg.batch_size]
                 batch = make_batch(self.data.tensors, rows[sel], starts[sel], self.cfg.context,
                                    self.ctx.device)
-                sse_u, sse_x = loss_terms(self.model, batch)
-                sse[0] += float(sse_u)
-                sse[1] += float(sse_x)
+                with self._precision():
+                    terms = loss_terms(self.model, batch, self.tcfg.burn_threshold_mps)
+                for j, term in enumerate(terms):
+                    sse[j] += float(term)
         total = self.ctx.sum(sse)
-        return total[0] / n_u + total[1] / n_x
+        return total[0] / n_u + total[1] / n_x + self.tcfg.gate_weight * 3.0 * total[2] / n_u
+
+    def _precision(self) -> contextlib.AbstractContextManager:
+        """bf16 autocast of the forward pass on CUDA when asked, else nothing."""
+        if self.autocast:
+            return torch.autocast("cuda", dtype=torch.bfloat16)
+        return contextlib.nullcontext()
 
     def _evaluate(self, train_loss: float, bar: tqdm | None) -> str:
         val = self.validation_loss()

@@ -141,7 +141,7 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
     t1 = time.perf_counter()
     prop = provider.propose(request, safety, cvx)
     art_dv = np.asarray(prop.dv_rtn_mps, float)
-    art_roe = horizon.propagate(request.roe0_m, art_dv)
+    art_roe = horizon.propagate_nonlinear(request.roe0_m, art_dv)
     ph = posthoc_check(art_dv, art_roe, cvx.cost_mps, safety, config.planning.posthoc)
     t2 = time.perf_counter()
     c_cvx = int(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0])

@@ -162,7 +162,7 @@ class GuidancePipeline:
         except InputError as exc:  # a broken model output is rejected, never flown
             return _Learned("cvx", f"ART output rejected ({_short(exc)}): CVX warm start",
                             PosthocDecision(float("nan"), float("nan"), False), proposal)
-        roe = horizon.propagate(request.roe0_m, dv)
+        roe = horizon.propagate_nonlinear(request.roe0_m, dv)
         posthoc = posthoc_check(dv, roe, cvx.cost_mps, safety, self.posthoc)
         if posthoc.accepted:
             return _Learned("art", f"ART accepted by the post hoc check ({posthoc.text()})",

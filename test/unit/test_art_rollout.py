@@ -95,7 +95,8 @@ def test_dynamics_in_the_loop_and_the_performance_parameters(setup):
     res = rollout(art, safety, x0, targets, -0.25, 0.0)
     for b in range(x0.shape[0]):
         dv = res.dv_rtn_mps[b]
-        assert np.allclose(res.roe_m[b], horizon.propagate(x0[b], dv), rtol=1e-12, atol=1e-9)
+        assert np.allclose(res.roe_m[b], horizon.propagate_nonlinear(x0[b], dv), rtol=1e-12,
+                           atol=1e-9)
         norms = np.linalg.norm(dv, axis=1)
         assert np.allclose(res.reward_to_go_mps[b], -0.25 + np.concatenate([[0], np.cumsum(
             norms[:-1])]), rtol=0, atol=1e-12)

@@ -46,7 +46,7 @@ def _train_loss(model, data) -> float:
     n_u, n_x = loss_counts(batch["mask"])
     model.eval()
     with torch.no_grad():
-        sse_u, sse_x = loss_terms(model, batch)
+        sse_u, sse_x, _ = loss_terms(model, batch)
     return float(sse_u / n_u + sse_x / n_x)
 
 
