@@ -203,8 +203,10 @@ def make_batch(tensors: dict[str, torch.Tensor], rows: np.ndarray, starts: np.nd
         "mask" (b, N) bool.
     """
     n = tensors["state"].shape[1]
-    r = torch.as_tensor(rows, dtype=torch.long)
-    node = torch.as_tensor(starts, dtype=torch.long)[:, None] + torch.arange(n)  # (b, N)
+    where = tensors["state"].device  # gather where the data lives (the GPU keeps it resident)
+    r = torch.as_tensor(rows, dtype=torch.long, device=where)
+    node = torch.as_tensor(starts, dtype=torch.long, device=where)[:, None] \
+        + torch.arange(n, device=where)  # (b, N)
     mask = node < n  # (b, N)
     node = node.clamp(max=n - 1)
     rr = r[:, None].expand_as(node)  # (b, N)

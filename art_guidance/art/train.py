@@ -184,6 +184,8 @@ class _Trainer:
                                        self.cfg.normalization, self.cfg.context,
                                        self.tcfg.max_train)
         self.autocast = (self.tcfg.precision == "bf16" and ctx.device.type == "cuda")
+        if ctx.device.type == "cuda":  # keep the (small) dataset resident: batches are gathers
+            self.data.tensors.update({k: v.to(ctx.device) for k, v in self.data.tensors.items()})
         if self.data.n_nodes > self.cfg.context:
             raise InputError("--data", f"trajectories of {self.data.n_nodes} nodes exceed the "
                              f"model's context K = {self.cfg.context}")

@@ -5,7 +5,7 @@ import argparse
 import shlex
 import sys
 
-_PRESETS = ("small", "paper", "tiny")  # art_guidance.art.config.PRESETS (kept import-free)
+_PRESETS = ("small", "medium", "paper", "tiny")  # art_guidance.art.config.PRESETS (import-free)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -25,7 +25,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="dataset directory (repeat for several of the same mode and config)")
     p.add_argument("--preset", choices=_PRESETS, default="small",
                    help="model size: small (default: 3 layers x 96, 0.35 M parameters, trains "
-                   "on CPU), paper (6 x 384, 10.6 M, the paper's appendix), tiny (tests)")
+                   "on CPU), medium (6 x 192, 2.7 M), paper (6 x 384, 10.6 M, the paper's "
+                   "appendix), tiny (tests)")
     p.add_argument("--repr", choices=("roe", "rtn"), default="roe", dest="representation",
                    help="state representation: ROE (a-scaled, m) or RTN (Psi x)")
     p.add_argument("--out", required=True, help="checkpoint path (OUT.state holds the resume "
@@ -44,6 +45,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="steps between validation passes and checkpoints (default: 1 epoch)")
     p.add_argument("--patience", type=int, default=None,
                    help="validation passes without improvement before stopping (default 10)")
+    p.add_argument("--min-lr-ratio", type=float, default=None,
+                   help="final learning rate as a share of the peak (cosine decay over the "
+                   "epochs; 1 keeps it constant; preset 0.1)")
+    p.add_argument("--warmup-steps", type=int, default=None, help="linear warm-up steps")
+    p.add_argument("--normalization", choices=("feature", "timestep"), default=None,
+                   help="z-score states and controls per feature (default) or per time step "
+                   "(the original ART)")
+    p.add_argument("--burn-gate", action="store_true", default=None,
+                   help="add a burn/no-burn gate to the control head (cross-entropy against "
+                   "||u|| > --burn-threshold); rollouts coast where it says no burn")
+    p.add_argument("--burn-threshold", type=float, default=None, dest="burn_threshold_mps",
+                   help="what counts as a burn for the gate [m/s] (default 0.001)")
+    p.add_argument("--gate-weight", type=float, default=None,
+                   help="weight of the gate's cross-entropy in the loss (default 0.1)")
+    p.add_argument("--max-train", type=int, default=None,
+                   help="use at most this many training trajectories (learning curves)")
+    p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
+                   help="bf16: autocast the forward pass on CUDA (default fp32)")
     p.add_argument("--device", choices=("cpu", "cuda"), default=None,
                    help="default: CUDA when available")
     p.add_argument("--threads", type=int, default=None,
@@ -70,12 +89,16 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     if args.max_steps is not None and args.max_steps < 1:
         raise InputError("--max-steps", "must be >= 1", args.max_steps)
-    overrides = {k: getattr(args, k) for k in ("max_epochs", "batch_size", "lr", "eval_every",
-                                               "patience")}
+    overrides = {k: getattr(args, k) for k in (
+        "max_epochs", "batch_size", "lr", "eval_every", "patience", "min_lr_ratio",
+        "warmup_steps", "burn_threshold_mps", "gate_weight", "max_train", "precision")}
+    model_overrides = {"normalization": args.normalization, "burn_gate": args.burn_gate}
     opts = TrainOptions(data=tuple(args.data), out=args.out, preset=args.preset,
                         representation=args.representation, seed=args.seed,
                         max_minutes=args.max_minutes, max_steps=args.max_steps,
                         overrides={k: v for k, v in overrides.items() if v is not None},
+                        model_overrides={k: v for k, v in model_overrides.items()
+                                         if v is not None},
                         progress=not args.no_progress, device=args.device,
                         command=shlex.join(["art-guidance", *sys.argv[1:]]))
     summary = train(opts)
