@@ -5,8 +5,9 @@ causal GPT over goal / R / C / state / control tokens and its loss), `normalizat
 (training-split statistics), `data` (dataset directories -> batches), `train` and
 `distributed` (`art-guidance train`, also under torchrun), `checkpoint` (checksummed,
 weights-only files), `kv_cache` (incremental decoding), `rollout` (dynamics in the loop;
-`art_guidance.art.rollout.rollout`) and `evaluate` (held-out comparison with CVX). Importing
-this package imports torch.
+`art_guidance.art.rollout.rollout`), `evaluate` (held-out comparison with CVX) and `dagger`
+(expert re-solves from the model's own rollouts, `art-guidance dagger`). Importing this
+package imports torch.
 """
 
 from art_guidance.art.checkpoint import TrainedArt, load

@@ -11,9 +11,13 @@ roe_f_m) in RTN; the RTN states are `rtn` = Psi_i x_i.
 Batches are sequences of the N nodes of a trajectory or, for a share of them, suffixes starting
 at a random node k (teaching replans over the remaining horizon); suffixes are shifted to the
 front and padded at the end, where causality keeps the padding out of every valid prediction
-and the loss mask out of the loss. Time-step indices follow the end-aligned rule of
-`ArtConfig.context`. All randomness derives from (seed, epoch) and (seed, step), so a resumed
-or data-parallel run draws exactly the batches of an uninterrupted single process.
+and the loss mask out of the loss. Rows of DAgger datasets (`art_guidance.art.dagger`) carry
+`train_from`, the first node whose control is an expert label: their earlier nodes (the
+model's own rollout) are context only, kept out of the loss mask (`valid_mask`); rows of
+ordinary datasets have train_from 0 (a missing field reads as 0). Time-step indices follow
+the end-aligned rule of `ArtConfig.context`. All randomness derives from (seed, epoch) and
+(seed, step), so a resumed or data-parallel run draws exactly the batches of an uninterrupted
+single process.
 """
 from __future__ import annotations
 
@@ -39,8 +43,10 @@ class TrainingData:
 
     Attributes:
         tensors: {"goal": (M, 6), "reward": (M, N), "constraint": (M, N),
-            "state": (M, N, 6), "control": (M, N, 3)} float32, normalised, and
-            "burn_mps" (M, N) float32, the raw ||u|| [m/s] (target of the burn gate).
+            "state": (M, N, 6), "control": (M, N, 3)} float32, normalised,
+            "burn_mps" (M, N) float32, the raw ||u|| [m/s] (target of the burn gate), and
+            "train_from" (M,) int64, the first node of each row inside the loss (0 but for
+            DAgger rows).
         train_rows, val_rows: int64 row indices into the tensors (disjoint).
         normalizer: statistics of the train rows.
         n_nodes: N, nodes per trajectory.
@@ -65,6 +71,14 @@ def _raw_arrays(data: dict[str, np.ndarray], representation: str) -> dict[str, n
             "control": data["dv_rtn_mps"]}
 
 
+def _train_from(data: dict[str, np.ndarray]) -> np.ndarray:
+    """(M,) int64 first node inside the loss of each row (0 where the field is missing)."""
+    n_rows = data["roe_m"].shape[0]
+    if "train_from" not in data:
+        return np.zeros(n_rows, dtype=np.int64)
+    return np.asarray(data["train_from"], dtype=np.int64).reshape(n_rows)
+
+
 def manifest_digest(root: str) -> str:
     """sha256 of a dataset directory's manifest (what checkpoints record of their data)."""
     _, _, valid = read_manifest(root)
@@ -77,7 +91,8 @@ def _read_dir(root: str) -> tuple[dict, dict[str, np.ndarray], dict]:
     data = load_dataset(root)
     keep = ~data["is_test"] & data["feasible"]
     info = {"dir": str(root), "manifest_sha256": digest, "n": int(header["n"]),
-            "train_feasible": int(keep.sum()), "test_skipped": int(data["is_test"].sum())}
+            "train_feasible": int(keep.sum()), "test_skipped": int(data["is_test"].sum()),
+            "dagger_rows": int((_train_from(data) > 0)[keep].sum())}
     return header, {k: v[keep] for k, v in data.items()}, info
 
 
@@ -103,7 +118,7 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
     """
     if not dirs:
         raise InputError("--data", "at least one dataset directory is required")
-    parts, infos, first = [], [], None
+    parts, train_from, infos, first = [], [], [], None
     for root in dirs:
         header, data, info = _read_dir(root)
         if first is None:
@@ -114,6 +129,7 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
                              f"{header['config_sha256'][:12]}, the first a {first['mode']} one"
                              f" of {first['config_sha256'][:12]}; train on one kind at a time")
         parts.append(_raw_arrays(data, representation))
+        train_from.append(_train_from(data))
         infos.append(info)
     raw = {m: np.concatenate([p[m] for p in parts]) for m in MODALITIES}
     m_rows = raw["goal"].shape[0]
@@ -135,6 +151,7 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
         dtype=np.float32)) for m in MODALITIES}
     tensors["burn_mps"] = torch.from_numpy(np.linalg.norm(raw["control"], axis=-1)
                                            .astype(np.float32))  # (M, N) ||u|| [m/s]
+    tensors["train_from"] = torch.from_numpy(np.concatenate(train_from))  # (M,) int64
     provenance = {"mode": first["mode"], "config_sha256": first["config_sha256"],
                   "guidance_config": _guidance_config(first["config"]),
                   "manifests": infos, "n_nodes": int(raw["state"].shape[1]),
@@ -181,9 +198,30 @@ def _starts(entropy: list[int], size: int, n_nodes: int, fraction: float) -> np.
     return np.where(use & (n_nodes > 2), late, 0).astype(np.int64)
 
 
-def valid_mask(starts: np.ndarray, n_nodes: int) -> torch.Tensor:
-    """(b, N) bool: the valid (unpadded) steps of sequences starting at `starts`."""
-    return torch.from_numpy(np.arange(n_nodes)[None, :] < (n_nodes - starts)[:, None])
+def valid_mask(starts: np.ndarray, n_nodes: int,
+               train_from: np.ndarray | torch.Tensor | None = None) -> torch.Tensor:
+    """(b, N) bool: the steps of sequences starting at `starts` that enter the loss.
+
+    Step j of the sequence starting at node s_b is node s_b + j; it is valid when it exists
+    (s_b + j < N, no padding) and is not context only (s_b + j >= train_from_b): the mask of
+    nodes >= max(s_b, train_from_b), shifted to the front. The same mask as `make_batch`'s.
+
+    Args:
+        starts: (b,) int start node of each sequence.
+        n_nodes: N, nodes per trajectory.
+        train_from: (b,) int first node of each row inside the loss (None: 0 for all); a
+            tensor keeps the mask on its device.
+    """
+    if isinstance(train_from, torch.Tensor):
+        where = train_from.device
+        node = torch.as_tensor(starts, dtype=torch.long, device=where)[:, None] \
+            + torch.arange(n_nodes, device=where)  # (b, N)
+        return (node < n_nodes) & (node >= train_from.long()[:, None])
+    node = np.asarray(starts, dtype=np.int64)[:, None] + np.arange(n_nodes)  # (b, N)
+    mask = node < n_nodes
+    if train_from is not None:
+        mask &= node >= np.asarray(train_from, dtype=np.int64)[:, None]
+    return torch.from_numpy(mask)
 
 
 def make_batch(tensors: dict[str, torch.Tensor], rows: np.ndarray, starts: np.ndarray,
@@ -200,7 +238,8 @@ def make_batch(tensors: dict[str, torch.Tensor], rows: np.ndarray, starts: np.nd
     Returns:
         "goal" (b, N, 6), "reward" (b, N), "constraint" (b, N), "state" (b, N, 6),
         "control" (b, N, 3), "burn_mps" (b, N) ||u|| [m/s], "timestep" (b, N) int64,
-        "mask" (b, N) bool.
+        "mask" (b, N) bool (`valid_mask`: existing nodes >= the row's train_from, if the
+        tensors hold "train_from").
     """
     n = tensors["state"].shape[1]
     where = tensors["state"].device  # gather where the data lives (the GPU keeps it resident)
@@ -208,6 +247,8 @@ def make_batch(tensors: dict[str, torch.Tensor], rows: np.ndarray, starts: np.nd
     node = torch.as_tensor(starts, dtype=torch.long, device=where)[:, None] \
         + torch.arange(n, device=where)  # (b, N)
     mask = node < n  # (b, N)
+    if "train_from" in tensors:  # DAgger rows: the rollout prefix is context, not a label
+        mask &= node >= tensors["train_from"][r][:, None]
     node = node.clamp(max=n - 1)
     rr = r[:, None].expand_as(node)  # (b, N)
     batch = {m: tensors[m][rr, node] for m in ("reward", "constraint", "state", "control",

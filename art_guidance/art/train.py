@@ -13,8 +13,10 @@ Two files are written (atomically, by rank 0) at every validation pass:
 
 The loss is the paper's control + next-state MSE (teacher forcing) on normalised features, the
 validation loss the same on a seeded share of the training split (the dataset's test split is
-never read). Learning rate: linear warm-up, then cosine decay to ``min_lr_ratio * lr`` over
-``max_epochs``; gradient-norm clipping 1.0. Data parallel under torchrun (`distributed`).
+never read); both run over the steps of `data.valid_mask` (for DAgger rows, the nodes from
+their `train_from` on), which also gives the counts they are divided by. Learning rate:
+linear warm-up, then cosine decay to ``min_lr_ratio * lr`` over ``max_epochs``; gradient-norm
+clipping 1.0. Data parallel under torchrun (`distributed`).
 """
 from __future__ import annotations
 
@@ -184,6 +186,9 @@ class _Trainer:
                                        self.cfg.normalization, self.cfg.context,
                                        self.tcfg.max_train)
         self.autocast = (self.tcfg.precision == "bf16" and ctx.device.type == "cuda")
+        # (M,) first node inside the loss of each row, on the CPU: the loss counts of a step
+        # come from the same mask as its batch without a device round trip
+        self.train_from = self.data.tensors["train_from"].numpy().copy()
         if ctx.device.type == "cuda":  # keep the (small) dataset resident: batches are gathers
             self.data.tensors.update({k: v.to(ctx.device) for k, v in self.data.tensors.items()})
         if self.data.n_nodes > self.cfg.context:
@@ -309,7 +314,7 @@ class _Trainer:
         step, n = self.prog.step, self.data.n_nodes
         rows = self._rows(step)
         starts = suffix_starts(self.opts.seed, step, rows.size, n, self.tcfg.suffix_fraction)
-        n_u, n_x = loss_counts(valid_mask(starts, n))
+        n_u, n_x = loss_counts(valid_mask(starts, n, self.train_from[rows]))
         mine = self.ctx.share(np.arange(rows.size))
         for group in self.opt.param_groups:
             group["lr"] = self._lr(step)
@@ -335,7 +340,7 @@ class _Trainer:
     def validation_loss(self) -> float:
         """Loss of the current weights on the validation sequences (eval mode)."""
         rows, starts = self.data.val_rows, self.val_starts
-        n_u, n_x = loss_counts(valid_mask(starts, self.data.n_nodes))
+        n_u, n_x = loss_counts(valid_mask(starts, self.data.n_nodes, self.train_from[rows]))
         mine = self.ctx.share(np.arange(rows.size))
         sse = [0.0, 0.0, 0.0]
         self.model.eval()

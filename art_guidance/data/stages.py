@@ -29,8 +29,9 @@ from art_guidance.safety import PassiveSafety
 from art_guidance.data.storage import load_dataset
 
 __all__ = ["FIELDS", "MODES", "SEED_RULE", "SEED_STRIDE", "STAGES", "TIMING_FIELDS",
-           "GenerationSpec", "ScenarioSample", "generate_chunk", "load_dataset", "sample_scenario",
-           "sample_seed", "solve_sample"]
+           "GenerationSpec", "ScenarioSample", "Stage", "generate_chunk",
+           "infeasible_trajectory_fields", "load_dataset", "sample_scenario", "sample_seed",
+           "solve_sample", "solve_stages", "stage_fields", "trajectory_fields"]
 
 
 @dataclass(frozen=True)
@@ -190,42 +191,83 @@ def _models(spec: GenerationSpec) -> _Models:
 
 
 @dataclass(frozen=True)
-class _Stage:
+class Stage:
+    """Outcome of one pipeline stage: status, trajectory (None unless usable), cost, effort."""
+
     status: ScpStatus
-    roe_m: np.ndarray | None
-    dv_rtn_mps: np.ndarray | None
+    roe_m: np.ndarray | None       # (N, 6) pre-burn a-scaled ROE [m]
+    dv_rtn_mps: np.ndarray | None  # (N, 3) impulsive delta-v in RTN [m/s]
     cost_mps: float
     iterations: int
     time_ms: float
 
     @property
     def feasible(self) -> bool:
+        """True when the stage's trajectory satisfies its constraints."""
         return self.status.feasible
 
 
-def _run_cvx(m: _Models, roe0: np.ndarray, roe_f: np.ndarray) -> _Stage:
+def _run_cvx(horizon: Horizon, roe0: np.ndarray, roe_f: np.ndarray) -> Stage:
     t0 = time.perf_counter()
     try:
-        sol = solve_cvx(m.horizon, roe0, roe_f)
+        sol = solve_cvx(horizon, roe0, roe_f)
     except GuidanceError:
-        return _Stage(ScpStatus.SOLVER_ERROR, None, None, math.nan, 1,
-                      1e3 * (time.perf_counter() - t0))
+        return Stage(ScpStatus.SOLVER_ERROR, None, None, math.nan, 1,
+                     1e3 * (time.perf_counter() - t0))
     ok = sol.status is ScpStatus.CONVERGED
-    return _Stage(sol.status, sol.roe_m if ok else None, sol.dv_rtn_mps if ok else None,
-                  sol.cost_mps, 1, sol.solve_time_ms)
+    return Stage(sol.status, sol.roe_m if ok else None, sol.dv_rtn_mps if ok else None,
+                 sol.cost_mps, 1, sol.solve_time_ms)
 
 
 def _run_scp(spec: GenerationSpec, safety: PassiveSafety, roe0: np.ndarray, roe_f: np.ndarray,
-             warm: np.ndarray) -> _Stage:
+             warm: np.ndarray) -> Stage:
     t0 = time.perf_counter()
     try:
         res = Scvx(safety, roe0, roe_f, spec.config.scp,
                    samples_per_node=spec.config.planning.samples_per_node).solve(warm)
     except GuidanceError:
-        return _Stage(ScpStatus.SOLVER_ERROR, None, None, math.nan, 0,
-                      1e3 * (time.perf_counter() - t0))
-    return _Stage(res.status, res.roe_m, res.dv_rtn_mps, res.cost_mps, res.iterations,
-                  res.solve_time_ms)
+        return Stage(ScpStatus.SOLVER_ERROR, None, None, math.nan, 0,
+                     1e3 * (time.perf_counter() - t0))
+    return Stage(res.status, res.roe_m, res.dv_rtn_mps, res.cost_mps, res.iterations,
+                 res.solve_time_ms)
+
+
+def solve_stages(spec: GenerationSpec, collision: PassiveSafety, passive: PassiveSafety,
+                 roe0: np.ndarray, roe_f: np.ndarray) -> tuple[tuple[Stage, Stage, Stage], int]:
+    """The three stages of the pipeline on one horizon (that of `passive`).
+
+    Stage 1 solves the convex TPBVP (CVX); stage 2 the collision-avoidance SCP `collision`
+    (deterministic, T_safety = 0) warm-started by CVX (zeros if CVX failed); stage 3 the
+    passive-safety SCP `passive` warm-started by stage 2's returned trajectory.
+
+    Args:
+        spec: SCP and planning settings.
+        collision: stage-2 model (its horizon is the one planned over, N nodes).
+        passive: stage-3 model on the same horizon.
+        roe0: (6,) pre-burn a-scaled ROE at the first node [m].
+        roe_f: (6,) terminal post-burn a-scaled ROE [m].
+
+    Returns:
+        (cvx, collision avoidance, passive safety) stages and the kept stage: 3 if stage 3 is
+        feasible, else 2 if stage 2 is, else KEPT_INFEASIBLE (CVX is never kept: it ignores
+        safety).
+    """
+    horizon = passive.horizon
+    cvx = _run_cvx(horizon, roe0, roe_f)
+    warm = cvx.dv_rtn_mps if cvx.dv_rtn_mps is not None else np.zeros((horizon.n_nodes, 3))
+    ca = _run_scp(spec, collision, roe0, roe_f, warm)
+    ps = _run_scp(spec, passive, roe0, roe_f,
+                  ca.dv_rtn_mps if ca.dv_rtn_mps is not None else warm)
+    kept = 3 if ps.feasible else 2 if ca.feasible else KEPT_INFEASIBLE
+    return (cvx, ca, ps), kept
+
+
+def stage_fields(stages: Sequence[Stage]) -> dict[str, np.ndarray]:
+    """The per-stage FIELDS (status, iterations, cost, time) of the three stages."""
+    return {"stage_status": np.array([s.status.value for s in stages], np.int8),
+            "stage_iterations": np.array([s.iterations for s in stages], np.int32),
+            "stage_cost_mps": np.array([s.cost_mps for s in stages]),
+            "stage_time_ms": np.array([s.time_ms for s in stages])}
 
 
 def solve_sample(spec: GenerationSpec, index: int) -> dict[str, np.ndarray]:
@@ -236,31 +278,28 @@ def solve_sample(spec: GenerationSpec, index: int) -> dict[str, np.ndarray]:
     SCP warm-started by stage 2's returned trajectory. Kept: stage 3 if feasible (SCVx*
     CONVERGED or MAX_ITERATIONS with the constraints met), else stage 2 if feasible, else none
     (the CVX solution is never kept: it ignores safety); the sample is then recorded as
-    infeasible with `kept_stage` 0.
+    infeasible with `kept_stage` 0 (`solve_stages`).
     """
     m = _models(spec)
     n = m.horizon.n_nodes
     sample = sample_scenario(spec.scenario, sample_seed(spec.base_seed, index))
     roe0 = roe_from_rtn_linear(m.chief, sample.rtn0)
     roe_f = np.linalg.solve(m.horizon.psi[-1], sample.target_rtn)
-    cvx = _run_cvx(m, roe0, roe_f)
-    warm = cvx.dv_rtn_mps if cvx.dv_rtn_mps is not None else np.zeros((n, 3))
-    ca = _run_scp(spec, m.collision, roe0, roe_f, warm)
-    ps = _run_scp(spec, m.passive, roe0, roe_f,
-                  ca.dv_rtn_mps if ca.dv_rtn_mps is not None else warm)
-    kept = 3 if ps.feasible else 2 if ca.feasible else KEPT_INFEASIBLE
-    stages = (cvx, ca, ps)
+    stages, kept = solve_stages(spec, m.collision, m.passive, roe0, roe_f)
+    cvx = stages[0]
     rec = {
         "index": np.int64(index), "seed": np.int64(sample.seed),
         "waypoint": np.str_(sample.waypoint), "rtn0": sample.rtn0,
         "target_rtn": sample.target_rtn, "roe0_m": roe0, "roe_f_m": roe_f,
         "kept_stage": np.int8(kept), "feasible": np.bool_(kept != KEPT_INFEASIBLE),
-        "stage_status": np.array([s.status.value for s in stages], np.int8),
-        "stage_iterations": np.array([s.iterations for s in stages], np.int32),
-        "stage_cost_mps": np.array([s.cost_mps for s in stages]),
-        "stage_time_ms": np.array([s.time_ms for s in stages]),
+        **stage_fields(stages),
     }
-    rec.update(_trajectory_fields(m, stages[kept - 1] if kept else None, n))
+    if kept:
+        stage = stages[kept - 1]
+        rec.update(trajectory_fields(m.horizon, m.passive, stage.roe_m, stage.dv_rtn_mps,
+                                     stage.cost_mps))
+    else:
+        rec.update(infeasible_trajectory_fields(n))
     if cvx.roe_m is not None:
         c_cvx = m.passive.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0]
         rec.update(cvx_roe_m=cvx.roe_m, cvx_dv_rtn_mps=cvx.dv_rtn_mps,
@@ -271,17 +310,33 @@ def solve_sample(spec: GenerationSpec, index: int) -> dict[str, np.ndarray]:
     return rec
 
 
-def _trajectory_fields(m: _Models, stage: _Stage | None, n: int) -> dict[str, np.ndarray]:
-    if stage is None:
-        return {"roe_m": np.full((n, 6), np.nan), "rtn": np.full((n, 6), np.nan),
-                "dv_rtn_mps": np.full((n, 3), np.nan), "cost_mps": np.float64(np.nan),
-                "reward_to_go_mps": np.full(n, np.nan),
-                "constraint_to_go": np.full(n, -1, np.int32), "margin_m": np.full(n, np.nan)}
-    roe, dv = stage.roe_m, stage.dv_rtn_mps
-    ev = m.passive.evaluate(roe, dv)
-    norms = np.linalg.norm(dv, axis=1)
-    return {"roe_m": roe, "rtn": m.horizon.to_rtn(roe), "dv_rtn_mps": dv,
-            "cost_mps": np.float64(stage.cost_mps),
+def infeasible_trajectory_fields(n: int) -> dict[str, np.ndarray]:
+    """The trajectory FIELDS of a sample without a kept trajectory (NaN, C = -1), N = `n`."""
+    return {"roe_m": np.full((n, 6), np.nan), "rtn": np.full((n, 6), np.nan),
+            "dv_rtn_mps": np.full((n, 3), np.nan), "cost_mps": np.float64(np.nan),
+            "reward_to_go_mps": np.full(n, np.nan),
+            "constraint_to_go": np.full(n, -1, np.int32), "margin_m": np.full(n, np.nan)}
+
+
+def trajectory_fields(horizon: Horizon, passive: PassiveSafety, roe_m: np.ndarray,
+                      dv_rtn_mps: np.ndarray, cost_mps: float) -> dict[str, np.ndarray]:
+    """The trajectory FIELDS of a kept trajectory over `horizon` (N nodes).
+
+    Args:
+        horizon: the horizon of the trajectory (RTN states by its Psi).
+        passive: the mode's passive-safety model on that horizon (constraint-to-go, margins).
+        roe_m: (N, 6) pre-burn a-scaled ROE [m].
+        dv_rtn_mps: (N, 3) impulsive delta-v in RTN [m/s].
+        cost_mps: the stored cost [m/s].
+
+    Returns:
+        "roe_m", "rtn", "dv_rtn_mps", "cost_mps", "reward_to_go_mps" (R(t_i) = -sum_{j >= i}
+        ||dv_j||), "constraint_to_go" and "margin_m" (the model's evaluation of the trajectory).
+    """
+    ev = passive.evaluate(roe_m, dv_rtn_mps)
+    norms = np.linalg.norm(dv_rtn_mps, axis=1)
+    return {"roe_m": roe_m, "rtn": horizon.to_rtn(roe_m), "dv_rtn_mps": dv_rtn_mps,
+            "cost_mps": np.float64(cost_mps),
             "reward_to_go_mps": -np.cumsum(norms[::-1])[::-1],
             "constraint_to_go": ev.constraint_to_go.astype(np.int32), "margin_m": ev.margin_m}
 

@@ -6,7 +6,8 @@ A dataset directory holds::
                        then one line per committed shard: file, sha256, size, sample indices,
                        small per-shard statistics
     shard-000000.npz   M samples, every array stacked along axis 0 (plain .npz, no pickles)
-    split.json         the 90/10 train/test split of the sample indices (from the base seed)
+    split.json         the 90/10 train/test split of the sample indices (from the base seed;
+                       a header "test_fraction" changes the share, e.g. 0 for DAgger data)
     summary.json       written at the end of every generate run
     .lock              flock held by the one writer
 
@@ -50,10 +51,11 @@ def sha256_bytes(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def train_test_split(base_seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Deterministic 90/10 split of the sample indices 0..n-1.
+def train_test_split(base_seed: int, n: int, test_fraction: float = TEST_FRACTION
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic 90/10 (or other `test_fraction`) split of the sample indices 0..n-1.
 
-    The test set is the first round(0.1 n) entries of a permutation drawn from
+    The test set is the first round(test_fraction n) entries of a permutation drawn from
     SeedSequence([base_seed, SPLIT_STREAM]), sorted; the train set is the rest.
 
     Returns:
@@ -61,7 +63,7 @@ def train_test_split(base_seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     """
     rng = np.random.default_rng(np.random.SeedSequence([int(base_seed), SPLIT_STREAM]))
     perm = rng.permutation(int(n))
-    n_test = int(round(TEST_FRACTION * n))
+    n_test = int(round(test_fraction * n))
     return np.sort(perm[n_test:]).astype(np.int64), np.sort(perm[:n_test]).astype(np.int64)
 
 
@@ -136,7 +138,7 @@ def read_shard(root: str | Path, entry: dict, verify: bool = True) -> dict[str, 
 
 def read_split(root: str | Path, header: dict) -> np.ndarray:
     """(n,) bool, True for test samples; split.json is checked against the seed rule."""
-    train, test = train_test_split(header["base_seed"], header["n"])
+    train, test = train_test_split(header["base_seed"], header["n"], _test_fraction(header))
     path = Path(root) / SPLIT
     if path.exists():
         stored = json.loads(path.read_text(encoding="utf-8"))
@@ -319,11 +321,17 @@ class DatasetWriter:
         self.close()
 
 
+def _test_fraction(header: dict) -> float:
+    """The header's test share (TEST_FRACTION unless it says otherwise)."""
+    return float(header.get("test_fraction", TEST_FRACTION))
+
+
 def _split_json(header: dict) -> bytes:
-    train, test = train_test_split(header["base_seed"], header["n"])
-    data = {"base_seed": header["base_seed"], "n": header["n"], "test_fraction": TEST_FRACTION,
-            "rule": "test = sorted(first round(0.1 n) of default_rng(SeedSequence([base_seed, "
-                    f"{SPLIT_STREAM:#x}])).permutation(n))",
+    fraction = _test_fraction(header)
+    train, test = train_test_split(header["base_seed"], header["n"], fraction)
+    data = {"base_seed": header["base_seed"], "n": header["n"], "test_fraction": fraction,
+            "rule": f"test = sorted(first round({fraction:g} n) of default_rng(SeedSequence(["
+                    f"base_seed, {SPLIT_STREAM:#x}])).permutation(n))",
             "train": train.tolist(), "test": test.tolist()}
     return json.dumps(data).encode()
 
