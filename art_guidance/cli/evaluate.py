@@ -163,7 +163,7 @@ def _warmstart(args: argparse.Namespace) -> int:
                        workers=args.workers or default_workers(), engine=args.engine,
                        ray_address=args.ray_address, shard_size=args.shard_size,
                        figures=not args.no_figures, progress=not args.no_progress,
-                       command=["art-guidance", *sys.argv[1:]])
+                       command=["art-guidance", *sys.argv[1:]], split=args.split)
     print(f"summary -> {Path(args.out) / 'summary.json'}")
     return 130 if summary["status"] == "interrupted" else 0
 
@@ -259,8 +259,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="warmstart: skip the figures and the example scenario")
     p.add_argument("--threads", type=int, default=2, help="rollouts: torch threads")
     p.add_argument("--split", choices=("test", "all"), default="test",
-                   help="rollouts: the dataset's test split (default), or all its scenarios "
-                   "(a dataset generated with a seed the model never saw; refused for a "
-                   "dataset the model was trained on)")
+                   help="the datasets' test split (default), or all their scenarios (datasets "
+                   "generated with a seed the models never saw; refused for a dataset a model "
+                   "was trained on)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

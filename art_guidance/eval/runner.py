@@ -63,6 +63,7 @@ class ModelInfo:
         representation: "roe" or "rtn", its state representation.
         train_n: trajectories it was trained on (train + validation share; 0: not recorded).
         n_parameters: its parameter count.
+        trained_on: manifest sha256 of each dataset it was trained on.
     """
 
     path: str
@@ -71,6 +72,7 @@ class ModelInfo:
     representation: str
     train_n: int = 0
     n_parameters: int = 0
+    trained_on: tuple[str, ...] = ()
 
     @property
     def label(self) -> str:
@@ -194,12 +196,14 @@ def model_info(path: str | Path) -> ModelInfo:
     data = (art.meta or {}).get("dataset", {})
     train_n = int(data.get("n_train", 0)) + int(data.get("n_val", 0))
     return ModelInfo(str(path), str(art.sha256), mode, art.config.representation, train_n,
-                     art.model.n_parameters())
+                     art.model.n_parameters(),
+                     tuple(m.get("manifest_sha256", "") for m in data.get("manifests", [])))
 
 
-def heldout(path: str | Path) -> dict[str, np.ndarray]:
+def heldout(path: str | Path, split: str = "test") -> dict[str, np.ndarray]:
     """`art.evaluate.heldout_scenarios` of a complete dataset, read shard by shard so that only
     the held-out rows of the fields it selects are kept in memory (sorted by sample index).
+    `split` "all" takes every scenario (a dataset no model under evaluation was trained on).
 
     Raises:
         DatasetError: an incomplete or corrupt dataset.
@@ -213,7 +217,8 @@ def heldout(path: str | Path) -> dict[str, np.ndarray]:
     parts = []
     for entry in shards:
         arrays = read_shard(path, entry)
-        parts.append(heldout_scenarios(dict(arrays, is_test=is_test[arrays["index"]])))
+        parts.append(heldout_scenarios(dict(arrays, is_test=is_test[arrays["index"]]),
+                                       split=split))
     cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     order = np.argsort(cols["index"], kind="stable")
     return {k: v[order] for k, v in cols.items()}
@@ -234,9 +239,11 @@ def _pairs(models: Sequence[ModelInfo], datasets: Sequence[DatasetInfo]) -> list
 
 
 def build_spec(models: Sequence[ModelInfo], datasets: Sequence[DatasetInfo], n: int | None,
-               config: GuidanceConfig) -> tuple[EvaluationSpec, list[dict]]:
+               config: GuidanceConfig, split: str = "test"
+               ) -> tuple[EvaluationSpec, list[dict]]:
     """Number the (model, held-out scenario) pairs: per model, per dataset of its mode, the
-    first `n` held-out scenarios by sample index (all if n is None).
+    first `n` held-out scenarios by sample index (all if n is None); `split` "all" takes every
+    scenario of datasets none of the models was trained on (refused otherwise).
 
     Returns:
         The spec and, per dataset, {"n_heldout": held-out scenarios with a CVX solution}.
@@ -246,7 +253,13 @@ def build_spec(models: Sequence[ModelInfo], datasets: Sequence[DatasetInfo], n: 
         DatasetError: an incomplete or corrupt dataset.
     """
     pairs = _pairs(models, datasets)
-    held = {j: heldout(datasets[j].path)
+    if split == "all":
+        for k, js in enumerate(pairs):
+            seen = [datasets[j].path for j in js if datasets[j].sha256 in models[k].trained_on]
+            if seen:
+                raise InputError("--split", f"{models[k].path} was trained on {seen[0]}: its "
+                                 "scenarios are not all held out", split)
+    held = {j: heldout(datasets[j].path, split)
             for j in sorted({j for p in pairs for j in p})}
     parts: dict[str, list] = {k: [] for k in ("model", "dataset", "sample", "roe0", "target")}
     for k, js in enumerate(pairs):
@@ -268,12 +281,14 @@ def build_spec(models: Sequence[ModelInfo], datasets: Sequence[DatasetInfo], n: 
 
 
 # --------------------------------------------------------------------------- identity
-def header(spec: EvaluationSpec, datasets: Sequence[DatasetInfo], n: int | None) -> dict:
+def header(spec: EvaluationSpec, datasets: Sequence[DatasetInfo], n: int | None,
+           split: str = "test") -> dict:
     """The manifest header of an evaluation; "config_sha256" fingerprints what decides the
     results (model and dataset checksums in order, n, the configuration), so a resume with
     another command is refused."""
     identity = {"format": FORMAT, "models": [[m.sha256, m.mode] for m in spec.models],
                 "datasets": [d.sha256 for d in datasets], "n": n,
+                **({"split": split} if split != "test" else {}),
                 "guidance_config_sha256": spec.config.sha256()}
     return {"mode": KIND, "base_seed": 0, "n": int(spec.model.size),
             "seed_rule": "pair i: model[i], held-out sample sample[i] of dataset[i]",
@@ -361,7 +376,7 @@ def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequ
              *, n: int | None = None, workers: int = 1, engine: str = "local",
              ray_address: str | None = None, shard_size: int = 4,
              config: GuidanceConfig | None = None, figures: bool = True, progress: bool = True,
-             command: Sequence[str] | None = None,
+             command: Sequence[str] | None = None, split: str = "test",
              log: Callable[[str], None] = print) -> dict:
     """Evaluate (or resume evaluating) models against CVX on held-out scenarios.
 
@@ -379,6 +394,8 @@ def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequ
         figures: write the figures and the recomputed example when complete.
         progress: tqdm progress bar on stderr.
         command: the command line, recorded in the summary.
+        split: "test" (each dataset's test split) or "all" (every scenario of datasets the
+            models never saw).
         log: where the one-line messages go.
 
     Returns:
@@ -396,8 +413,8 @@ def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequ
     out = Path(out)
     datasets = [dataset_info(d) for d in data_dirs]
     models = [model_info(p) for p in model_paths]
-    spec, held = build_spec(models, datasets, n, config or GuidanceConfig.load())
-    head = header(spec, datasets, n)
+    spec, held = build_spec(models, datasets, n, config or GuidanceConfig.load(), split)
+    head = header(spec, datasets, n, split)
     check_out(out, head)
     with DatasetWriter(out, head) as writer:
         todo = np.setdiff1d(np.arange(spec.model.size), writer.done_indices)

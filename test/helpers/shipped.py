@@ -5,7 +5,7 @@ import numpy as np
 
 from art_guidance.art.provider import DEFAULT_MODEL, shipped_models
 from art_guidance.config import ScenarioConfig
-from art_guidance.data.stages import sample_scenario
+from art_guidance.data.stages import sample_scenario, sample_seed
 from art_guidance.data.storage import train_test_split
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import PlanRequest
@@ -17,10 +17,11 @@ def heldout_requests(n: int, name: str = DEFAULT_MODEL) -> list[PlanRequest]:
     data = shipped_models()[name]["dataset"]
     scenario = ScenarioConfig.from_yaml()
     chief = np.array(scenario.chief_oe)
-    _, test = train_test_split(0, data["n"])
+    base = int(data.get("base_seed", 0))
+    _, test = train_test_split(base, data["n"])
     out = []
-    for seed in test[:n]:
-        s = sample_scenario(scenario, int(seed))
+    for index in test[:n]:
+        s = sample_scenario(scenario, sample_seed(base, int(index)))
         out.append(PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
                                chance_constrained=data["mode"] == "chance"))
     return out

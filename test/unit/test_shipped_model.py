@@ -2,9 +2,9 @@
 
 Per passive-safety mode (chance-constrained and deterministic) an ROE model (the mode's
 default) and an RTN model are shipped, each trained on the train split of `generate --n N
---mode MODE --seed 0` (scenario seeds 0..N-1). The held-out scenarios here are that dataset's
-own test split (`train_test_split(0, N)`; the training never reads it), drawn again from their
-seeds.
+--mode MODE --seed S` (S recorded in models.json). The held-out scenarios here are that
+dataset's own test split (`train_test_split(S, N)`; the training never reads it), drawn again
+from their seeds.
 """
 from __future__ import annotations
 
