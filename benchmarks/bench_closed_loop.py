@@ -8,6 +8,11 @@ without them (the reference, same seeds, same run). Reports per seed and as dist
 terminal miss [m] and the total delta-v [m/s]; the miss with errors is dominated by the errors
 of the last correction burns (a few metres), the miss without them by the models.
 
+`warm_starts`: the same seeds with errors flown with the learned warm start in the loop
+(`auto`: the shipped default model, the post hoc check, SCVx* from ART when it is accepted)
+against CVX only, paired per seed: executed delta-v and miss, their paired differences, and
+how often the node accepted ART.
+
 Run it on two checkouts to compare planner versions seed by seed (the numbers do not depend on
 the machine's speed: the solve deadline is far above the solve times).
 """
@@ -26,14 +31,19 @@ from art_guidance.sim.inprocess import InProcessGuidance
 _LOG = logging.getLogger("bench_closed_loop")
 
 
-def fly(seed: int, errors: bool, pipeline: GuidancePipeline) -> dict:
+def fly(seed: int, errors: bool, pipeline: GuidancePipeline, warm_start: str = "cvx") -> dict:
     """One closed-loop run; its summary (miss_m, total_dv_mps, n_replans, ...)."""
     with tempfile.TemporaryDirectory(prefix="bench_closed_loop_") as tmp:
         params = dict(PARAMETERS, rtn0=None, png_path="", summary_path=f"{tmp}/s.json",
-                      seed=seed, warm_start="cvx", errors=errors)
-        loop = ClosedLoop(InProcessGuidance(pipeline, SIM_EPOCH0_NS), params, _LOG,
-                          settle_s=0.0)
+                      seed=seed, warm_start=warm_start, errors=errors)
+        guidance = InProcessGuidance(pipeline, SIM_EPOCH0_NS)
+        loop = ClosedLoop(guidance, params, _LOG, settle_s=0.0)
         summary, _ = loop.finish(loop.run(), 0.0)
+    posthoc = [r.posthoc for _, r in guidance.results if r.posthoc is not None]
+    summary["art_checked"] = len(posthoc)
+    summary["art_accepted"] = sum(bool(p.accepted) for p in posthoc)
+    summary["art_kept"] = sum(r.warm_start == "art" for _, r in guidance.results)
+    summary["plans"] = len(guidance.results)
     return summary
 
 
@@ -42,21 +52,55 @@ def _dist(x: np.ndarray) -> dict:
             "p90": float(np.percentile(x, 90)), "max": float(x.max())}
 
 
-def run(repeats: int = 30) -> dict:
-    """Seeds 0..repeats-1 with and without errors; miss and delta-v distributions."""
+def run(repeats: int = 30, warm_starts: bool = True) -> dict:
+    """Seeds 0..repeats-1 with and without errors; miss and delta-v distributions; with
+    `warm_starts`, ART in the loop against CVX only (errors on, paired per seed)."""
     pipeline = GuidancePipeline()
     seeds = list(range(max(int(repeats), 1)))
     out: dict = {"seeds": seeds}
     t0 = time.perf_counter()
+    runs_cvx = []
     for label, errors in (("errors", True), ("no_errors", False)):
         runs = [fly(s, errors, pipeline) for s in seeds]
+        runs_cvx = runs_cvx or runs
         miss = np.array([r["miss_m"] for r in runs])
         dv = np.array([r["total_dv_mps"] for r in runs])
         out[label] = {"miss_m": _dist(miss), "total_dv_mps": _dist(dv),
                       "per_seed_miss_m": [round(float(m), 3) for m in miss],
                       "outcomes": sorted({r["outcome"] for r in runs})}
+    if warm_starts:
+        out["warm_starts"] = compare_warm_starts(seeds, runs_cvx)
     out["wall_s"] = time.perf_counter() - t0
     return out
+
+
+def compare_warm_starts(seeds: list[int], runs_cvx: list[dict]) -> dict:
+    """ART in the loop (`auto`, shipped default model) against the CVX-only runs, paired."""
+    from art_guidance.art.provider import ArtWarmStart
+
+    pipeline = GuidancePipeline(provider=ArtWarmStart.load())
+    runs_art = [fly(s, True, pipeline, "auto") for s in seeds]
+    dv_c = np.array([r["total_dv_mps"] for r in runs_cvx])
+    dv_a = np.array([r["total_dv_mps"] for r in runs_art])
+    miss_c = np.array([r["miss_m"] for r in runs_cvx])
+    miss_a = np.array([r["miss_m"] for r in runs_art])
+    d_dv, d_miss = dv_a - dv_c, miss_a - miss_c
+    sem = float(d_dv.std(ddof=1) / np.sqrt(d_dv.size)) if d_dv.size > 1 else float("nan")
+    return {"cvx": {"total_dv_mps": _dist(dv_c), "miss_m": _dist(miss_c)},
+            "auto": {"total_dv_mps": _dist(dv_a), "miss_m": _dist(miss_a),
+                     "art": _accepted_share(runs_art)},
+            "paired_dv_mps": {**_dist(d_dv), "sem": sem},
+            "paired_miss_m": _dist(d_miss),
+            "per_seed_dv_mps": [[round(float(c), 4), round(float(a), 4)]
+                                for c, a in zip(dv_c, dv_a)]}
+
+
+def _accepted_share(runs: list[dict]) -> dict:
+    """How often the post hoc check accepted ART, and how often the plan kept came from it."""
+    checked = sum(r["art_checked"] for r in runs)
+    plans = sum(r["plans"] for r in runs)
+    return {"checked": checked, "accepted": sum(r["art_accepted"] for r in runs),
+            "plans": plans, "kept_from_art": sum(r["art_kept"] for r in runs)}
 
 
 if __name__ == "__main__":

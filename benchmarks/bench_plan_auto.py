@@ -1,0 +1,67 @@
+"""Benchmark: the learned warm start in flight (`plan --warm-start auto`) against CVX only.
+
+For scenario seeds 0..repeats-1 (the `plan --seed S` scenarios; the shipped chance-constrained
+models were trained on dataset seed 1, whose scenario seeds start at 1,000,003, so these are
+held out), the chance-constrained pipeline plans each transfer twice in the same run: with the
+shipped default model (`auto`: ART rollout, post hoc check, SCVx* from the accepted warm start,
+also solved from CVX when ART is accepted) and CVX only. Reports how often the post hoc check
+accepted ART, how often the plan kept came from ART, the paired cost difference (auto - CVX
+only) [mm/s], and the median total planning time of both (one process, one torch thread).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from art_guidance.art.provider import ArtWarmStart
+from art_guidance.config import ScenarioConfig
+from art_guidance.data.stages import sample_scenario
+from art_guidance.dynamics import roe_from_rtn_linear
+from art_guidance.planning import GuidancePipeline, PlanRequest
+
+
+def run(repeats: int = 40) -> dict:
+    """Seeds 0..repeats-1, `auto` with the shipped default against CVX only, paired."""
+    torch.set_num_threads(1)
+    scenario = ScenarioConfig.from_yaml()
+    chief = np.array(scenario.chief_oe)
+    auto = GuidancePipeline(provider=ArtWarmStart.load())
+    cvx_only = GuidancePipeline()
+    rows = []
+    t0 = time.perf_counter()
+    for seed in range(max(int(repeats), 1)):
+        s = sample_scenario(scenario, seed)
+        request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
+                              chance_constrained=True, warm_start="auto")
+        a = auto.plan(request)
+        c = cvx_only.plan(PlanRequest(chief, request.roe0_m, s.target_rtn,
+                                      chance_constrained=True, warm_start="cvx"))
+        rows.append((a.posthoc is not None and a.posthoc.accepted, a.warm_start == "art",
+                     a.status.feasible, c.status.feasible, a.cost_mps, c.cost_mps,
+                     a.timings_ms["total"], c.timings_ms["total"],
+                     a.posthoc.e_r if a.posthoc is not None else np.nan))
+    acc, art, ok_a, ok_c, j_a, j_c, t_a, t_c, e_r = (np.array(x) for x in zip(*rows))
+    both = ok_a & ok_c
+    gap_mmps = 1e3 * (j_a - j_c)[both]
+    return {"seeds": int(len(rows)), "art_accepted_share": float(acc.mean()),
+            "art_kept_share": float(art.mean()),
+            "feasible_auto": int(ok_a.sum()), "feasible_cvx_only": int(ok_c.sum()),
+            "cost_auto_minus_cvx_only_mmps_min": float(gap_mmps.min()),
+            "cost_auto_minus_cvx_only_mmps_median": float(np.median(gap_mmps)),
+            "cost_auto_minus_cvx_only_mmps_max": float(gap_mmps.max()),
+            "cost_auto_minus_cvx_only_mmps_mean": float(gap_mmps.mean()),
+            "better_by_1mmps": int((gap_mmps < -1).sum()),
+            "worse_by_1mmps": int((gap_mmps > 1).sum()),
+            "e_r_pct_median": float(np.nanmedian(100 * e_r)),
+            "total_ms_median_auto": float(np.median(t_a)),
+            "total_ms_median_cvx_only": float(np.median(t_c)),
+            "wall_s": time.perf_counter() - t0}
+
+
+if __name__ == "__main__":
+    import json
+    import sys
+
+    print(json.dumps(run(int(sys.argv[1]) if len(sys.argv) > 1 else 40), indent=1))
