@@ -8,7 +8,8 @@ def run(args: argparse.Namespace) -> int:
     """Run the ROS 2 guidance node (same as `ros2 run art_guidance guidance_node`)."""
     from art_guidance.ros.guidance_node import main as node_main
 
-    return node_main(["guidance_node", *args.ros_args], managed=args.managed)
+    ros = ["--ros-args", *args.ros_args] if args.ros_args is not None else []
+    return node_main(["guidance_node", *args.rest, *ros], managed=args.managed)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -31,6 +32,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--managed", action="store_true",
                    help="run the lifecycle node (ros2 run art_guidance guidance_managed_node): "
                    "it starts unconfigured and plans only once configured and activated")
-    p.add_argument("ros_args", nargs=argparse.REMAINDER,
-                   help="passed to rclpy, e.g. --ros-args -p name:=value")
+    p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=None,
+                   help="everything after it goes to rclpy, e.g. --ros-args -p name:=value")
+    p.add_argument("rest", nargs="*", help="after `--`: passed to rclpy as they are")
     p.set_defaults(func=run)

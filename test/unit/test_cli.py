@@ -85,3 +85,23 @@ def test_non_ros_commands_never_import_rclpy(tmp_path):
                          timeout=120)
     rc, ros_modules = json.loads(out.stdout.strip().splitlines()[-1])
     assert rc == 0 and ros_modules == [], out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("argv,expected", [
+    (["node", "--ros-args", "-p", "stamp_check:=order"],
+     ["--ros-args", "-p", "stamp_check:=order"]),
+    (["node", "--", "--ros-args", "-p", "a:=1"], ["--ros-args", "-p", "a:=1"]),
+    (["node", "--managed", "--ros-args", "-r", "__ns:=/x"], ["--ros-args", "-r", "__ns:=/x"]),
+    (["node"], []),
+])
+def test_node_takes_ros_args_as_users_type_them(argv, expected, monkeypatch):
+    """`art-guidance node --ros-args ...` (the example of the README and --help) reaches rclpy
+    with its arguments, as does the `--` form; no usage error."""
+    import art_guidance.ros.guidance_node as gn
+
+    seen = {}
+    monkeypatch.setattr(gn, "main", lambda args, managed=False: seen.update(
+        args=args, managed=managed) or 0)
+    assert main(argv) == 0
+    assert seen["args"] == ["guidance_node", *expected]
+    assert seen["managed"] == ("--managed" in argv)
