@@ -9,6 +9,8 @@ threads:
 - `*_cached_model_ms` / `*_recompute_model_ms`: the same rollout with the recorded decisions
   replayed, i.e. transformer + dynamics alone, with the KV cache and recomputing the whole
   context at every step; `*_cache_speedup` is their ratio;
+- `*_sweep_ms`: the in-flight provider's conditioning sweep, one batched rollout of the
+  default model per reward scale (`DEFAULT_REWARD_SCALES`), with the C update;
 - batch-64 rollout throughput (rollouts/s) of the default model, with and without the C update;
 - training throughput (trajectories/s at the preset's batch, 100-step sequences);
 - the default model's training wall time, read from its checkpoint (ART_BENCH_CHECKPOINT, the
@@ -27,7 +29,7 @@ import torch
 
 from art_guidance.art import ArtModel, TrainedArt, build_safety, load, preset
 from art_guidance.art.model import loss_terms
-from art_guidance.art.provider import default_model_path
+from art_guidance.art.provider import DEFAULT_REWARD_SCALES, default_model_path
 from art_guidance.art.normalization import Normalizer
 from art_guidance.art.rollout import rollout
 from art_guidance.config import ScenarioConfig
@@ -155,6 +157,9 @@ def run(repeats: int = 20, checkpoint: str | None = None) -> dict:
                             f"{key}_cached_model_ms": cached, f"{key}_recompute_model_ms": again,
                             f"{key}_cache_speedup": again / cached})
             key = f"default_{threads}thr"
+            sweep = np.tile(x0[:1], (len(DEFAULT_REWARD_SCALES), 1))
+            out[f"{key}_sweep_ms"], out[f"{key}_sweep_c_update_ms"] = _time_rollouts(
+                default, safety, sweep, targets[:1], repeats, True, False)
             full, c_update = _time_rollouts(default, safety, x0, targets, slow, True, False)
             cached, _ = _time_rollouts(default, safety, x0, targets, slow, True, True)
             out[f"{key}_batch64_rollouts_per_s"] = 64e3 / full

@@ -74,7 +74,8 @@ def heldout_scenarios(data: dict[str, np.ndarray], extra: tuple[str, ...] = (),
 def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
                       target_rtn: object, cvx_cost_mps: object, cvx_constraint_to_go0: object,
                       thresholds: PosthocThresholds | None = None,
-                      batch_size: int = 64) -> RolloutEvaluation:
+                      batch_size: int = 64,
+                      reward_scales: tuple[float, ...] = (1.0,)) -> RolloutEvaluation:
     """Roll the model out on held-out scenarios and compare with CVX.
 
     Args:
@@ -86,6 +87,9 @@ def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
         cvx_constraint_to_go0: (M,) C(t_1) of the CVX solutions.
         thresholds: post hoc acceptance region (default: the paper's).
         batch_size: scenarios per batched rollout.
+        reward_scales: the conditioning sweep of the in-flight provider (R(t_1) = -s J_CVX per
+            s; the best candidate per scenario by `art.provider.best_candidate`); (1.0,): the
+            model's single rollout.
 
     Returns:
         RolloutEvaluation (call `.summary()` for the aggregate numbers).
@@ -100,12 +104,22 @@ def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
     c_cvx = as_finite_array("cvx_constraint_to_go0", cvx_constraint_to_go0, (m,))
     if m == 0 or np.any(j_cvx <= 0):
         raise InputError("cvx_cost_mps", "need at least one scenario and J_CVX > 0", j_cvx)
+    from art_guidance.art.provider import best_candidate
+
+    scales = np.asarray(reward_scales, dtype=float)
+    k = scales.size
     c_art, cost = np.empty(m, dtype=int), np.empty(m)
     for s in range(0, m, batch_size):
-        sl = slice(s, s + batch_size)
-        res = rollout(art, safety, x0[sl], target[sl], -j_cvx[sl], 0.0)
-        c_art[sl] = res.realised_constraint_to_go[:, 0]
-        cost[sl] = res.cost_mps
+        sl = slice(s, min(s + batch_size, m))
+        b = sl.stop - sl.start
+        res = rollout(art, safety, np.repeat(x0[sl], k, axis=0), np.repeat(target[sl], k, axis=0),
+                      -np.repeat(j_cvx[sl], k) * np.tile(scales, b), 0.0)
+        c_all = res.realised_constraint_to_go[:, 0].reshape(b, k)
+        cost_all = res.cost_mps.reshape(b, k)
+        pick = [best_candidate(cost_all[i], c_all[i], j_cvx[sl][i],
+                               thresholds or PosthocThresholds()) for i in range(b)]
+        c_art[sl] = c_all[np.arange(b), pick]
+        cost[sl] = cost_all[np.arange(b), pick]
     return _judge(c_art, c_cvx, cost, j_cvx, thresholds)
 
 

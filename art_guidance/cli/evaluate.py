@@ -32,7 +32,7 @@ def _trained_on(art: object, data_dir: str) -> bool:
 
 def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
                    progress: bool = True, split: str = "test", data_dir: str | None = None,
-                   oracle: bool = False) -> dict:
+                   oracle: bool = False, reward_scales: tuple[float, ...] = (1.0,)) -> dict:
     """Rollout suite of one model on the held-out scenarios of `data` (see `run`)."""
     import torch
     from tqdm import tqdm
@@ -60,7 +60,7 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
         sl = slice(s, min(s + batch, m))
         parts.append(evaluate_rollouts(art, safety, held["roe0_m"][sl], held["target_rtn"][sl],
                                        held["cvx_cost_mps"][sl], c_cvx_now[sl],
-                                       batch_size=batch))
+                                       batch_size=batch, reward_scales=reward_scales))
     wall = time.perf_counter() - t0
     c_art = np.concatenate([p.c_art for p in parts])
     c_cvx = np.concatenate([p.c_cvx for p in parts])
@@ -83,6 +83,7 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
         "frac_posthoc_accepted": float(np.mean(accepted)),
         "c_art_histogram": np.bincount(c_art, minlength=int(c_art.max()) + 1).tolist(),
         "wall_s": wall, "rollouts_per_s": m / wall, "threads": threads, "split": split,
+        "reward_scales": list(reward_scales),
         "training": _training_summary(art),
         **({"oracle": report_oracle} if report_oracle is not None else {}),
     }
@@ -186,9 +187,13 @@ def _rollouts(args: argparse.Namespace) -> int:
     data = load_dataset(args.data[0])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    scales = (1.0,)
+    if args.sweep:
+        from art_guidance.art.provider import DEFAULT_REWARD_SCALES as scales
     report = {"data": str(args.data[0]), "suite": args.suite, "split": args.split,
               "models": [evaluate_model(data, m, args.n, args.threads, not args.no_progress,
-                                        args.split, args.data[0], oracle=i == 0)
+                                        args.split, args.data[0], oracle=i == 0,
+                                        reward_scales=tuple(scales))
                          for i, m in enumerate(args.model)]}
     o = report["models"][0]["oracle"]
     print(f"oracle (the plans' own controls through the rollout) on {o['n_scenarios']} "
@@ -258,6 +263,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-figures", action="store_true",
                    help="warmstart: skip the figures and the example scenario")
     p.add_argument("--threads", type=int, default=2, help="rollouts: torch threads")
+    p.add_argument("--sweep", action="store_true",
+                   help="rollouts: judge the candidate the in-flight provider proposes (one "
+                   "rollout per R(t_1) = -s J_CVX of its conditioning sweep, the best by the "
+                   "post hoc criteria) instead of the model's single rollout at s = 1")
     p.add_argument("--split", choices=("test", "all"), default="test",
                    help="the datasets' test split (default), or all their scenarios (datasets "
                    "generated with a seed the models never saw; refused for a dataset a model "

@@ -139,6 +139,8 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
     t0 = time.perf_counter()
     cvx = solve_cvx(horizon, request.roe0_m, roe_f)
     t1 = time.perf_counter()
+    if hasattr(provider, "thresholds"):
+        provider.thresholds = config.planning.posthoc  # rank candidates as the pipeline does
     prop = provider.propose(request, safety, cvx)
     art_dv = np.asarray(prop.dv_rtn_mps, float)
     art_roe = horizon.propagate_nonlinear(request.roe0_m, art_dv)

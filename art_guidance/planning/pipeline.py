@@ -39,6 +39,8 @@ class GuidancePipeline:
             deadline_s: wall-clock budget of one SCP solve [s], or None.
         """
         self.config = config or GuidanceConfig.load()
+        if provider is not None and hasattr(provider, "thresholds"):
+            provider.thresholds = self.config.planning.posthoc  # rank candidates by our region
         self.scenario = self.config.scenario
         self.uncertainty = self.config.uncertainty
         self.scp_config = self.config.scp

@@ -208,3 +208,47 @@ def test_unconverged_cvx_scp_is_retried_from_a_rejected_rollout():
     assert not result.posthoc.accepted
     assert "retried from ART" in result.warm_start_reason and result.discarded is not None
     assert {result.warm_start, result.discarded.warm_start} == {"art", "cvx"}
+
+
+def test_best_candidate_ranks_by_the_posthoc_criteria():
+    """Inside the region first, then the smallest E_C, then the smallest |E_R|."""
+    from art_guidance.art.provider import best_candidate
+    from art_guidance.config import PosthocThresholds
+
+    t = PosthocThresholds()
+    j = 2.0
+    # costs: +10 % (E_C 0), +1 % (E_C 2: inside), -0.5 % (E_C 1: inside, smaller E_C)
+    assert best_candidate(np.array([2.2, 2.02, 1.99]), np.array([0, 2, 1]), j, t) == 2
+    # none inside: the smallest E_C, then the smallest |E_R|
+    assert best_candidate(np.array([2.4, 2.3, 2.6]), np.array([5, 3, 3]), j, t) == 1
+    # a tie keeps the first
+    assert best_candidate(np.array([2.0, 2.0]), np.array([0, 0]), j, t) == 0
+
+
+def test_sweep_proposes_the_best_of_its_candidates(model_path):
+    """The conditioning sweep rolls out one candidate per reward scale in one batch and proposes
+    the one `best_candidate` picks; with a single scale of 1 it is the paper's rollout."""
+    from art_guidance.art.provider import best_candidate
+    from art_guidance.art.rollout import rollout
+    from art_guidance.config import PosthocThresholds
+    from art_guidance.optim import solve_cvx
+
+    scales = (0.8, 1.0, 1.2)
+    sweep = ArtWarmStart.load(model_path, reward_scales=scales)
+    single = ArtWarmStart.load(model_path, reward_scales=(1.0,))
+    req = _request(5, chance=True)
+    pipeline = GuidancePipeline(provider=sweep)
+    horizon, safety = pipeline._setup(req)
+    cvx = solve_cvx(horizon, req.roe0_m, np.linalg.solve(horizon.psi[-1], req.target_rtn))
+    res = rollout(sweep.art, safety, np.tile(req.roe0_m, (3, 1)), req.target_rtn,
+                  -cvx.cost_mps * np.array(scales), 0.0)
+    b = best_candidate(res.cost_mps, res.realised_constraint_to_go[:, 0], cvx.cost_mps,
+                       PosthocThresholds())
+    prop = sweep.propose(req, safety, cvx)
+    # float32 decoding on other thread counts: equal to 1e-6 m/s
+    assert np.allclose(prop.dv_rtn_mps, res.dv_rtn_mps[b], rtol=0, atol=1e-6)
+    one = single.propose(req, safety, cvx)
+    alone = rollout(single.art, safety, req.roe0_m, req.target_rtn, -cvx.cost_mps, 0.0)
+    assert np.allclose(one.dv_rtn_mps, alone.dv_rtn_mps[0], rtol=0, atol=1e-6)
+    with pytest.raises(Exception, match="reward_scales"):
+        ArtWarmStart.load(model_path, reward_scales=(0.0,))
