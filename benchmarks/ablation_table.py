@@ -42,6 +42,10 @@ ROWS = {
     "fresh7_K_small_gate_rtn": "K RTN (shipped RTN), fresh seed 7",
     "fresh7_C_small_gate": "C, fresh seed 7",
     "fresh7_N_dagger_gate_roe": "N, fresh seed 7",
+    "fresh7_sweep_roe": "K + conditioning sweep (in flight, ROE), fresh seed 7",
+    "fresh8_sweep_roe": "K + conditioning sweep (in flight, ROE), fresh seed 8",
+    "fresh7_sweep_rtn": "K RTN + conditioning sweep (in flight), fresh seed 7",
+    "fresh8_sweep_rtn": "K RTN + conditioning sweep (in flight), fresh seed 8",
 }
 
 

@@ -164,7 +164,8 @@ def _warmstart(args: argparse.Namespace) -> int:
                        workers=args.workers or default_workers(), engine=args.engine,
                        ray_address=args.ray_address, shard_size=args.shard_size,
                        figures=not args.no_figures, progress=not args.no_progress,
-                       command=["art-guidance", *sys.argv[1:]], split=args.split)
+                       command=["art-guidance", *sys.argv[1:]], split=args.split,
+                       single_rollout=args.single_rollout)
     print(f"summary -> {Path(args.out) / 'summary.json'}")
     return 130 if summary["status"] == "interrupted" else 0
 
@@ -267,6 +268,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="rollouts: judge the candidate the in-flight provider proposes (one "
                    "rollout per R(t_1) = -s J_CVX of its conditioning sweep, the best by the "
                    "post hoc criteria) instead of the model's single rollout at s = 1")
+    p.add_argument("--single-rollout", action="store_true",
+                   help="warmstart: the paper's single rollout at R(t_1) = -J_CVX instead of the "
+                   "in-flight provider's conditioning sweep (the default, as the node flies)")
     p.add_argument("--split", choices=("test", "all"), default="test",
                    help="the datasets' test split (default), or all their scenarios (datasets "
                    "generated with a seed the models never saw; refused for a dataset a model "

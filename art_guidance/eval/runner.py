@@ -102,6 +102,8 @@ class EvaluationSpec:
         sample: (M,) sample index in that dataset.
         roe0_m: (M, 6) initial a-scaled ROE [m].
         target_rtn: (M, 6) terminal RTN state [m, m/s].
+        single_rollout: the paper's single rollout at R(t_1) = -J_CVX instead of the in-flight
+            provider's conditioning sweep.
     """
 
     models: tuple[ModelInfo, ...]
@@ -111,10 +113,11 @@ class EvaluationSpec:
     sample: np.ndarray
     roe0_m: np.ndarray
     target_rtn: np.ndarray
+    single_rollout: bool = False
 
 
 # --------------------------------------------------------------------------- worker side
-_LOADED: dict[str, tuple] = {}
+_LOADED: dict[tuple[str, bool], tuple] = {}
 
 
 def single_thread() -> None:
@@ -126,15 +129,19 @@ def single_thread() -> None:
     torch.set_num_threads(1)
 
 
-def load_model(info: ModelInfo) -> tuple:
-    """(ArtWarmStart on 1 thread, its PassiveSafety), cached per process."""
-    from art_guidance.art.provider import ArtWarmStart
+def load_model(info: ModelInfo, single_rollout: bool = False) -> tuple:
+    """(ArtWarmStart on 1 thread, its PassiveSafety), cached per process; `single_rollout`:
+    conditioned on R(t_1) = -J_CVX alone (the paper), else the provider's default sweep."""
+    from art_guidance.art.provider import DEFAULT_REWARD_SCALES, ArtWarmStart
     from art_guidance.art.rollout import build_safety
 
-    if info.sha256 not in _LOADED:
-        provider = ArtWarmStart.load(info.path, expected_sha256=info.sha256, threads=1)
-        _LOADED[info.sha256] = (provider, build_safety(provider.art))
-    return _LOADED[info.sha256]
+    key = (info.sha256, single_rollout)
+    if key not in _LOADED:
+        scales = (1.0,) if single_rollout else DEFAULT_REWARD_SCALES
+        provider = ArtWarmStart.load(info.path, expected_sha256=info.sha256, threads=1,
+                                     reward_scales=scales)
+        _LOADED[key] = (provider, build_safety(provider.art))
+    return _LOADED[key]
 
 
 def request_of(roe0_m: np.ndarray, target_rtn: np.ndarray, safety: object) -> object:
@@ -157,7 +164,7 @@ def evaluate_chunk(spec: EvaluationSpec, indices: Sequence[int]) -> dict[str, np
     idx = np.asarray(indices, dtype=np.int64)
     rows, ms = [], []
     for i in idx:
-        provider, safety = load_model(spec.models[spec.model[i]])
+        provider, safety = load_model(spec.models[spec.model[i]], spec.single_rollout)
         t0 = time.perf_counter()
         request = request_of(spec.roe0_m[i], spec.target_rtn[i], safety)
         rows.append(compare(request, safety, provider, spec.config))
@@ -239,7 +246,7 @@ def _pairs(models: Sequence[ModelInfo], datasets: Sequence[DatasetInfo]) -> list
 
 
 def build_spec(models: Sequence[ModelInfo], datasets: Sequence[DatasetInfo], n: int | None,
-               config: GuidanceConfig, split: str = "test"
+               config: GuidanceConfig, split: str = "test", single_rollout: bool = False
                ) -> tuple[EvaluationSpec, list[dict]]:
     """Number the (model, held-out scenario) pairs: per model, per dataset of its mode, the
     first `n` held-out scenarios by sample index (all if n is None); `split` "all" takes every
@@ -275,7 +282,8 @@ def build_spec(models: Sequence[ModelInfo], datasets: Sequence[DatasetInfo], n: 
     cat = {k: np.concatenate(v) for k, v in parts.items()}
     spec = EvaluationSpec(tuple(models), config, cat["model"].astype(np.int64),
                           cat["dataset"].astype(np.int64), cat["sample"].astype(np.int64),
-                          cat["roe0"].astype(float), cat["target"].astype(float))
+                          cat["roe0"].astype(float), cat["target"].astype(float),
+                          bool(single_rollout))
     return spec, [{"n_heldout": int(held[j]["index"].size) if j in held else 0}
                   for j in range(len(datasets))]
 
@@ -289,6 +297,7 @@ def header(spec: EvaluationSpec, datasets: Sequence[DatasetInfo], n: int | None,
     identity = {"format": FORMAT, "models": [[m.sha256, m.mode] for m in spec.models],
                 "datasets": [d.sha256 for d in datasets], "n": n,
                 **({"split": split} if split != "test" else {}),
+                **({"single_rollout": True} if spec.single_rollout else {}),
                 "guidance_config_sha256": spec.config.sha256()}
     return {"mode": KIND, "base_seed": 0, "n": int(spec.model.size),
             "seed_rule": "pair i: model[i], held-out sample sample[i] of dataset[i]",
@@ -377,7 +386,7 @@ def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequ
              ray_address: str | None = None, shard_size: int = 4,
              config: GuidanceConfig | None = None, figures: bool = True, progress: bool = True,
              command: Sequence[str] | None = None, split: str = "test",
-             log: Callable[[str], None] = print) -> dict:
+             single_rollout: bool = False, log: Callable[[str], None] = print) -> dict:
     """Evaluate (or resume evaluating) models against CVX on held-out scenarios.
 
     Args:
@@ -396,6 +405,7 @@ def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequ
         command: the command line, recorded in the summary.
         split: "test" (each dataset's test split) or "all" (every scenario of datasets the
             models never saw).
+        single_rollout: the paper's single rollout instead of the in-flight conditioning sweep.
         log: where the one-line messages go.
 
     Returns:
@@ -413,7 +423,8 @@ def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequ
     out = Path(out)
     datasets = [dataset_info(d) for d in data_dirs]
     models = [model_info(p) for p in model_paths]
-    spec, held = build_spec(models, datasets, n, config or GuidanceConfig.load(), split)
+    spec, held = build_spec(models, datasets, n, config or GuidanceConfig.load(), split,
+                            single_rollout)
     head = header(spec, datasets, n, split)
     check_out(out, head)
     with DatasetWriter(out, head) as writer:

@@ -297,13 +297,15 @@ def test_heldout_reads_the_same_scenarios_as_the_full_load(inputs):
         assert np.array_equal(full[key], lean[key]), key
 
 
-def test_the_committed_results_are_complete_and_match_the_shipped_models():
-    """benchmarks/results/warmstart: the README's results table is `report.md`, which is the
-    report of the committed summary.json; it covers >= 1,000 held-out scenarios per mode with
-    the shipped models (their pinned checksums), and every figure it lists is there."""
+@pytest.mark.parametrize("run", ["warmstart", "warmstart_single_rollout"])
+def test_the_committed_results_are_complete_and_match_the_shipped_models(run):
+    """benchmarks/results/warmstart (the sweep) and warmstart_single_rollout: the README's
+    results tables are rows of `report.md`, which is the report of the committed summary.json;
+    it covers >= 1,000 held-out scenarios per mode with the shipped models (their pinned
+    checksums), and every figure it lists is there."""
     from art_guidance.art.provider import shipped_models
 
-    root = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "warmstart"
+    root = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / run
     summary = json.loads((root / "summary.json").read_text())
     assert (root / REPORT).read_text() == report_markdown(summary)
     assert summary["complete"] and summary["n_done"] == summary["n_scenarios"]
