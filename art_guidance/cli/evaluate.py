@@ -223,7 +223,7 @@ examples:
       --n 1000 --workers 8 --out eval/paper     (Ctrl-C, then the same command resumes)
   art-guidance evaluate --figures-only --out eval/paper
   art-guidance evaluate --suite rollouts --data data/chance --model roe_c.pt --out eval/rollouts
-  art-guidance evaluate --suite rollouts --sweep --data data/fresh --split all \
+  art-guidance evaluate --suite rollouts --sweep --data data/fresh --split all \\
       --model roe_c.pt --out eval/inflight     (what the node proposes, on a never-seen seed)
 
 exit codes: 0 done, 130 interrupted (re-run the same command to resume), 2 bad input (e.g. a
