@@ -240,6 +240,11 @@ class PosthocThresholds:
         if not (self.e_r_pct_min <= self.e_r_pct_max and self.e_c_min <= self.e_c_max):
             raise ConfigError(f"posthoc thresholds need min <= max, got {self}")
 
+    def contains(self, e_r_pct: Any, e_c: Any) -> Any:
+        """Whether (100 E_R, E_C) lies in the region; scalars or arrays (elementwise)."""
+        return ((self.e_r_pct_min <= e_r_pct) & (e_r_pct <= self.e_r_pct_max)
+                & (self.e_c_min <= e_c) & (e_c <= self.e_c_max))
+
 
 @dataclass(frozen=True)
 class PlanningConfig:

@@ -48,17 +48,17 @@ from art_guidance import __version__
 from art_guidance.config import GuidanceConfig
 from art_guidance.data import stages as _stages
 from art_guidance.data.generate import (
-    check_run_options, commit_results, default_workers, progress_bar, run_chunks, shard_stats,
+    check_run_options, default_workers, run_missing, shard_stats,
 )
 from art_guidance.data.stages import (
     KEPT_INFEASIBLE, STAGES, GenerationSpec, Stage, infeasible_trajectory_fields,
     solve_stages, stage_fields, trajectory_fields,
 )
 from art_guidance.data.storage import (
-    SUMMARY, DatasetWriter, aggregate_stats, read_manifest, read_shard, read_split,
+    SUMMARY, DatasetWriter, aggregate_stats, complete_shards, read_manifest,
 )
 from art_guidance.dynamics import Horizon
-from art_guidance.errors import ConfigError, DatasetError, InputError
+from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ScpStatus
 from art_guidance.safety import PassiveSafety
 
@@ -269,15 +269,10 @@ def scenario_pool(src: str | Path, n: int) -> dict[str, np.ndarray]:
         DatasetError: an incomplete or corrupt SRC.
         InputError: SRC has no usable scenario.
     """
-    head, shards, _ = read_manifest(src)
-    if sum(len(e["indices"]) for e in shards) != head["n"]:
-        raise DatasetError(f"{src}: incomplete dataset; re-run its generate command first")
-    is_test = read_split(src, head)
     parts = []
-    for entry in shards:
-        a = read_shard(src, entry)
+    for a in complete_shards(src):
         cost = a["cvx_cost_mps"]
-        keep = (a["feasible"] & ~is_test[a["index"]] & (a["cvx_constraint_to_go0"] >= 0)
+        keep = (a["feasible"] & ~a["is_test"] & (a["cvx_constraint_to_go0"] >= 0)
                 & np.isfinite(cost) & (np.nan_to_num(cost) > 0))
         parts.append({"src_index": a["index"][keep],
                       **{k: a[k][keep] for k in SCENARIO_FIELDS}})
@@ -419,16 +414,7 @@ def dagger(out_dir: str | Path, model: str | Path, src: str | Path, n: int, *, s
     header = _header(spec, src, src_header, manifest_digest(str(src)), int(pool["pool_size"]))
     with DatasetWriter(out_dir, header) as writer:
         _check_dagger(writer.root, writer.header, header)
-        done = writer.done_indices
-        todo = np.setdiff1d(np.arange(n), done)
-        if todo.size == 0:
-            log(f"{out_dir}: already complete ({n} of {n} DAgger samples); nothing to do")
-            return dict(_summary(writer, [], 0.0, engine, workers), status="already_complete")
-        if done.size:
-            log(f"resuming {out_dir}: {done.size} of {n} samples present, {todo.size} to go")
-        chunks = [todo[i:i + shard_size].tolist() for i in range(0, todo.size, shard_size)]
-        run, t0 = [], time.perf_counter()
-        results = run_chunks(dagger_chunk, spec, chunks, workers, engine, ray_address)
+        run: list[dict] = []
 
         def commit(rows: dict) -> None:
             arrays = _complete(rows, pool, spec.n_scenarios)
@@ -436,10 +422,14 @@ def dagger(out_dir: str | Path, model: str | Path, src: str | Path, n: int, *, s
                 arrays["train_from"].sum())))
             run.append({k: arrays[k] for k in ("kept_stage", "stage_time_ms")})
 
-        with progress_bar(n, int(done.size), "traj", "dagger", progress) as bar:
-            status = commit_results(results, commit, bar)
-        summary = dict(_summary(writer, run, time.perf_counter() - t0, engine, workers),
-                       status=status)
+        status, wall, _ = run_missing(
+            writer, n, dagger_chunk, spec, commit, shard_size=shard_size, workers=workers,
+            engine=engine, ray_address=ray_address, unit="traj", desc="dagger",
+            progress=progress, log=log, where=out_dir)
+        if status == "already_complete":
+            log(f"{out_dir}: already complete ({n} of {n} DAgger samples); nothing to do")
+            return dict(_summary(writer, [], 0.0, engine, workers), status=status)
+        summary = dict(_summary(writer, run, wall, engine, workers), status=status)
         writer.write_json(SUMMARY, summary)
     _report(summary, log)
     if status == "interrupted":

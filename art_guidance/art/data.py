@@ -85,6 +85,12 @@ def manifest_digest(root: str) -> str:
     return hashlib.sha256((Path(root) / MANIFEST).read_bytes()[:valid]).hexdigest()
 
 
+def trained_manifests(meta: dict) -> tuple[str, ...]:
+    """Manifest sha256 of every dataset a checkpoint's provenance (`meta`) was trained on."""
+    return tuple(m.get("manifest_sha256", "")
+                 for m in (meta or {}).get("dataset", {}).get("manifests", []))
+
+
 def _read_dir(root: str) -> tuple[dict, dict[str, np.ndarray], dict]:
     header, _, _ = read_manifest(root)
     digest = manifest_digest(root)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from art_guidance.art.checkpoint import TrainedArt
+from art_guidance.art.provider import best_candidate
 from art_guidance.art.rollout import replay, rollout
 from art_guidance.checks import as_finite_array
 from art_guidance.config import PosthocThresholds
@@ -104,8 +105,7 @@ def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
     c_cvx = as_finite_array("cvx_constraint_to_go0", cvx_constraint_to_go0, (m,))
     if m == 0 or np.any(j_cvx <= 0):
         raise InputError("cvx_cost_mps", "need at least one scenario and J_CVX > 0", j_cvx)
-    from art_guidance.art.provider import best_candidate
-
+    region = thresholds or PosthocThresholds()
     scales = np.asarray(reward_scales, dtype=float)
     k = scales.size
     c_art, cost = np.empty(m, dtype=int), np.empty(m)
@@ -116,11 +116,10 @@ def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
                       -np.repeat(j_cvx[sl], k) * np.tile(scales, b), 0.0)
         c_all = res.realised_constraint_to_go[:, 0].reshape(b, k)
         cost_all = res.cost_mps.reshape(b, k)
-        pick = [best_candidate(cost_all[i], c_all[i], j_cvx[sl][i],
-                               thresholds or PosthocThresholds()) for i in range(b)]
+        pick = [best_candidate(cost_all[i], c_all[i], j_cvx[sl][i], region) for i in range(b)]
         c_art[sl] = c_all[np.arange(b), pick]
         cost[sl] = cost_all[np.arange(b), pick]
-    return _judge(c_art, c_cvx, cost, j_cvx, thresholds)
+    return _judge(c_art, c_cvx, cost, j_cvx, region)
 
 
 def evaluate_oracle(safety: PassiveSafety, roe0_m: object, dv_rtn_mps: object,
@@ -151,7 +150,5 @@ def _judge(c_art: np.ndarray, c_cvx: np.ndarray, cost: np.ndarray, j_cvx: np.nda
     t = thresholds or PosthocThresholds()
     r_des = -j_cvx
     e_r = (-cost - r_des) / r_des
-    e_c = c_art - 0
-    accepted = ((t.e_r_pct_min <= 100.0 * e_r) & (100.0 * e_r <= t.e_r_pct_max)
-                & (t.e_c_min <= e_c) & (e_c <= t.e_c_max))
+    accepted = t.contains(100.0 * e_r, c_art - 0)
     return RolloutEvaluation(c_art.astype(int), c_cvx.astype(int), e_r, accepted, cost)

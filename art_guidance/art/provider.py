@@ -217,9 +217,7 @@ def best_candidate(cost_mps: np.ndarray, c_t1: np.ndarray, j_cvx: float,
     e_r_pct = 100.0 * (np.asarray(cost_mps) - j_cvx) / j_cvx if j_cvx > 0 else \
         np.full(len(cost_mps), np.inf)
     e_c = np.asarray(c_t1, dtype=float)
-    t = thresholds
-    inside = ((t.e_r_pct_min <= e_r_pct) & (e_r_pct <= t.e_r_pct_max)
-              & (t.e_c_min <= e_c) & (e_c <= t.e_c_max))
+    inside = thresholds.contains(e_r_pct, e_c)
     order = np.lexsort((np.abs(e_r_pct), e_c, ~inside))  # last key is the primary one
     return int(order[0])
 

@@ -23,11 +23,9 @@ def _distribution(values: np.ndarray) -> dict:
 
 def _trained_on(art: object, data_dir: str) -> bool:
     """Whether the model's training data includes the dataset directory `data_dir`."""
-    from art_guidance.art.data import manifest_digest
+    from art_guidance.art.data import manifest_digest, trained_manifests
 
-    digest = manifest_digest(data_dir)
-    return any(m.get("manifest_sha256") == digest
-               for m in art.meta.get("dataset", {}).get("manifests", []))
+    return manifest_digest(data_dir) in trained_manifests(art.meta)
 
 
 def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,

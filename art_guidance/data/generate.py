@@ -172,6 +172,36 @@ def commit_results(results: Iterator[dict], commit: Callable[[dict], None],
     return "complete"
 
 
+def run_missing(writer: DatasetWriter, n: int, task: Task, spec: Any,
+                commit: Callable[[dict], None], *, shard_size: int, workers: int, engine: str,
+                ray_address: str | None, unit: str, desc: str, progress: bool,
+                log: Callable[[str], None], where: object, noun: str = "samples"
+                ) -> tuple[str, float, int]:
+    """Run `task` over the indices 0..n-1 that `writer` does not hold yet and `commit` each
+    finished chunk (the resumable core of `generate`, the evaluation and DAgger drivers).
+
+    Chunks of `shard_size` indices run on the engine; a progress bar counts `unit`s; a resumed
+    run says how many `noun` were present in `where` (the output as the caller names it).
+
+    Returns:
+        (status, wall time [s], indices present before): status "complete", "interrupted"
+        (Ctrl-C; what was committed stays), or "already_complete" when nothing was missing
+        (then nothing ran).
+    """
+    done = int(writer.done_indices.size)
+    todo = np.setdiff1d(np.arange(n), writer.done_indices)
+    if todo.size == 0:
+        return "already_complete", 0.0, done
+    if done:
+        log(f"resuming {where}: {done} of {n} {noun} present, {todo.size} to go")
+    chunks = [todo[i:i + shard_size].tolist() for i in range(0, todo.size, shard_size)]
+    t0 = time.perf_counter()
+    results = run_chunks(task, spec, chunks, workers, engine, ray_address)
+    with progress_bar(n, done, unit, desc, progress) as bar:
+        status = commit_results(results, commit, bar)
+    return status, time.perf_counter() - t0, done
+
+
 def check_run_options(counts: dict[str, object], engine: str) -> None:
     """Raise InputError unless every count ({option: value}) is an integer >= 1 and the
     engine is one of ENGINES."""
@@ -270,26 +300,21 @@ def generate(out_dir: str | Path, n: int, mode: str, *, base_seed: int = 0,
     _check_options(n, workers, engine, shard_size)
     spec = GenerationSpec.build(mode, base_seed, config)
     with DatasetWriter(out_dir, spec.header(n)) as writer:
-        done = writer.done_indices
-        todo = np.setdiff1d(np.arange(n), done)
-        if todo.size == 0:
-            log(f"{out_dir}: already complete ({n} of {n} samples, {mode}, seed {base_seed});"
-                " nothing to do")
-            return dict(_summary(writer, [], 0.0, engine, workers), status="already_complete")
-        if done.size:
-            log(f"resuming {out_dir}: {done.size} of {n} samples present, {todo.size} to go")
-        chunks = [todo[i:i + shard_size].tolist() for i in range(0, todo.size, shard_size)]
-        run, t0 = [], time.perf_counter()
-        results = run_chunks(generate_chunk, spec, chunks, workers, engine, ray_address)
+        run: list[dict] = []
 
         def commit(arrays: dict) -> None:
             writer.write_shard(arrays, shard_stats(arrays))
             run.append({k: arrays[k] for k in ("kept_stage", "stage_time_ms")})
 
-        with progress_bar(n, int(done.size), "traj", f"generate {mode}", progress) as bar:
-            status = commit_results(results, commit, bar)
-        summary = dict(_summary(writer, run, time.perf_counter() - t0, engine, workers),
-                       status=status)
+        status, wall, _ = run_missing(
+            writer, n, generate_chunk, spec, commit, shard_size=shard_size, workers=workers,
+            engine=engine, ray_address=ray_address, unit="traj", desc=f"generate {mode}",
+            progress=progress, log=log, where=out_dir)
+        if status == "already_complete":
+            log(f"{out_dir}: already complete ({n} of {n} samples, {mode}, seed {base_seed});"
+                " nothing to do")
+            return dict(_summary(writer, [], 0.0, engine, workers), status=status)
+        summary = dict(_summary(writer, run, wall, engine, workers), status=status)
         writer.write_json(SUMMARY, summary)
     _report(summary, log)
     if status == "interrupted":

@@ -27,7 +27,7 @@ import json
 import os
 import re
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 import numpy as np
 
@@ -148,6 +148,22 @@ def read_split(root: str | Path, header: dict) -> np.ndarray:
     is_test = np.zeros(header["n"], dtype=bool)
     is_test[test] = True
     return is_test
+
+
+def complete_shards(root: str | Path) -> Iterator[dict[str, np.ndarray]]:
+    """The shards of a complete dataset, one at a time (memory: one shard), each with
+    "is_test" (M,) bool added from the split.
+
+    Raises:
+        DatasetError: an incomplete or corrupt dataset.
+    """
+    head, shards, _ = read_manifest(root)
+    if sum(len(e["indices"]) for e in shards) != head["n"]:
+        raise DatasetError(f"{root}: incomplete dataset; re-run its generate command first")
+    is_test = read_split(root, head)
+    for entry in shards:
+        arrays = read_shard(root, entry)
+        yield dict(arrays, is_test=is_test[arrays["index"]])
 
 
 def load_dataset(root: str | Path, verify: bool = True,

@@ -34,11 +34,9 @@ import numpy as np
 
 from art_guidance import __version__
 from art_guidance.config import GuidanceConfig
-from art_guidance.data.generate import (
-    check_run_options, commit_results, progress_bar, run_chunks,
-)
+from art_guidance.data.generate import check_run_options, run_missing
 from art_guidance.data.storage import (
-    MANIFEST, SUMMARY, DatasetWriter, load_dataset, read_manifest, read_shard, read_split,
+    MANIFEST, SUMMARY, DatasetWriter, complete_shards, load_dataset, read_manifest,
     sha256_bytes,
 )
 from art_guidance.errors import DatasetError, InputError
@@ -196,6 +194,7 @@ def model_info(path: str | Path) -> ModelInfo:
         CheckpointError: missing, corrupt or incompatible file.
     """
     from art_guidance.art.checkpoint import load
+    from art_guidance.art.data import trained_manifests
     from art_guidance.art.rollout import build_safety
 
     art = load(path)
@@ -203,8 +202,7 @@ def model_info(path: str | Path) -> ModelInfo:
     data = (art.meta or {}).get("dataset", {})
     train_n = int(data.get("n_train", 0)) + int(data.get("n_val", 0))
     return ModelInfo(str(path), str(art.sha256), mode, art.config.representation, train_n,
-                     art.model.n_parameters(),
-                     tuple(m.get("manifest_sha256", "") for m in data.get("manifests", [])))
+                     art.model.n_parameters(), trained_manifests(art.meta))
 
 
 def heldout(path: str | Path, split: str = "test") -> dict[str, np.ndarray]:
@@ -217,15 +215,7 @@ def heldout(path: str | Path, split: str = "test") -> dict[str, np.ndarray]:
     """
     from art_guidance.art.evaluate import heldout_scenarios
 
-    head, shards, _ = read_manifest(path)
-    if sum(len(e["indices"]) for e in shards) != head["n"]:
-        raise DatasetError(f"{path}: incomplete dataset; re-run its generate command first")
-    is_test = read_split(path, head)
-    parts = []
-    for entry in shards:
-        arrays = read_shard(path, entry)
-        parts.append(heldout_scenarios(dict(arrays, is_test=is_test[arrays["index"]]),
-                                       split=split))
+    parts = [heldout_scenarios(arrays, split=split) for arrays in complete_shards(path)]
     cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     order = np.argsort(cols["index"], kind="stable")
     return {k: v[order] for k, v in cols.items()}
@@ -428,23 +418,14 @@ def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequ
     head = header(spec, datasets, n, split)
     check_out(out, head)
     with DatasetWriter(out, head) as writer:
-        todo = np.setdiff1d(np.arange(spec.model.size), writer.done_indices)
-        done0 = spec.model.size - todo.size
-        if done0 and todo.size:
-            log(f"resuming {out}: {done0} of {spec.model.size} scenarios present, "
-                f"{todo.size} to go")
-        chunks = [todo[i:i + shard_size].tolist() for i in range(0, todo.size, shard_size)]
-        t0 = time.perf_counter()
-        results = run_chunks(evaluate_chunk, spec, chunks, workers, engine, ray_address)
-
         def commit(arrays: dict) -> None:
             writer.write_shard(arrays, {"n": int(arrays["index"].size),
                                         "ms_task": float(arrays["ms_task"].sum())})
 
-        with progress_bar(int(spec.model.size), int(done0), "scenario", "evaluate",
-                          progress) as bar:
-            status = commit_results(results, commit, bar) if todo.size else "already_complete"
-        wall = time.perf_counter() - t0
+        status, wall, done0 = run_missing(
+            writer, int(spec.model.size), evaluate_chunk, spec, commit, shard_size=shard_size,
+            workers=workers, engine=engine, ray_address=ray_address, unit="scenario",
+            desc="evaluate", progress=progress, log=log, where=out, noun="scenarios")
         this = {"command": list(command or sys.argv), "engine": engine, "workers": workers,
                 "scenarios": int(len(writer.done_indices) - done0), "wall_s": wall,
                 "status": status,

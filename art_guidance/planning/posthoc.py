@@ -26,7 +26,5 @@ def posthoc_check(dv_rtn_mps: np.ndarray, roe_m: np.ndarray, cvx_cost_mps: float
     r_art = -float(np.linalg.norm(dv_rtn_mps, axis=1).sum())
     e_r = (r_art - r_des) / r_des if abs(r_des) > 1e-12 else float("inf")
     e_c = float(safety.evaluate(roe_m, dv_rtn_mps).constraint_to_go[0])
-    t = thresholds
-    accepted = bool(t.e_r_pct_min <= 100.0 * e_r <= t.e_r_pct_max
-                    and t.e_c_min <= e_c <= t.e_c_max)
+    accepted = bool(thresholds.contains(100.0 * e_r, e_c))
     return PosthocDecision(float(e_r), e_c, accepted)
