@@ -11,6 +11,7 @@ from art_guidance.files import write_json_atomic
 def run(args: argparse.Namespace) -> int:
     """Run benchmarks from benchmarks/ and print medians and ratios against references."""
     import importlib.util
+    import inspect
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2] / "benchmarks"
@@ -20,6 +21,7 @@ def run(args: argparse.Namespace) -> int:
     chosen = names if args.name == "all" else [args.name]
     if str(root) not in sys.path:  # benchmarks share modules (e.g. the cvxpy reference)
         sys.path.insert(0, str(root))
+    extra = {dest: getattr(args, dest) for dest in _PASSED if getattr(args, dest) is not None}
     report = {}
     for name in chosen:
         path = root / f"bench_{name}.py"
@@ -29,6 +31,12 @@ def run(args: argparse.Namespace) -> int:
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
         kwargs = {"repeats": args.repeats} if args.repeats else {}
+        accepted = inspect.signature(module.run).parameters
+        for dest, value in extra.items():
+            if dest in accepted:
+                kwargs[dest] = value
+            elif args.name != "all":
+                raise InputError(_PASSED[dest], f"benchmark {name} does not take it", value)
         print(f"== {name}")
         report[name] = module.run(**kwargs)
         for key, value in report[name].items():
@@ -38,10 +46,27 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+_PASSED = {"out": "--out", "workers": "--workers", "engine": "--engine",
+           "ray_address": "--ray-address", "seeds": "--seeds",
+           "missed_per_seed": "--missed-per-seed"}
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    p = sub.add_parser("bench", help="run benchmarks", description=run.__doc__)
+    p = sub.add_parser(
+        "bench", help="run benchmarks", description=run.__doc__ + " Options after --json go "
+        "to the benchmarks that take them (contingency), e.g. "
+        "`art-guidance bench contingency --workers 2 --out out/contingency`.")
     p.add_argument("name", nargs="?", default="all", help="benchmark name or 'all'")
     p.add_argument("--repeats", type=int, default=None, help="samples per benchmark")
     p.add_argument("--json", default=None, help="also write the numbers as JSON")
+    p.add_argument("--out", default=None, help="output directory of a resumable benchmark "
+                   "(re-run the same command to resume)")
+    p.add_argument("--workers", type=int, default=None, help="worker processes (or Ray CPUs)")
+    p.add_argument("--engine", choices=("local", "ray"), default=None,
+                   help="local process pool (default) or Ray")
+    p.add_argument("--ray-address", default=None, help="Ray cluster address (--engine ray)")
+    p.add_argument("--seeds", type=int, default=None, help="seeds per configuration")
+    p.add_argument("--missed-per-seed", type=int, default=None,
+                   help="missed-burn flights per configuration and seed")
     p.set_defaults(func=run)

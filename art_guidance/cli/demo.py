@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 
+from art_guidance.errors import InputError
 from art_guidance.files import write_json_atomic
 
 
@@ -47,6 +48,8 @@ def run(args: argparse.Namespace) -> int:
     simulator as two processes over DDS; then the same seed flown in-process with CVX warm
     starts only, to report how many replans accepted ART and the delta-v difference."""
     if args.offline:
+        if args.fault:
+            raise InputError("--fault", "needs the closed loop; drop --offline")
         return _offline_demo(args)
     import os
     import signal
@@ -69,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
                "-p", f"waypoint:={args.waypoint}", "-p", f"seed:={args.seed}",
                "-p", f"png_path:={run / 'rendezvous.png'}",
                "-p", f"summary_path:={run / 'summary.json'}"]
+    if args.fault:
+        sim_cmd += ["-p", f"fault:={args.fault}", "-p", f"fault_node:={args.fault_node}"]
     print(f"guidance node and simulator on ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']}; logs in {run}")
     with open(run / "node.log", "w") as node_log:
         node = subprocess.Popen(node_cmd, env=env, stdout=node_log, stderr=subprocess.STDOUT)
@@ -112,10 +117,13 @@ def _warm_start_comparison(bag: object, args: argparse.Namespace, total_dv_mps: 
            "n_art_accepted": sum(r.warm_start == "art" for r in records)}
     print("flying the same seed with CVX warm starts only (in-process) for comparison ...")
     params = dict(PARAMETERS, rtn0=None, waypoint=args.waypoint, seed=args.seed, warm_start="cvx",
-                  png_path="", summary_path="")
+                  png_path="", summary_path="", fault=args.fault or "",
+                  fault_node=args.fault_node)
     loop = ClosedLoop(InProcessGuidance(GuidancePipeline(), SIM_EPOCH0_NS), params,
                       logging.getLogger("art_guidance.demo"), settle_s=0.0)
     cvx_summary, _ = loop.finish(loop.run(), 0.0)
+    if "fault" in cvx_summary:
+        out["cvx_only_fault"] = cvx_summary["fault"]
     out.update(cvx_only_total_dv_mps=cvx_summary["total_dv_mps"],
                cvx_only_miss_m=cvx_summary["miss_m"],
                dv_saved_vs_cvx_only_mps=cvx_summary["total_dv_mps"] - total_dv_mps)
@@ -135,8 +143,12 @@ def _last_json_line(text: str) -> dict:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
+    from art_guidance.cli.sim import add_fault_options
+
     p = sub.add_parser("demo", help="closed-loop rendezvous: node + simulator over DDS",
-                       description=run.__doc__ + " Exit 0 when the waypoint is reached.")
+                       description=run.__doc__ + " Exit 0 when the waypoint is reached (with "
+                       "--fault loss: when the post-fault drift stays outside the ellipsoid in "
+                       "force). Example: art-guidance demo --fault loss --fault-node 50")
     p.add_argument("--scenario", default=None, help="scenario YAML (default: packaged)")
     p.add_argument("--waypoint", default="plus_vbar", help="terminal waypoint name")
     p.add_argument("--seed", type=int, default=0, help="simulator seed (initial state, errors)")
@@ -149,4 +161,5 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", default=None, help="with --offline: also write the plan as JSON")
     p.add_argument("--no-compare", action="store_true", help="skip the comparison run of the "
                    "same seed with CVX warm starts only")
+    add_fault_options(p)
     p.set_defaults(func=run)

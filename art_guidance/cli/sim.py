@@ -16,6 +16,8 @@ def sim_argv(args: argparse.Namespace) -> list[str]:
         "step_timeout_s": repr(float(args.step_timeout)),
         "max_steps": str(int(args.max_steps)),
         "miss_tolerance_m": repr(float(args.miss_tolerance)),
+        "fault": json.dumps(args.fault or ""),
+        "fault_node": str(int(args.fault_node)),
     }
     argv = ["art_guidance_sim", "--ros-args"]
     for name, value in params.items():
@@ -37,7 +39,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description=run.__doc__ + " Start the guidance node first with "
         "`--ros-args -p stamp_check:=order` (sim-time stamps). Prints one JSON summary line; "
         "exit 0 if the waypoint was reached within the miss tolerance, 1 if not, 2 on bad "
-        "input. More ROS parameters (rtn0, errors, mean_elements, warm_start, config_dir, "
+        "input; with --fault loss, 0 if the post-fault drift stayed outside the ellipsoid in "
+        "force. More ROS parameters (rtn0, errors, mean_elements, warm_start, config_dir, "
         "max_steps, ...) after --ros-args (last).")
     p.add_argument("--waypoint", default="plus_vbar", help="terminal waypoint name")
     p.add_argument("--seed", type=int, default=0,
@@ -52,6 +55,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-steps", type=int, default=200, help="nav fixes at most")
     p.add_argument("--miss-tolerance", type=float, default=50.0,
                    help="largest final position error counted as reached [m]")
+    add_fault_options(p)
     p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
                    help="everything after it goes to rclpy, e.g. --ros-args -p errors:=false")
     p.set_defaults(func=run)
+
+
+def add_fault_options(p: argparse.ArgumentParser) -> None:
+    """--fault and --fault-node (the simulator's `fault` and `fault_node` parameters)."""
+    p.add_argument("--fault", choices=("loss", "missed"), default=None,
+                   help="inject a thruster fault at node --fault-node: 'loss' (no burn from "
+                   "that node on; the run stops and the truth drifts for one orbit, checked "
+                   "against the ellipsoid in force) or 'missed' (that burn is not executed, "
+                   "control resumes and the guidance replans); the summary's 'fault' object "
+                   "gives min_margin_m, t_closest_s and entered")
+    p.add_argument("--fault-node", type=int, default=1, metavar="K",
+                   help="burn opportunity the fault hits, counted from 0 along the flown "
+                   "trajectory (default 1: right after the first burn)")

@@ -26,6 +26,9 @@ from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import InputError
 from art_guidance.files import write_json_atomic
 from art_guidance.planning import WARM_STARTS
+from art_guidance.sim.faults import (
+    ZONES, DriftCheck, Fault, free_drift_check, safety_duration_s,
+)
 from art_guidance.sim.link import GuidanceLink, LinkPlan
 from art_guidance.sim.plot import plot_rendezvous
 from art_guidance.sim.simulator import (
@@ -51,8 +54,19 @@ PARAMETERS: dict[str, object] = {
     "mean_elements": True,   # mean-element chief model and mean-ROE navigation (sim.py)
     "config_dir": "",        # "" = packaged config/
     "epoch0_s": SIM_EPOCH0_NS // 1_000_000_000,  # stamp of sim t = 0 [s]
+    "fault": "",             # "" (none), "loss" or "missed" (sim/faults.py)
+    "fault_node": 1,         # K: the burn opportunity the fault hits (0 = the first)
 }
 FLOAT_PARAMETERS = ("step_timeout_s", "miss_tolerance_m")
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Truth at one instant of a run: sim time [s] and (6,) inertial states [m, m/s]."""
+
+    t_s: float
+    chief_eci: np.ndarray
+    deputy_eci: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -118,6 +132,17 @@ def exit_code(outcome: str, miss_m: float, tolerance_m: float) -> int:
     return 0 if outcome == "final_epoch" and miss_m <= tolerance_m else 1
 
 
+def fault_exit_code(fault: dict | None, reached: bool) -> int:
+    """Exit code of a run: 0 when it reached the waypoint (`exit_code`) or, after a loss
+    fault, when the drift stayed outside the ellipsoid; a missed fault also needs no post-fault
+    drift to enter it. A fault the run never reached leaves the plain rule."""
+    if fault is None or not fault["hit"]:
+        return 0 if reached else 1
+    if fault["kind"] == "loss":
+        return 0 if fault["entered"] is False else 1
+    return 0 if reached and not fault["entered"] else 1
+
+
 class ClosedLoop:
     """The lockstep loop over a guidance link.
 
@@ -166,6 +191,11 @@ class ClosedLoop:
                        "replans_kept_active": 0,
                        "plans_foreign": 0, "idle_steps": 0, **{d: 0 for d in DECISIONS}}
         self._seen_plans = 0
+        self.fault = Fault.parse(str(p.get("fault", "")), int(p.get("fault_node", 0)))
+        self.snapshots: list[Snapshot] = []  # truth at every burn opportunity (pre-burn)
+        self.final_state: Snapshot | None = None  # truth right after the final burn
+        self.fault_t_s: float | None = None
+        self.replans_after_fault = 0
 
     # ------------------------------------------------------------------ loop
     def run(self) -> str:
@@ -214,8 +244,9 @@ class ClosedLoop:
                 sim.advance(self.idle_dt_s)
                 continue
             rejected_idle = 0
-            if self._burn_now():
-                return "final_epoch"
+            ended = self._burn_now()
+            if ended is not None:
+                return ended
             nxt = self.active.next_epoch_after(sim.t_s)
             if nxt is None:
                 return "plan_ended"
@@ -258,6 +289,8 @@ class ClosedLoop:
             if msg.rejection:
                 continue  # the answer to a rejected nav fix, not a replan
             self.counts["replans"] += 1
+            if self.fault_t_s is not None:
+                self.replans_after_fault += 1
             if not msg.status.feasible:
                 kept = self.active is not None and msg.active_plan_id == self.active.plan_id
                 # the guidance keeps the plan in force: so does the simulator
@@ -279,15 +312,88 @@ class ClosedLoop:
                           f"({plan.epochs_s.size} nodes, cost "
                           f"{np.linalg.norm(plan.dv_rtn_mps, axis=1).sum():.4f} m/s)")
 
-    def _burn_now(self) -> bool:
-        """Execute the active plan's burn at the current time; True after its last node."""
+    def _burn_now(self) -> str | None:
+        """Execute the active plan's burn at the current time (each node once) or the fault
+        that hits it; the outcome once the run ends here ("final_epoch", "fault_loss")."""
         plan = self.active
         k = plan.index_at(self.sim.t_s)
         if k is None or (plan.stamp_ns, k) in self.executed:
-            return False
+            return None
         self.executed.add((plan.stamp_ns, k))
-        self.sim.execute_burn(plan.dv_rtn_mps[k])
-        return k == plan.epochs_s.size - 1
+        sim = self.sim
+        node = len(self.snapshots)  # burn opportunities reached before this one
+        self.snapshots.append(Snapshot(sim.t_s, sim.chief_eci.copy(), sim.deputy_eci.copy()))
+        hit = self.fault is not None and self.fault.node == node
+        if hit:
+            self.fault_t_s = sim.t_s
+            self.log.warning(f"t = {sim.t_s:.1f} s: fault '{self.fault.kind}' at node {node} "
+                             f"(planned burn {np.linalg.norm(plan.dv_rtn_mps[k]):.4f} m/s)")
+            if self.fault.kind == "loss":
+                return "fault_loss"
+            sim.skip_burn(plan.dv_rtn_mps[k])
+        else:
+            sim.execute_burn(plan.dv_rtn_mps[k])
+        if k < plan.epochs_s.size - 1:
+            return None
+        self.final_state = Snapshot(sim.t_s, sim.chief_eci.copy(), sim.deputy_eci.copy())
+        return "final_epoch"
+
+    # ------------------------------------------------------------------ free-drift checks
+    def zone_at(self, t_s: float) -> str:
+        """The ellipsoid in force at sim time `t_s` (the guidance's switch rule)."""
+        switch = koz_switch_time_s(self.scenario, self.sim.chief_mean_oe0[0],
+                                   self.first_plan_t_s or 0.0)
+        return ZONES[1] if t_s >= switch - EPOCH_MATCH_S else ZONES[0]
+
+    def drift_check(self, state: Snapshot) -> DriftCheck:
+        """Truth free drift for T_safety from `state` against the ellipsoid in force then."""
+        duration = safety_duration_s(self.scenario, self.sim.chief_mean_oe0[0])
+        return free_drift_check(state.chief_eci, state.deputy_eci, state.t_s, duration,
+                                self.scenario, self.zone_at(state.t_s))
+
+    def loss_checks(self, first_node: int = 1) -> list[tuple[int, DriftCheck]]:
+        """A thruster loss at every node from `first_node` on, checked in truth.
+
+        A loss at node K (no burn from K on) leaves the deputy drifting from the truth state
+        the run reached at K, before its burn: the same state a run with `fault` loss at K
+        ends in (the random draws before K are the same). The node after the last one (K =
+        number of nodes flown) is the drift after the final burn. Nodes passed by a fault are
+        not included (a loss run ends at its fault; nothing later was flown).
+        """
+        states = list(enumerate(self.snapshots))
+        if self.final_state is not None:
+            states.append((len(self.snapshots), self.final_state))
+        return [(k, self.drift_check(s)) for k, s in states if k >= first_node]
+
+    def fault_report(self) -> tuple[dict | None, DriftCheck | None]:
+        """The summary's `fault` object (None without a fault) and its worst drift.
+
+        loss: the drift from the state at the fault. missed: the worst loss check over the
+        nodes flown after the fault (K + 1 on): no post-fault plan may drift into the
+        ellipsoid in force. Margins in metres outside the ellipsoid, negative inside.
+        """
+        fault = self.fault
+        if fault is None:
+            return None, None
+        out: dict = {"kind": fault.kind, "node": fault.node, "t_fault_s": self.fault_t_s,
+                     "hit": self.fault_t_s is not None}
+        if self.fault_t_s is None:
+            out.update(min_margin_m=None, t_closest_s=None, entered=None, zone=None,
+                       n_checked=0)
+            return out, None
+        if fault.kind == "loss":
+            checks = [(fault.node, self.drift_check(self.snapshots[fault.node]))]
+        else:
+            checks = self.loss_checks(fault.node + 1)
+            out["replans_after_fault"] = self.replans_after_fault
+        out["n_checked"] = len(checks)
+        if not checks:
+            out.update(min_margin_m=None, t_closest_s=None, entered=None, zone=None)
+            return out, None
+        worst_node, worst = min(checks, key=lambda kc: kc[1].min_margin_m)
+        out.update(worst.to_json(), entered=any(c.entered for _, c in checks),
+                   worst_node=worst_node)
+        return out, worst
 
     # ------------------------------------------------------------------ report
     def finish(self, outcome: str, wall_s: float) -> tuple[dict, int]:
@@ -298,18 +404,22 @@ class ClosedLoop:
         summary = summarize(self.sim, self.target,
                             run_safety_model(self.sim, koz_switch_t_s=switch),
                             self.counts["replans"])
-        code = exit_code(outcome, summary["miss_m"], p["miss_tolerance_m"])
+        reached = exit_code(outcome, summary["miss_m"], p["miss_tolerance_m"]) == 0
+        fault, drift = self.fault_report()
+        code = fault_exit_code(fault, reached)
         summary.update(
-            outcome=outcome, reached=code == 0, waypoint=p["waypoint"], seed=int(p["seed"]),
+            outcome=outcome, reached=reached, waypoint=p["waypoint"], seed=int(p["seed"]),
             chance_constrained=bool(p["chance_constrained"]),
             miss_tolerance_m=p["miss_tolerance_m"], errors=bool(p["errors"]),
             mean_elements=bool(p["mean_elements"]), wall_time_s=round(wall_s, 3),
             png_path=p["png_path"] or None, **{f"n_{k}": v for k, v in self.counts.items()
                                                if k != "replans"})
+        if fault is not None:
+            summary["fault"] = fault
         if p["png_path"]:
             plot_rendezvous(p["png_path"], self.sim, self.scenario,
                             None if self.active is None else self.active.rtn,
-                            target_rtn=self.target, summary=summary)
+                            target_rtn=self.target, summary=summary, fault_drift=drift)
         if p["summary_path"]:
             write_json_atomic(p["summary_path"], summary)
         return summary, code

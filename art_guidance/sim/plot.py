@@ -42,7 +42,7 @@ def drift_arcs_rtn(sim: RendezvousSim, n_samples: int = 60,
 
 def plot_rendezvous(path: str | Path, sim: RendezvousSim, scenario: ScenarioConfig,
                     plan_rtn: object | None = None, *, target_rtn: object | None = None,
-                    summary: dict | None = None) -> None:
+                    summary: dict | None = None, fault_drift: object | None = None) -> None:
     """Write a PNG of the run in the RT plane (x: along-track T [m], y: radial R [m]).
 
     Shows the approach-ellipsoid and keep-out-zone cross-sections (centred on the chief), the
@@ -56,6 +56,8 @@ def plot_rendezvous(path: str | Path, sim: RendezvousSim, scenario: ScenarioConf
         plan_rtn: (N, 6) planned RTN trajectory [m, m/s], or None.
         target_rtn: (6,) waypoint [m, m/s], or None.
         summary: `summarize` output for the title, or None.
+        fault_drift: a `sim.faults.DriftCheck`: the truth drift after a fault (drawn in red,
+            with its closest approach), or None.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -87,6 +89,12 @@ def plot_rendezvous(path: str | Path, sim: RendezvousSim, scenario: ScenarioConf
             ax.scatter(rtn[:, 1], rtn[:, 0], s=4 + 60 * dv_norm / dv_norm.max(),
                        color="tab:purple", alpha=0.6, zorder=4,
                        label="burns (area ~ |dv|)")
+        if fault_drift is not None:
+            f_rtn, f_min = fault_drift.rtn, fault_drift.closest_rtn_m
+            ax.plot(f_rtn[:, 1], f_rtn[:, 0], color="tab:red", lw=1.4, zorder=4,
+                    label=f"truth drift after the fault ({fault_drift.zone.replace('_', ' ')}"
+                    f" margin {fault_drift.min_margin_m:.1f} m)")
+            ax.plot(f_min[1], f_min[0], "x", color="tab:red", ms=9, zorder=5)
         ax.plot(traj[0, 1], traj[0, 0], "s", color="tab:blue", ms=6, label="start")
         if tgt is not None:
             ax.plot(tgt[1], tgt[0], "*", color="black", ms=12, label="waypoint", zorder=5)
@@ -108,7 +116,8 @@ def plot_rendezvous(path: str | Path, sim: RendezvousSim, scenario: ScenarioConf
         axes[0].set_title(f"miss {summary['miss_m']:.1f} m, velocity error "
                           f"{1e3 * summary['velocity_error_mps']:.1f} mm/s, total dv "
                           f"{summary['total_dv_mps']:.3f} m/s, min passive-safety margin "
-                          f"{margin_txt}, {summary['n_replans']} plans", fontsize=9)
+                          f"{margin_txt}, {summary['n_replans']} plans"
+                          + _fault_title(summary.get("fault")), fontsize=9)
     else:
         axes[0].set_title(f"rendezvous at t = {sim.t_s:.0f} s, {len(sim.history)} burns",
                           fontsize=9)
@@ -116,3 +125,16 @@ def plot_rendezvous(path: str | Path, sim: RendezvousSim, scenario: ScenarioConf
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, format="png")
+
+
+def _fault_title(fault: dict | None) -> str:
+    """Second title line for a run with a fault."""
+    if not fault:
+        return ""
+    if not fault["hit"]:
+        return f"\nfault {fault['kind']} at node {fault['node']}: not reached"
+    margin = fault["min_margin_m"]
+    where = ("" if margin is None else f"; post-fault truth drift: min margin {margin:.1f} m "
+             f"({'ENTERED' if fault['entered'] else 'outside'} the "
+             f"{fault['zone'].replace('_', ' ')})")
+    return f"\nfault {fault['kind']} at node {fault['node']}{where}"

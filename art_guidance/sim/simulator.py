@@ -115,6 +115,26 @@ def _check_dt(dt_s: float) -> float:
     return dt
 
 
+def rtn_from_eci_batch(chief_eci: np.ndarray, deputy_eci: np.ndarray) -> np.ndarray:
+    """Exact relative RTN states (S, 6) [m, m/s] of (S, 6) inertial chief/deputy pairs.
+
+    The batched form of `dynamics.rtn_from_eci` (same frame: R along the chief's position, N
+    along its angular momentum, rotating at |h| / r^2 about N).
+    """
+    r, v = chief_eci[:, :3], chief_eci[:, 3:]
+    h = np.cross(r, v)
+    r2 = np.sum(r * r, axis=1)
+    r_hat = r / np.sqrt(r2)[:, None]
+    n_hat = h / np.linalg.norm(h, axis=1)[:, None]
+    basis = np.stack([r_hat, np.cross(n_hat, r_hat), n_hat], axis=1)  # (S, 3 rows, 3)
+    dr = np.einsum("sij,sj->si", basis, deputy_eci[:, :3] - r)
+    omega = np.linalg.norm(h, axis=1) / r2  # about N
+    dv = np.einsum("sij,sj->si", basis, deputy_eci[:, 3:] - v)
+    dv[:, 0] += omega * dr[:, 1]
+    dv[:, 1] -= omega * dr[:, 0]
+    return np.concatenate([dr, dv], axis=1)
+
+
 # --------------------------------------------------------------------------- mean elements
 def _nonsingular_from_eci(states: np.ndarray) -> np.ndarray:
     """Osculating (a, e cos w, e sin w, i, raan, u = w + M) of inertial states (..., 6)."""
@@ -352,6 +372,17 @@ class RendezvousSim:
         self.trajectory_t_s.append(self.t_s)
         self.trajectory_rtn.append(self.true_rtn())
         return executed
+
+    def skip_burn(self, dv_rtn_mps: object) -> None:
+        """A burn that does not fire (a missed-burn fault): the node is recorded with the
+        commanded delta-v and a zero executed one; the state is unchanged.
+
+        Raises:
+            InputError: on NaN/inf or a wrong shape.
+        """
+        cmd = as_finite_array("dv_rtn_mps", dv_rtn_mps, (3,))
+        self.history.append(NodeRecord(self.t_s, self.true_rtn(), np.zeros(3), cmd,
+                                       self.model_roe_m()))
 
     def advance(self, dt_s: float) -> None:
         """Propagate the truth by `dt_s` [s] (>= 0), recording samples for plots.

@@ -131,6 +131,29 @@ def test_closed_loop_reaches_the_waypoint(ros_env, python_exe, tmp_path):
     assert wall < 30.0
 
 
+def test_loss_fault_over_dds_reports_the_post_fault_drift(ros_env, python_exe, tmp_path):
+    """`-p fault:=loss -p fault_node:=30`: the simulator stops burning at node 30, drifts the
+    truth for one orbit and reports the closest approach to the approach ellipsoid (in force
+    before node 55); exit 0 because the drift stays outside."""
+    fake = _fake(ros_env, python_exe, "--mode", "pipeline", "--replan-every", "10")
+    try:
+        out, _, png, summary_path = _run_sim(ros_env, python_exe, tmp_path,
+                                             {"seed": "0", "fault": "loss",
+                                              "fault_node": "30"})
+    finally:
+        fake_out = _stop(fake)
+    assert out.returncode == 0, out.stderr + fake_out
+    s = _summary_line(out.stdout)
+    f = s["fault"]
+    assert s["outcome"] == "fault_loss" and s["n_burns"] == 30 and not s["reached"]
+    assert f["kind"] == "loss" and f["node"] == 30 and f["hit"] and f["n_checked"] == 1
+    assert f["zone"] == "approach_ellipsoid" and f["entered"] is False
+    assert f["min_margin_m"] > 0 and f["t_fault_s"] <= f["t_closest_s"]
+    assert f["t_closest_s"] <= f["t_fault_s"] + 5600.0
+    assert json.loads(summary_path.read_text())["fault"] == f
+    assert png.read_bytes()[:8] == PNG_MAGIC
+
+
 def test_sim_without_guidance_gives_up_and_reports(ros_env, python_exe, tmp_path):
     """No guidance node: exit 1 after the discovery timeout, still a summary and a PNG.
 
@@ -207,13 +230,14 @@ def test_cli_options_map_to_ros_parameters():
     parser = argparse.ArgumentParser()
     add_sim_parser(parser.add_subparsers())
     args = parser.parse_args(["sim", "--waypoint", "plus_rbar", "--seed", "7", "--png",
-                              "a b/p.png", "--step-timeout", "5", "--ros-args", "-p",
-                              "errors:=false"])
+                              "a b/p.png", "--step-timeout", "5", "--fault", "missed",
+                              "--fault-node", "7", "--ros-args", "-p", "errors:=false"])
     argv = sim_argv(args)
     assert argv[:2] == ["art_guidance_sim", "--ros-args"]
     pairs = dict(a.split(":=", 1) for a in argv[2:] if ":=" in a)
     assert pairs["waypoint"] == '"plus_rbar"' and pairs["seed"] == "7"
     assert pairs["chance_constrained"] == "true" and pairs["png_path"] == '"a b/p.png"'
     assert pairs["step_timeout_s"] == "5.0" and pairs["errors"] == "false"
+    assert pairs["fault"] == '"missed"' and pairs["fault_node"] == "7"
     assert argv.count("--ros-args") == 1
     assert args.func.__module__ == "art_guidance.cli.sim"
