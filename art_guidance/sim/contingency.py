@@ -443,3 +443,56 @@ def render(out: str | Path, n_worst: int = 6) -> list[str]:
     paths.append(str(out / "contingency_worst.png"))
     fig.savefig(paths[1])
     return paths
+
+
+# --------------------------------------------------------------------------- report
+TABLE_BEGIN, TABLE_END = "<!-- contingency-table:begin -->", "<!-- contingency-table:end -->"
+
+
+def markdown_table(summary: dict) -> str:
+    """The results of a summary as two markdown tables (losses; missed burns)."""
+    def num(x: object, fmt: str = "{:.1f}") -> str:
+        return "-" if x is None else fmt.format(x)
+
+    lines = ["| configuration | flights | losses | entries | per 1,000 (95 % upper) | flights "
+             "with an entry | min margin AE [m] | min margin KOZ [m] | 1st pct. [m] |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for c in summary["configs"]:
+        loss = c["losses"]
+        if not loss["n"]:
+            continue
+        zone = loss["by_zone"]
+        lines.append(
+            f"| {c['config']} | {c['flights']} | {loss['n']:,} | {loss['entries']} | "
+            f"{loss['per_1000']:.2f} ({num(loss['upper_95_per_1000'], '{:.2f}')}) | "
+            f"{loss['flights_with_entry']} | "
+            f"{num(zone['approach_ellipsoid'].get('min'))} | "
+            f"{num(zone['keep_out_zone'].get('min'))} | {num(loss['min_margin_m']['q01'])} |")
+    lines += ["", "| configuration | missed burns | missed burn median [m/s] | reached | "
+              "replanned | post-fault entries | min post-fault margin [m] | miss median / max "
+              "[m] |", "|---|---|---|---|---|---|---|---|"]
+    for c in summary["configs"]:
+        m = c["missed"]
+        if not m["n"]:
+            continue
+        lines.append(
+            f"| {c['config']} | {m['n']} | {m['missed_burn_mps']['median']:.3f} | "
+            f"{m['reached']} ({100 * m['reached_share']:.1f} %) | "
+            f"{100 * m['replanned_share']:.0f} % | {m['entered']} | "
+            f"{num(m['min_post_fault_margin_m'])} | {m['miss_m']['median']:.1f} / "
+            f"{m['miss_m']['max']:.1f} |")
+    cpu = summary.get("cpu_s") or 0.0
+    lines += ["", f"{summary['flights_done']} flights, {cpu / 3600:.2f} CPU hours, "
+              f"{num(summary.get('losses_per_cpu_s'), '{:.2f}')} losses per CPU second "
+              "(flights with their missed-burn repeats and checks)."]
+    return "\n".join(lines) + "\n"
+
+
+def table_in_doc(text: str) -> str:
+    """The table between the contingency markers of a documentation page."""
+    return text[text.index(TABLE_BEGIN) + len(TABLE_BEGIN):text.index(TABLE_END)].strip("\n") \
+        + "\n"
+
+
+if __name__ == "__main__":
+    print(markdown_table(json.loads(Path(sys.argv[1]).read_text())), end="")

@@ -140,6 +140,7 @@ def nominal():
     return loop, summary, code, loop.loss_checks()
 
 
+@pytest.mark.slow
 def test_loss_run_ends_in_the_state_the_sweep_checks(nominal, tmp_path):
     """`--fault loss --fault-node K` stops at node K and reports the drift the nominal flight's
     loss sweep computes at K (same random draws before K): identical numbers."""
@@ -159,6 +160,7 @@ def test_loss_run_ends_in_the_state_the_sweep_checks(nominal, tmp_path):
     assert (tmp_path / "loss.png").read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.slow
 def test_missed_burn_is_replanned_and_reaches_the_waypoint(nominal):
     loop0 = nominal[0]
     dv = np.linalg.norm([h.dv_cmd_mps for h in loop0.sim.history], axis=1)
@@ -173,6 +175,7 @@ def test_missed_burn_is_replanned_and_reaches_the_waypoint(nominal):
     assert f["worst_node"] > k and code == 0
 
 
+@pytest.mark.slow
 def test_fault_beyond_the_run_is_reported_not_hit(nominal):
     _, summary, code = _fly(seed=3, errors=False, fault="loss", fault_node=500)
     assert summary["fault"]["hit"] is False and summary["fault"]["entered"] is None
@@ -187,6 +190,7 @@ def test_clopper_pearson_upper_bound():
     assert upper_bound(0, 0) is None and upper_bound(5, 5) == 1.0
 
 
+@pytest.mark.slow
 def test_monte_carlo_runs_resumes_and_summarises(tmp_path):
     spec = ContingencySpec(configs=((True, "cvx"),), n_seeds=1, base_seed=5,
                            missed_per_seed=1)
