@@ -33,8 +33,7 @@ def run(repeats: int | None = None, out: str = "out/contingency", workers: int |
     report = {"out": str(out), "complete": summary["complete"],
               "flights": summary["flights_done"], "cpu_s": summary["cpu_s"],
               "losses_per_cpu_s": summary["losses_per_cpu_s"]}
-    if "run" in summary:
-        report["wall_s"] = summary["run"]["wall_s"]
+    report["wall_s"] = sum(r["wall_s"] for r in summary.get("runs", []))
     for c in summary["configs"]:
         loss, missed = c["losses"], c["missed"]
         key = c["config"].replace("/", "_")

@@ -241,8 +241,10 @@ def run(out: str | Path, spec: ContingencySpec | None = None, *, workers: int = 
             workers=workers, engine=engine, ray_address=ray_address, unit="flight",
             desc="contingency", progress=progress, log=log, where=out, noun="flights")
     this = {"command": list(sys.argv), "engine": engine, "workers": workers,
-            "flights": spec.n_flights - done0, "wall_s": wall, "status": status}
-    summary = summarize(out, this)
+            "flights": int(writer.done_indices.size) - done0, "wall_s": wall, "status": status,
+            "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    runs = _previous_runs(out) + ([this] if this["flights"] else [])
+    summary = summarize(out, this, runs)
     if figures and summary["complete"]:
         summary["figures"] = render(out)
     write_json_atomic(out / "summary.json", summary)
@@ -271,8 +273,18 @@ def read_rows(out: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
     return head, load_dataset(out, require_complete=False)
 
 
-def summarize(out: str | Path, this: dict | None = None) -> dict:
-    """Entry rates, bounds, worst margins and missed-burn outcomes per configuration."""
+def _previous_runs(out: Path) -> list[dict]:
+    """The invocations that flew flights into `out` before (from its summary.json)."""
+    try:
+        return list(json.loads((out / "summary.json").read_text()).get("runs", []))
+    except (OSError, ValueError):
+        return []
+
+
+def summarize(out: str | Path, this: dict | None = None, runs: list[dict] | None = None
+              ) -> dict:
+    """Entry rates, bounds, worst margins and missed-burn outcomes per configuration; `this`
+    is the invocation that produced it, `runs` every invocation that flew flights."""
     head, rows = read_rows(out)
     spec = ContingencySpec(**{k: (tuple(tuple(c) for c in v) if k == "configs" else v)
                               for k, v in head["contingency"]["spec"].items()})
@@ -288,7 +300,8 @@ def summarize(out: str | Path, this: dict | None = None) -> dict:
             "complete": done == spec.n_flights, "design_rate_per_node": DESIGN_RATE,
             "confidence": CONFIDENCE, "cpu_s": wall,
             "losses_per_cpu_s": losses / wall if wall > 0 else None,
-            "configs": per, **({"run": this} if this else {})}
+            "configs": per, **({"run": this} if this else {}),
+            **({"runs": runs} if runs is not None else {})}
 
 
 def _config_summary(rows: dict, sel: np.ndarray) -> dict:
@@ -401,9 +414,12 @@ def render(out: str | Path, n_worst: int = 6) -> list[str]:
     paths = [str(out / "contingency_margins.png")]
     fig.savefig(paths[0])
 
-    fig = Figure(figsize=(6 * len(labels), 5.5), dpi=100)
+    n_rows = (len(labels) + 1) // 2
+    fig = Figure(figsize=(12, 5.5 * n_rows), dpi=100)
     FigureCanvasAgg(fig)
-    axes = np.atleast_1d(fig.subplots(1, len(labels)))
+    axes = np.atleast_1d(fig.subplots(n_rows, 2)).ravel()
+    for ax in axes[len(labels):]:
+        ax.set_visible(False)
     a_m = float(np.linalg.norm(rows["loss_state"][0, 0, :3])) if rows else 6.9e6
     duration = safety_duration_s(scenario, a_m)
     for c, (ax, label) in enumerate(zip(axes, labels)):

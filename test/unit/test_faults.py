@@ -210,3 +210,16 @@ def test_monte_carlo_runs_resumes_and_summarises(tmp_path):
     with pytest.raises(InputError, match="--out"):
         run_mc(out, ContingencySpec(configs=((True, "cvx"),), n_seeds=2), workers=1,
                progress=False, log=lambda _: None)
+
+
+def test_documented_tables_are_the_committed_results():
+    """docs/fault_tolerance.md shows what benchmarks/results/contingency/summary.json says;
+    regenerate with `python -m art_guidance.sim.contingency <summary.json>`."""
+    from pathlib import Path
+
+    from art_guidance.sim.contingency import markdown_table, table_in_doc
+
+    root = Path(__file__).resolve().parents[2]
+    summary = json.loads((root / "benchmarks/results/contingency/summary.json").read_text())
+    doc = (root / "docs/fault_tolerance.md").read_text()
+    assert table_in_doc(doc) == markdown_table(summary)
