@@ -81,6 +81,10 @@ class GuidancePipeline:
                                                        koz_switch_node=switch))
         return self._cache[key]
 
+    def safety_model(self, request: PlanRequest) -> PassiveSafety:
+        """The passive-safety model a request is planned with (cached with its horizon)."""
+        return self._setup(request)[1]
+
     def plan(self, request: PlanRequest) -> PlanResult:
         """Plan one transfer; never raises for solver or model trouble (see
         `PlanResult.status` and `PlanResult.warm_start_reason`).

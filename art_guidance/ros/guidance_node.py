@@ -22,15 +22,19 @@ import numpy as np
 import rclpy
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Path
+from visualization_msgs.msg import MarkerArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from art_guidance.config import GuidanceConfig, node_parameter_defaults
 from art_guidance.errors import ConfigError, GuidanceError
+from art_guidance.plan_view import nav_position, plan_view
 from art_guidance.planning import (
     GuidancePipeline, NavState, PlanRequest, PlanResult, Target,
 )
@@ -42,6 +46,7 @@ from art_guidance.record.recorder import (
     default_log_dir,
 )
 from art_guidance.ros.parameters import SPECS, check_table, descriptor
+from art_guidance.ros import visualization as viz
 from art_guidance.ros.adapters import (
     diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg, stamp_to_ns, status_plan_msg,
     target_from_msg,
@@ -52,6 +57,11 @@ SPIN_PERIOD_S = 0.1  # the executor wakes this often to notice SIGINT/SIGTERM [s
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "min_remaining_nodes")
 PARAMETERS = node_parameter_defaults()  # config/guidance_node.yaml: the one table
+VIZ_TYPES = {viz.PLAN_PATH_TOPIC: Path, viz.PLAN_MARKERS_TOPIC: MarkerArray,
+             viz.DEPUTY_MARKERS_TOPIC: MarkerArray,
+             viz.DEPUTY_POSE_TOPIC: PoseWithCovarianceStamped}
+VIZ_TYPE_NAMES = {topic: f"{t.__module__.split('.')[0]}/msg/{t.__name__}"
+                  for topic, t in VIZ_TYPES.items()}
 
 
 @dataclass(frozen=True)
@@ -148,6 +158,15 @@ class GuidanceCore:
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.plan_pub = create(ManeuverPlan, "guidance/maneuver_plan", qos)
         self.diag_pub = create(DiagnosticArray, "/diagnostics", qos)
+        self.viz_pubs = {}
+        if self.p["visualization"]:
+            latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
+            self.viz_pubs = {topic: create(msg_type, topic, latched)
+                             for topic, msg_type in VIZ_TYPES.items()}
+
+    def _publishers(self) -> list:
+        return [self.plan_pub, self.diag_pub, *self.viz_pubs.values()]
 
     def _create_subscriptions(self) -> None:
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -194,6 +213,8 @@ class GuidanceCore:
             REQUEST_TYPE: self.resolve_topic_name("guidance/replan_request"),
             SOLVE_RECORD_TYPE: self.resolve_topic_name(SOLVE_RECORD_TOPIC),
             PLAN_TYPE: self.resolve_topic_name("guidance/maneuver_plan")}
+        self._viz_topics = {topic: self.resolve_topic_name(topic) for topic in VIZ_TYPES} \
+            if self.p["visualization"] else {}
         self._recorded_request: ReplanRequest | None = None  # last one written (worker only)
         if not self.p["record"]:
             return None
@@ -202,8 +223,10 @@ class GuidanceCore:
                 "model_checksum": self.provider.sha256 if self.provider else "none",
                 "model": self.model_status, "parameters": self.p}
         self.get_logger().info(f"recording every solve to {directory}")
+        topics = {t: msg_type for msg_type, t in self._record_topics.items()}
+        topics.update({self._viz_topics[t]: VIZ_TYPE_NAMES[t] for t in self._viz_topics})
         return McapRecorder(directory, meta, max_bytes=int(self.p["record_max_bytes"]),
-                            topics={t: msg_type for msg_type, t in self._record_topics.items()})
+                            topics=topics)
 
     def _on_set_parameters(self, params: list) -> SetParametersResult:
         """Validate and apply run-time parameter changes (all or none)."""
@@ -244,6 +267,7 @@ class GuidanceCore:
         except Exception as exc:  # never die on a message
             self._reject(stamp_ns, f"unexpected {type(exc).__name__}: {exc}")
             return
+        self._publish_deputy(nav)
         with self._lock:
             self._latest_nav, self._latest_nav_msg = nav, msg
             self.policy.accept(nav)
@@ -310,9 +334,12 @@ class GuidanceCore:
         plan_msg.active_plan_id = active_id
         if action is not Action.ACTIVATED:
             plan_msg.status_text = unusable_text(result, active_id)
+        views = self._plan_views(job, result, plan_id) if action is Action.ACTIVATED else []
         # recorded (and fsync'ed) before it is published: a crash never loses a published plan
-        self._record(job, result, plan_id, plan_msg)
+        self._record(job, result, plan_id, plan_msg, views)
         self.plan_pub.publish(plan_msg)
+        for topic, msg in views:
+            self.viz_pubs[topic].publish(msg)
         self.stats["plans"] += 1
         level = OK if result.scp.feasible else WARN
         t = result.timings_ms
@@ -330,7 +357,42 @@ class GuidanceCore:
                             "art_ms": round(t["art"], 2), "scp_ms": round(t["scp"], 2),
                             **self._model_values()})
 
-    def _record(self, job: Job, result: PlanResult, plan_id: str, plan_msg: ManeuverPlan) -> None:
+    def _plan_views(self, job: Job, result: PlanResult, plan_id: str) -> list[tuple[str, object]]:
+        """The visualisation messages of a plan put in force, [(topic, msg)] (none when off;
+        a failure is logged and never stops the plan)."""
+        if not self.viz_pubs:
+            return []
+        try:
+            view = plan_view(result, self.pipeline.safety_model(job.request), self.scenario)
+            t0 = job.nav.stamp_ns
+            markers, pose = self._deputy_view(job.nav)
+            text = viz.status_line(plan_id, result)
+            return [(viz.PLAN_PATH_TOPIC, viz.path_msg(view, t0)),
+                    (viz.PLAN_MARKERS_TOPIC, viz.plan_markers(view, t0, text)),
+                    (viz.DEPUTY_MARKERS_TOPIC, markers), (viz.DEPUTY_POSE_TOPIC, pose)]
+        except Exception as exc:  # a picture never takes the plan down
+            self._log().warning(f"visualisation of {plan_id} failed: {type(exc).__name__}: "
+                                f"{exc}")
+            return []
+
+    def _deputy_view(self, nav: NavState) -> tuple:
+        position, cov = nav_position(nav.chief_oe, nav.roe_m, nav.cov_m2)
+        return viz.deputy_msgs(position, cov, nav.stamp_ns)
+
+    def _publish_deputy(self, nav: NavState) -> None:
+        """The navigated deputy on guidance/viz/deputy*, for every accepted fix."""
+        if not self.viz_pubs:
+            return
+        try:
+            markers, pose = self._deputy_view(nav)
+        except Exception as exc:  # never die on a message
+            self.get_logger().warning(f"deputy visualisation failed: {exc}")
+            return
+        self.viz_pubs[viz.DEPUTY_MARKERS_TOPIC].publish(markers)
+        self.viz_pubs[viz.DEPUTY_POSE_TOPIC].publish(pose)
+
+    def _record(self, job: Job, result: PlanResult, plan_id: str, plan_msg: ManeuverPlan,
+                views: list[tuple[str, object]]) -> None:
         if self.recorder is None:
             return
         topic, request = self._record_topics, job.request_msg
@@ -345,6 +407,7 @@ class GuidanceCore:
                      result, job.nav.stamp_ns, plan_id, job.trigger, request_ns,
                      self.provider.load_ms if self.provider is not None else 0.0)),
                  (topic[PLAN_TYPE], plan_msg)]
+        msgs += [(self._viz_topics[t], msg) for t, msg in views]
         if self.recorder.record_solve(msgs, time.time_ns()):
             if new_request:
                 self._recorded_request = request
@@ -444,7 +507,7 @@ class ManagedGuidanceNode(GuidanceCore, LifecycleNode):
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.shutdown_worker()
-        for pub in (self.plan_pub, self.diag_pub):
+        for pub in self._publishers():
             self.destroy_lifecycle_publisher(pub)
         self.policy = None
         return TransitionCallbackReturn.SUCCESS

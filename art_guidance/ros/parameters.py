@@ -110,6 +110,8 @@ SPECS: dict[str, ParamSpec] = {
     "nav_qos_reliability": ParamSpec("reliability of the nav subscription: best_effort matches "
                                      "both best-effort (sensor data) and reliable publishers",
                                      "str", NAV_QOS),
+    "visualization": ParamSpec("publish the plan and the navigated deputy for RViz2/Foxglove "
+                               "(guidance/viz/*, frame chief_rtn) and record them", "bool"),
     "record": ParamSpec("write every solve to MCAP (a rosbag2 bag folder)", "bool"),
     "record_dir": ParamSpec("bag folder ('' = <ROS_HOME>/art_guidance_logs/<run>)", "str"),
     "record_max_bytes": ParamSpec("rotate MCAP files at this size [bytes]", "int",

@@ -1,0 +1,165 @@
+"""The node's RViz2/Foxglove topics over real DDS, a late subscriber, and the same messages in
+the bag (read back by rosbags)."""
+from __future__ import annotations
+
+import signal
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+import rclpy  # noqa: E402
+from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
+from nav_msgs.msg import Path  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rosbags.highlevel import AnyReader  # noqa: E402
+from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
+from helpers.ros_client import Client  # noqa: E402
+
+from art_guidance.config import ScenarioConfig  # noqa: E402
+from art_guidance.ros import visualization as viz  # noqa: E402
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+TOPICS = {viz.PLAN_PATH_TOPIC: Path, viz.PLAN_MARKERS_TOPIC: MarkerArray,
+          viz.DEPUTY_MARKERS_TOPIC: MarkerArray, viz.DEPUTY_POSE_TOPIC: PoseWithCovarianceStamped}
+
+
+class LateListener:
+    """Subscribes to the visualisation topics (transient local) after the plan exists."""
+
+    def __init__(self) -> None:
+        self.node = rclpy.create_node("art_guidance_viz_listener")
+        self.got: dict[str, object] = {}
+        self._cv = threading.Condition()
+        for topic, msg_type in TOPICS.items():
+            self.node.create_subscription(msg_type, topic, self._keep(topic), LATCHED)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._thread.start()
+
+    def _keep(self, topic):
+        def callback(msg):
+            with self._cv:
+                self.got[topic] = msg
+                self._cv.notify_all()
+        return callback
+
+    def wait_all(self, timeout_s: float) -> bool:
+        end = time.monotonic() + timeout_s
+        with self._cv:
+            while len(self.got) < len(TOPICS) and time.monotonic() < end:
+                self._cv.wait(0.2)
+            return len(self.got) == len(TOPICS)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self._thread.join(timeout=5)
+        self.node.destroy_node()
+
+
+def _stamp(header) -> int:
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+def _check_plan_messages(path: Path, markers: MarkerArray, plan, stamp: int) -> None:
+    n = len(plan.epochs_s)
+    assert path.header.frame_id == "chief_rtn" and _stamp(path.header) == stamp
+    assert len(path.poses) == n
+    rtn = np.asarray(plan.rtn).reshape(n, 6)
+    pos = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
+                    for p in path.poses])
+    np.testing.assert_allclose(pos, rtn[:, :3], atol=1e-9)
+    assert _stamp(path.poses[-1].header) == stamp + int(round(plan.epochs_s[-1] * 1e9))
+    ms = markers.markers
+    assert ms[0].action == Marker.DELETEALL
+    assert all(m.header.frame_id == "chief_rtn" for m in ms)
+    by_ns = {}
+    for m in ms[1:]:
+        by_ns.setdefault(m.ns, []).append(m)
+    assert len(by_ns["approach_ellipsoid"]) == 1 and len(by_ns["keep_out_zone"]) == 1
+    ae = by_ns["approach_ellipsoid"][0]
+    assert ae.type == Marker.SPHERE and ae.scale.x == pytest.approx(2000.0)
+    assert by_ns["keep_out_zone"][0].scale.y == pytest.approx(400.0)
+    drift = by_ns["drift"]
+    assert len(drift) == n and {m.id for m in drift} == set(range(n))
+    assert all(m.type == Marker.LINE_STRIP and len(m.points) == 60 for m in drift)
+    # a converged plan: every margin >= 0, so no drift is drawn red
+    assert plan.constraint_margin_m >= 0
+    assert all(m.color.g > m.color.r or m.color.r < 1.0 for m in drift)
+    dv = np.linalg.norm(np.asarray(plan.dv_rtn_mps).reshape(n, 3), axis=1)
+    assert len(by_ns["burns"]) == int((dv >= viz.BURN_MIN_MPS).sum()) >= 1
+    assert by_ns["status"][0].text.startswith(plan.plan_id)
+
+
+def test_visualisation_topics_over_dds_and_in_the_bag(ros_env, python_exe, tmp_path):
+    bag = tmp_path / "bag"
+    proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
+                             "-p", f"record_dir:={bag}", "-p", "model_path:=none"],
+                            env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    client = Client("art_guidance_viz_client")
+    listener = None
+    try:
+        assert client.wait_matched(20.0)
+        stamp, decision = client.send_nav(NOMINAL_RTN)
+        assert decision == "replanning"
+        plan = client.plan_for(stamp, timeout_s=60.0)
+        assert plan is not None and plan.status == plan.STATUS_CONVERGED
+        time.sleep(0.5)
+        listener = LateListener()  # joins after the plan was published
+        assert listener.wait_all(20.0), sorted(listener.got)
+        got = listener.got
+        _check_plan_messages(got[viz.PLAN_PATH_TOPIC], got[viz.PLAN_MARKERS_TOPIC], plan, stamp)
+        deputy = got[viz.DEPUTY_MARKERS_TOPIC]
+        assert [m.ns for m in deputy.markers] == ["deputy", "deputy_3sigma"]
+        pose = got[viz.DEPUTY_POSE_TOPIC]
+        assert pose.header.frame_id == "chief_rtn" and _stamp(pose.header) == stamp
+        p = pose.pose.pose.position
+        np.testing.assert_allclose([p.x, p.y, p.z], NOMINAL_RTN[:3], rtol=0.01, atol=20.0)
+        cov = np.asarray(pose.pose.covariance).reshape(6, 6)[:3, :3]
+        assert np.all(np.linalg.eigvalsh(cov) > 0)
+    finally:
+        if listener is not None:
+            listener.close()
+        client.close()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    with AnyReader([bag]) as reader:
+        counts, last = {}, {}
+        for conn, _, raw in reader.messages():
+            counts[conn.topic] = counts.get(conn.topic, 0) + 1
+            last[conn.topic] = reader.deserialize(raw, conn.msgtype)
+    for topic in TOPICS:
+        assert counts[f"/{topic}"] == counts["/guidance/maneuver_plan"] == 1
+    recorded = last[f"/{viz.PLAN_MARKERS_TOPIC}"]
+    assert len([m for m in recorded.markers if m.ns == "drift"]) == len(plan.epochs_s)
+    assert recorded.markers[0].header.frame_id == "chief_rtn"
+
+
+def test_visualisation_off_creates_no_topics(ros_env, python_exe, tmp_path):
+    proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
+                             "-p", "record:=false", "-p", "model_path:=none",
+                             "-p", "visualization:=false"],
+                            env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    client = Client("art_guidance_viz_off_client")
+    try:
+        assert client.wait_matched(20.0)
+        stamp, decision = client.send_nav(NOMINAL_RTN)
+        assert client.plan_for(stamp, timeout_s=60.0) is not None
+        names = {n for n, _ in client.node.get_topic_names_and_types()}
+        assert "/guidance/maneuver_plan" in names
+        assert not any(n.startswith("/guidance/viz") for n in names)
+    finally:
+        client.close()
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=30)
