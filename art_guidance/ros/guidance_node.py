@@ -165,7 +165,7 @@ class GuidanceCore:
             self.viz_pubs = {topic: create(msg_type, topic, latched)
                              for topic, msg_type in VIZ_TYPES.items()}
 
-    def _publishers(self) -> list:
+    def _all_publishers(self) -> list:
         return [self.plan_pub, self.diag_pub, *self.viz_pubs.values()]
 
     def _create_subscriptions(self) -> None:
@@ -507,7 +507,7 @@ class ManagedGuidanceNode(GuidanceCore, LifecycleNode):
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.shutdown_worker()
-        for pub in self._publishers():
+        for pub in self._all_publishers():
             self.destroy_lifecycle_publisher(pub)
         self.policy = None
         return TransitionCallbackReturn.SUCCESS

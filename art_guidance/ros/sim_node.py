@@ -10,6 +10,9 @@ Topics (all RELIABLE, VOLATILE, keep-last; the replan request is TRANSIENT_LOCAL
 * publishes ``nav/relative_state`` (art_guidance_msgs/RelativeNavState: ROE representation,
   frame "chief_roe", chief mean elements at the stamp, 6x6 covariance row-major) and, once at
   the start, ``guidance/replan_request`` (waypoint, chance_constrained, warm_start);
+* publishes ``sim/viz/truth_path`` (nav_msgs/Path, TRANSIENT_LOCAL depth 1): the truth
+  trajectory so far in frame ``chief_rtn`` (x = R, y = T, z = N), at most 1,000 poses,
+  stamped in sim time, once per step;
 * subscribes ``guidance/maneuver_plan`` (ManeuverPlan) and ``/diagnostics``.
 
 Protocol (what the guidance node promises): for every nav message it processes it publishes a
@@ -45,6 +48,7 @@ import numpy as np
 import rclpy
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
 from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Path
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -54,6 +58,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from art_guidance.errors import GuidanceError
 from art_guidance.ros.adapters import link_plan_from_msg, ns_to_stamp, stamp_to_ns
+from art_guidance.ros.visualization import TRUTH_PATH_TOPIC, truth_path_msg
 from art_guidance.sim.closed_loop import FLOAT_PARAMETERS, PARAMETERS, ClosedLoop
 from art_guidance.sim.link import LinkPlan
 
@@ -86,6 +91,7 @@ class SimNode(Node):
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.nav_pub = self.create_publisher(RelativeNavState, "nav/relative_state", qos)
+        self.truth_pub = self.create_publisher(Path, TRUTH_PATH_TOPIC, latched)
         self.req_pub = self.create_publisher(ReplanRequest, "guidance/replan_request", latched)
         self.create_subscription(ManeuverPlan, "guidance/maneuver_plan", self._on_plan,
                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
@@ -169,6 +175,10 @@ class SimNode(Node):
         msg.horizon_orbits = 0.0
         msg.warm_start = warm_start
         self.req_pub.publish(msg)
+
+    def publish_truth(self, t_s: np.ndarray, rtn: np.ndarray) -> None:
+        """The truth trajectory so far on sim/viz/truth_path (frame chief_rtn, sim stamps)."""
+        self.truth_pub.publish(truth_path_msg(t_s, rtn, self.epoch0_ns))
 
     def publish_nav(self, stamp_ns: int, chief_oe: np.ndarray, roe_m: np.ndarray,
                     cov_m2: np.ndarray) -> None:

@@ -16,6 +16,8 @@ plan topics are TRANSIENT_LOCAL depth 1, so a late subscriber gets the plan in f
   5 m) and its 3-sigma position ellipsoid (translucent SPHERE along the covariance's axes).
 * `guidance/viz/deputy_pose` (geometry_msgs/PoseWithCovarianceStamped): the same fix with its
   position covariance (orientation unknown: identity with zero covariance).
+
+The simulator publishes `sim/viz/truth_path` (nav_msgs/Path): the truth trajectory so far.
 """
 from __future__ import annotations
 
@@ -35,6 +37,8 @@ PLAN_PATH_TOPIC = "guidance/viz/plan_path"
 PLAN_MARKERS_TOPIC = "guidance/viz/plan_markers"
 DEPUTY_MARKERS_TOPIC = "guidance/viz/deputy"
 DEPUTY_POSE_TOPIC = "guidance/viz/deputy_pose"
+TRUTH_PATH_TOPIC = "sim/viz/truth_path"   # the simulator's
+TRUTH_POSES = 1000           # the truth path is thinned to at most this many poses
 BURN_MIN_MPS = 1e-3          # burns drawn as arrows from this size [m/s]
 ARROW_M_PER_MPS = 1000.0     # arrow length per delta-v [m per m/s]
 LINE_WIDTH_M = 4.0
@@ -81,6 +85,18 @@ def path_msg(view: PlanView, t0_ns: int) -> Path:
     for k in range(view.epochs_s.size):
         pose = PoseStamped(header=_header(t0_ns + int(round(view.epochs_s[k] * 1e9))))
         pose.pose = _pose(view.position_m[k], _orientation(view.velocity_post_mps[k]))
+        msg.poses.append(pose)
+    return msg
+
+
+def truth_path_msg(t_s: np.ndarray, rtn: np.ndarray, epoch0_ns: int) -> Path:
+    """The simulator's truth trajectory (sim times (K,) [s], RTN (K, 6)) as a Path stamped
+    `epoch0_ns` + t, thinned to TRUTH_POSES poses (the last one always kept)."""
+    keep = np.unique(np.linspace(0, len(t_s) - 1, min(len(t_s), TRUTH_POSES)).astype(int))
+    msg = Path(header=_header(epoch0_ns + int(round(t_s[-1] * 1e9))))
+    for k in keep:
+        pose = PoseStamped(header=_header(epoch0_ns + int(round(t_s[k] * 1e9))))
+        pose.pose = _pose(rtn[k, :3], _orientation(rtn[k, 3:]))
         msg.poses.append(pose)
     return msg
 

@@ -105,3 +105,6 @@ class InProcessGuidance:
     def take_plans(self, start: int) -> list[LinkPlan]:
         """Plans from index `start` on, in publication order."""
         return list(self._plans[start:])
+
+    def publish_truth(self, t_s: np.ndarray, rtn: np.ndarray) -> None:
+        """Nothing to show in-process."""

@@ -71,3 +71,7 @@ class GuidanceLink(Protocol):
 
     def take_plans(self, start: int) -> list[LinkPlan]:
         """Plans received from index `start` on, in arrival order."""
+
+    def publish_truth(self, t_s: np.ndarray, rtn: np.ndarray) -> None:
+        """Show the truth trajectory so far: sim times (K,) [s], RTN states (K, 6) [m, m/s]
+        (a visualisation; a link without one ignores it)."""

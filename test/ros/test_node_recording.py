@@ -131,7 +131,9 @@ def test_namespaced_node_records_resolved_topics_and_each_request_once(
     assert proc.returncode == 0, out
     assert {t["topic_metadata"]["name"] for t in _metadata(bag)["topics_with_message_count"]} \
         == {"/chaser/nav/relative_state", "/chaser/guidance/replan_request",
-            "/chaser/guidance/solve_record", "/chaser/guidance/maneuver_plan"}
+            "/chaser/guidance/solve_record", "/chaser/guidance/maneuver_plan",
+            "/chaser/guidance/viz/plan_path", "/chaser/guidance/viz/plan_markers",
+            "/chaser/guidance/viz/deputy", "/chaser/guidance/viz/deputy_pose"}
     assert [p.plan_id for p in _rosbags_plans(bag)] == before + under
     log = read_log(bag)
     assert len(log.of_type(REQUEST_TYPE)) == 1  # four solves under it, one copy

@@ -98,3 +98,14 @@ def test_deputy_ellipsoid_is_three_sigma_of_the_position_covariance(planned):
     markers, pose = viz.deputy_msgs(pos, cov, 10**18)
     assert [m.ns for m in markers.markers] == ["deputy", "deputy_3sigma"]
     np.testing.assert_allclose(np.asarray(pose.pose.covariance).reshape(6, 6)[:3, :3], cov)
+
+
+def test_truth_path_is_thinned_and_stamped_in_sim_time():
+    t = np.linspace(0.0, 7000.0, 2501)
+    rtn = np.column_stack([np.sin(t / 900.0) * 500, t, np.zeros_like(t), np.cos(t / 900.0),
+                           np.ones_like(t), np.zeros_like(t)])
+    msg = viz.truth_path_msg(t, rtn, 10**18)
+    assert len(msg.poses) == viz.TRUTH_POSES and msg.header.frame_id == "chief_rtn"
+    last = msg.poses[-1]
+    assert last.header.stamp.sec == 10**9 + 7000 and last.pose.position.y == 7000.0
+    assert len(viz.truth_path_msg(t[:5], rtn[:5], 0).poses) == 5
