@@ -28,16 +28,12 @@ from nav_msgs.msg import Path
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from art_guidance.plan_view import (
-    FRAME_RTN, ZONES, PlanView, ellipsoid_of, margin_rgb, quaternion_of,
+from art_guidance.plan_view import (  # noqa: F401 (the topic names are used through here)
+    DEPUTY_MARKERS_TOPIC, DEPUTY_POSE_TOPIC, FRAME_RTN, PLAN_MARKERS_TOPIC, PLAN_PATH_TOPIC,
+    TRUTH_PATH_TOPIC, ZONES, PlanView, ellipsoid_of, margin_rgb, quaternion_of,
 )
 from art_guidance.ros.adapters import ns_to_stamp
 
-PLAN_PATH_TOPIC = "guidance/viz/plan_path"
-PLAN_MARKERS_TOPIC = "guidance/viz/plan_markers"
-DEPUTY_MARKERS_TOPIC = "guidance/viz/deputy"
-DEPUTY_POSE_TOPIC = "guidance/viz/deputy_pose"
-TRUTH_PATH_TOPIC = "sim/viz/truth_path"   # the simulator's
 TRUTH_POSES = 1000           # the truth path is thinned to at most this many poses
 BURN_MIN_MPS = 1e-3          # burns drawn as arrows from this size [m/s]
 ARROW_M_PER_MPS = 1000.0     # arrow length per delta-v [m per m/s]

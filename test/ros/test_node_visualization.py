@@ -2,10 +2,12 @@
 the bag (read back by rosbags)."""
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import threading
 import time
+from pathlib import Path as FilePath
 
 import numpy as np
 import pytest
@@ -21,9 +23,11 @@ from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 from helpers.ros_client import Client  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
+from art_guidance.record.render import render_bag  # noqa: E402
 from art_guidance.ros import visualization as viz  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
+ROOT = FilePath(__file__).resolve().parents[2]
 NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -143,6 +147,37 @@ def test_visualisation_topics_over_dds_and_in_the_bag(ros_env, python_exe, tmp_p
     recorded = last[f"/{viz.PLAN_MARKERS_TOPIC}"]
     assert len([m for m in recorded.markers if m.ns == "drift"]) == len(plan.epochs_s)
     assert recorded.markers[0].header.frame_id == "chief_rtn"
+    # the layout's picture drawn from the bag (`art-guidance bag render`)
+    counts = render_bag(bag, tmp_path / "bag.png")
+    assert counts["plans"] == 1 and counts["drift"] == len(plan.epochs_s)
+    assert counts["deputy_fixes"] == 1 and counts["burns"] >= 1
+    assert (tmp_path / "bag.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def _leaves(node) -> list[str]:
+    return [node] if isinstance(node, str) else _leaves(node["first"]) + _leaves(node["second"])
+
+
+def test_foxglove_layout_shows_only_published_topics():
+    """config/foxglove_layout.json: a 3D panel in chief_rtn on the visualisation topics, plots
+    of fields ManeuverPlan has, the status text; its layout tree holds exactly its panels."""
+    from art_guidance_msgs.msg import ManeuverPlan
+
+    layout = json.loads((ROOT / "config" / "foxglove_layout.json").read_text())
+    panels = layout["configById"]
+    assert sorted(_leaves(layout["layout"])) == sorted(panels)
+    three_d = [v for k, v in panels.items() if k.startswith("3D!")]
+    assert len(three_d) == 1 and three_d[0]["followTf"] == "chief_rtn"
+    published = {f"/{t}" for t in (*TOPICS, viz.TRUTH_PATH_TOPIC)}
+    assert set(three_d[0]["topics"]) <= published
+    assert {f"/{t}" for t in TOPICS} <= set(three_d[0]["topics"])
+    fields = set(ManeuverPlan.get_fields_and_field_types())
+    paths = [p["value"] for k, v in panels.items() if k.startswith("Plot!") for p in v["paths"]]
+    paths += [v["topicPath"] for k, v in panels.items() if k.startswith("RawMessages!")]
+    assert len(paths) == 3
+    for path in paths:
+        topic, field = path.split(".", 1)
+        assert topic == "/guidance/maneuver_plan" and field in fields
 
 
 def test_visualisation_off_creates_no_topics(ros_env, python_exe, tmp_path):
