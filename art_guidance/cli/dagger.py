@@ -15,7 +15,7 @@ def run(args: argparse.Namespace) -> int:
     controls before k, the expert's from k on, with R, C and margins recomputed over the whole
     row and train_from = k, so that training learns only the expert's controls (the prefix is
     context). The output is a dataset directory of the source's mode and configuration with no
-    test split: train on both with `art-guidance train --data SRC --data OUT`."""
+    test split: train on both with `art-guidance train --data SRC --data OUT --out CKPT`."""
     from art_guidance.art.dagger import dagger
 
     summary = dagger(args.out, args.model, args.data, args.n, seed=args.seed,

@@ -144,3 +144,21 @@ def check_table(defaults: dict[str, Any]) -> None:
                           f"{sorted(names ^ set(SPECS))}")
     for name, value in defaults.items():
         SPECS[name].coerce(name, value)
+
+
+TABLE_BEGIN, TABLE_END = "<!-- parameter-table:begin -->", "<!-- parameter-table:end -->"
+
+
+def parameter_table(defaults: dict[str, Any]) -> str:
+    """The parameter table of the documentation (markdown), from `SPECS` and the YAML
+    defaults (`config.node_parameter_defaults()`); `samples_per_node` defaults to
+    planning.yaml's value."""
+    lines = ["| parameter | default | run time | meaning |", "|---|---|---|---|"]
+    for name, spec in SPECS.items():
+        value = defaults.get(name, "planning.yaml")
+        text = str(value).lower() if isinstance(value, bool) else str(value)
+        shown = "`''`" if value == "" else f"`{text}`"
+        limits = f" ({spec.constraints})" if spec.constraints else ""
+        lines.append(f"| `{name}` | {shown} | {'dynamic' if spec.dynamic else 'read-only'} | "
+                     f"{spec.description}{limits} |")
+    return "\n".join(lines) + "\n"
