@@ -13,8 +13,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml") + glob("config/*.xml")
-                                            + glob("config/*.json"))),
+        (f"share/{PACKAGE}/config",
+         sorted(glob("config/*.yaml") + glob("config/*.xml") + glob("config/*.json"))),
     ],
     python_requires=">=3.11",
     install_requires=[
