@@ -312,7 +312,7 @@ def stm_j2_terms(chief_oe: object) -> tuple[np.ndarray, float]:
     """Constant matrices of the J2 ROE STM: ``Phi(t0 + tau, t0) = sum_b s_b(tau) terms[b]``.
 
     With ``c = cos(wdot tau)``, ``s = sin(wdot tau)`` and the final eccentricity vector
-    ``(exf, eyf) = (exi c - eyi s, eyi c + exi s)``, every entry of the PHYSICS.md STM is a
+    ``(exf, eyf) = (exi c - eyi s, eyi c + exi s)``, every entry of the STM of docs/design.md is a
     combination of the six time functions of `stm_basis`, so this decomposition is exact.
 
     Args:

@@ -30,7 +30,7 @@ PLAN_MARKERS_TOPIC = "guidance/viz/plan_markers"
 DEPUTY_MARKERS_TOPIC = "guidance/viz/deputy"
 DEPUTY_POSE_TOPIC = "guidance/viz/deputy_pose"
 TRUTH_PATH_TOPIC = "sim/viz/truth_path"
-DRIFT_SAMPLES = 60
+DRIFT_SAMPLES = 24  # per drift arc (one orbit): a smooth curve, cheap to publish and record
 ZONES = ("approach_ellipsoid", "keep_out_zone")
 
 

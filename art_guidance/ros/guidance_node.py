@@ -54,6 +54,7 @@ from art_guidance.ros.adapters import (
 
 OK, WARN, ERROR = 0, 1, 2
 SPIN_PERIOD_S = 0.1  # the executor wakes this often to notice SIGINT/SIGTERM [s]
+DEPUTY_VIZ_PERIOD_S = 0.5  # smallest stamp-time spacing of the deputy's visualisation [s]
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "min_remaining_nodes")
 PARAMETERS = node_parameter_defaults()  # config/guidance_node.yaml: the one table
@@ -334,7 +335,10 @@ class GuidanceCore:
         plan_msg.active_plan_id = active_id
         if action is not Action.ACTIVATED:
             plan_msg.status_text = unusable_text(result, active_id)
-        views = self._plan_views(job, result, plan_id) if action is Action.ACTIVATED else []
+        with self._lock:  # a plan a queued solve replaces at once is not drawn (bursts)
+            superseded = self._job is not None
+        views = (self._plan_views(job, result, plan_id)
+                 if action is Action.ACTIVATED and not superseded else [])
         # recorded (and fsync'ed) before it is published: a crash never loses a published plan
         self._record(job, result, plan_id, plan_msg, views)
         self.plan_pub.publish(plan_msg)
@@ -380,9 +384,14 @@ class GuidanceCore:
         return viz.deputy_msgs(position, cov, nav.stamp_ns)
 
     def _publish_deputy(self, nav: NavState) -> None:
-        """The navigated deputy on guidance/viz/deputy*, for every accepted fix."""
+        """The navigated deputy on guidance/viz/deputy*: accepted fixes at least
+        DEPUTY_VIZ_PERIOD_S apart in stamp time (a 100 Hz burst costs the callbacks nothing)."""
         if not self.viz_pubs:
             return
+        last = getattr(self, "_deputy_viz_ns", None)
+        if last is not None and 0 <= nav.stamp_ns - last < DEPUTY_VIZ_PERIOD_S * 1e9:
+            return
+        self._deputy_viz_ns = nav.stamp_ns
         try:
             markers, pose = self._deputy_view(nav)
         except Exception as exc:  # never die on a message

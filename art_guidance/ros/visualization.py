@@ -4,16 +4,20 @@ Everything is stamped and in frame `chief_rtn` (`plan_view.FRAME_RTN`: origin at
 x = R, y = T, z = N, metres); set it as the fixed / display frame. Topics (node-relative; the
 plan topics are TRANSIENT_LOCAL depth 1, so a late subscriber gets the plan in force):
 
+A plan is drawn when it is put in force, unless a newer solve is already queued (it would be
+replaced at once; under a burst of fixes this keeps the callbacks responsive).
+
 * `guidance/viz/plan_path` (nav_msgs/Path): one pose per node at the planned position, oriented
   along the post-burn relative velocity, stamped t0 + epoch.
 * `guidance/viz/plan_markers` (visualization_msgs/MarkerArray): a DELETEALL, then namespace
   `approach_ellipsoid` and `keep_out_zone` (one translucent SPHERE each, scaled to the
   semi-axes; the one in force at the plan's first node more opaque), `drift` (one LINE_STRIP per
-  node: its one-orbit free drift, coloured by its passive-safety margin: red inside, yellow at
-  0 m, green from 50 m), `burns` (one ARROW per burn above 1 mm/s, from the node along the
-  delta-v, 1 m per mm/s) and `status` (TEXT_VIEW_FACING: plan id, status, cost, margin).
+  node, `plan_view.DRIFT_SAMPLES` points: its one-orbit free drift, coloured by its
+  passive-safety margin: red inside, yellow at 0 m, green from 50 m), `burns` (one ARROW per
+  burn above 1 mm/s, from the node along the delta-v, 1 m per mm/s) and `status`
+  (TEXT_VIEW_FACING: plan id, status, cost, margin).
 * `guidance/viz/deputy` (visualization_msgs/MarkerArray): the navigated deputy position (SPHERE,
-  5 m) and its 3-sigma position ellipsoid (translucent SPHERE along the covariance's axes).
+  15 m) and its 3-sigma position ellipsoid (translucent SPHERE along the covariance's axes).
 * `guidance/viz/deputy_pose` (geometry_msgs/PoseWithCovarianceStamped): the same fix with its
   position covariance (orientation unknown: identity with zero covariance).
 

@@ -1,6 +1,6 @@
 """Independent nonlinear truth for tests: two-body + J2 integration and mean/osculating elements.
 
-Nothing here reuses a formula of `art_guidance` (constants typed in from PHYSICS.md): the
+Nothing here reuses a formula of `art_guidance` (constants typed in from docs/design.md): the
 acceleration, Kepler <-> Cartesian conversions, the ROE definition, the RTN frame and the orbit
 averaging follow `test_dynamics_truth.py`, vectorised over many bodies.
 
@@ -110,7 +110,7 @@ def wrap(x: np.ndarray) -> np.ndarray:
 
 
 def roe(chief: np.ndarray, deputy: np.ndarray) -> np.ndarray:
-    """a-scaled quasi-nonsingular ROE [m] (..., 6) from Keplerian elements (PHYSICS.md)."""
+    """a-scaled quasi-nonsingular ROE [m] (..., 6) from Keplerian elements (docs/design.md)."""
     a, e, i, raan, w, m = np.moveaxis(np.asarray(chief, float), -1, 0)
     ad, ed, idp, raand, wd, md = np.moveaxis(np.asarray(deputy, float), -1, 0)
     draan = wrap(raand - raan)

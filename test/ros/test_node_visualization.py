@@ -23,6 +23,7 @@ from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 from helpers.ros_client import Client  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
+from art_guidance.plan_view import DRIFT_SAMPLES  # noqa: E402
 from art_guidance.record.render import render_bag  # noqa: E402
 from art_guidance.ros import visualization as viz  # noqa: E402
 
@@ -94,7 +95,7 @@ def _check_plan_messages(path: Path, markers: MarkerArray, plan, stamp: int) -> 
     assert by_ns["keep_out_zone"][0].scale.y == pytest.approx(400.0)
     drift = by_ns["drift"]
     assert len(drift) == n and {m.id for m in drift} == set(range(n))
-    assert all(m.type == Marker.LINE_STRIP and len(m.points) == 60 for m in drift)
+    assert all(m.type == Marker.LINE_STRIP and len(m.points) == DRIFT_SAMPLES for m in drift)
     # a converged plan: every margin >= 0, so no drift is drawn red
     assert plan.constraint_margin_m >= 0
     assert all(m.color.g > m.color.r or m.color.r < 1.0 for m in drift)

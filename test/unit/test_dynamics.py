@@ -15,7 +15,7 @@ from art_guidance import dynamics as dyn
 from art_guidance.config import ScenarioConfig
 from art_guidance.errors import GuidanceError, InputError
 
-MU = 3.986004415e14  # PHYSICS.md
+MU = 3.986004415e14  # docs/design.md, Models and constants
 R_E = 6378136.3
 J2 = 1.082635819197e-3
 
@@ -81,7 +81,7 @@ def test_roe_oe_round_trip(chief: np.ndarray, scale_m: float) -> None:
 
 
 def test_roe_definition_and_angle_wrapping(chief: np.ndarray) -> None:
-    """ROE match the PHYSICS.md definition, including across the 0/2 pi wrap of M and RAAN."""
+    """ROE match the definition in docs/design.md, across the 0/2 pi wrap of M and RAAN."""
     a, e, i, raan, w, m = chief
     deputy = chief.copy()
     deputy[0] += 100.0

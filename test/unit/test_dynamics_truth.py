@@ -4,7 +4,7 @@ The truth is a DOP853 integration (scipy ``solve_ivp``, rtol 1e-12) of the nonli
 J2 equations of motion in the inertial frame, for the chief and every deputy at once. Nothing in
 this file reuses a formula from ``art_guidance.dynamics``: the acceleration, the Kepler <->
 Cartesian conversions, the ROE definition and the orbit averaging are written out here from the
-textbook definitions (constants typed in from PHYSICS.md). ``dynamics`` is only called for the
+textbook definitions (constants typed in from docs/design.md). ``dynamics`` is only called for the
 things under test (STM, B, Psi, secular rates, Horizon) and for ``rtn_from_eci``, which
 ``test_dynamics.py`` checks independently (finite differences of Keplerian motion).
 
@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-# The tests' one truth (helpers.orbit_truth): constants typed in from PHYSICS.md
+# The tests' one truth (helpers.orbit_truth): constants typed in from docs/design.md
 # (test_dynamics.py checks the module uses the same values), the two-body + J2 acceleration and
 # the Kepler -> Cartesian conversion.
 from helpers.orbit_truth import J2, MU, R_E

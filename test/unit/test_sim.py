@@ -17,7 +17,7 @@ from art_guidance.sim.simulator import (
 )
 from art_guidance.sim.plot import plot_rendezvous
 
-# Constants typed in from PHYSICS.md (independent of the package).
+# Constants typed in from docs/design.md (independent of the package).
 MU = 3.986004415e14
 R_E = 6378136.3
 J2 = 1.082635819197e-3
