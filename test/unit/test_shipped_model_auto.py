@@ -11,14 +11,22 @@ from art_guidance.planning import GuidancePipeline
 from helpers.shipped import heldout_requests
 
 FLOOR_MPS = 0.010  # the paper's post hoc floor: auto never worse than CVX by more than this
+# measured on these 50 scenarios: chance 8 accepted, total gain 0.765 m/s; deterministic 2, 0.320
+MIN_ACCEPTED = {"chance": 5, "deterministic": 1}
+MIN_TOTAL_GAIN_MPS = {"chance": 0.3, "deterministic": 0.05}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", sorted(DEFAULT_MODELS))
 def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(mode):
-    """50 held-out scenarios per mode, with the mode's default model: the `auto` plan (ART if
-    accepted post hoc, retried from CVX if its SCP does not converge) costs at most 10 mm/s
-    more than the CVX-warm-started plan, and is feasible whenever that one is."""
+    """50 held-out scenarios per mode, with the mode's default model.
+
+    What it guards: the learned warm start pays in flight. The post hoc check accepts ART on
+    some scenarios (MIN_ACCEPTED) and the plans flown with `auto` cost less than the
+    CVX-warm-started ones in total (MIN_TOTAL_GAIN_MPS). That `auto` is never worse than CVX by
+    more than 10 mm/s and feasible whenever CVX is holds by construction
+    (`also_solve_from_cvx`); it is checked here end to end, so a change that breaks that guard
+    fails too."""
     config = GuidanceConfig.load()
     auto = GuidancePipeline(config, provider=ArtWarmStart.load(default_model_path(mode)))
     cvx_only = GuidancePipeline(config)
@@ -32,8 +40,11 @@ def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(mode):
             assert a.cost_mps <= c.cost_mps + FLOOR_MPS, a.warm_start_reason
     d = np.array([r[0] for r in rows if r[1] and r[2]])
     accepted = np.array([r[3] for r in rows])
+    assert accepted.sum() >= MIN_ACCEPTED[mode]
+    assert -d.sum() >= MIN_TOTAL_GAIN_MPS[mode]
     print(f"\nauto - cvx cost [mm/s] over {d.size} feasible pairs: min {1e3 * d.min():.2f} "
           f"p5 {1e3 * np.percentile(d, 5):.2f} median {1e3 * np.median(d):.2f} "
-          f"p95 {1e3 * np.percentile(d, 95):.2f} max {1e3 * d.max():.2f}; ART accepted "
+          f"p95 {1e3 * np.percentile(d, 95):.2f} max {1e3 * d.max():.2f}; total gain "
+          f"{-d.sum():.3f} m/s; ART accepted "
           f"{accepted.sum()}/{accepted.size}; iterations auto {np.mean([r[4] for r in rows]):.1f}"
           f" cvx {np.mean([r[5] for r in rows]):.1f}")
