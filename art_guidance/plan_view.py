@@ -24,12 +24,6 @@ from art_guidance.dynamics import (
 )
 
 FRAME_RTN = "chief_rtn"
-# the visualisation topics (node-relative; the simulator's truth path under sim/)
-PLAN_PATH_TOPIC = "guidance/viz/plan_path"
-PLAN_MARKERS_TOPIC = "guidance/viz/plan_markers"
-DEPUTY_MARKERS_TOPIC = "guidance/viz/deputy"
-DEPUTY_POSE_TOPIC = "guidance/viz/deputy_pose"
-TRUTH_PATH_TOPIC = "sim/viz/truth_path"
 DRIFT_SAMPLES = 24  # per drift arc (one orbit): a smooth curve, cheap to publish and record
 ZONES = ("approach_ellipsoid", "keep_out_zone")
 

@@ -38,6 +38,7 @@ from mcap.writer import CompressionType, Writer
 # public Writer owns the file and cannot flush and fsync per solve.
 from mcap_ros2._dynamic import serialize_dynamic
 
+from art_guidance import topics
 from art_guidance.errors import ConfigError
 from art_guidance.record.bag_metadata import FileInfo, TopicInfo, write_bag_metadata
 
@@ -48,12 +49,11 @@ NAV_TYPE = "art_guidance_msgs/msg/RelativeNavState"
 REQUEST_TYPE = "art_guidance_msgs/msg/ReplanRequest"
 SOLVE_RECORD_TYPE = "art_guidance_msgs/msg/SolveRecord"
 PLAN_TYPE = "art_guidance_msgs/msg/ManeuverPlan"
-SOLVE_RECORD_TOPIC = "guidance/solve_record"  # recorded only, never published; node-relative
 TOPICS = {  # the default mapping (resolved names of a node without namespace or remapping)
-    "/nav/relative_state": NAV_TYPE,
-    "/guidance/replan_request": REQUEST_TYPE,
-    f"/{SOLVE_RECORD_TOPIC}": SOLVE_RECORD_TYPE,
-    "/guidance/maneuver_plan": PLAN_TYPE,
+    f"/{topics.NAV}": NAV_TYPE,
+    f"/{topics.REPLAN_REQUEST}": REQUEST_TYPE,
+    f"/{topics.SOLVE_RECORD}": SOLVE_RECORD_TYPE,
+    f"/{topics.MANEUVER_PLAN}": PLAN_TYPE,
 }
 _BUILTIN = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
             "int32", "uint32", "int64", "uint64", "string", "wstring"}

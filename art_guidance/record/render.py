@@ -14,12 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from art_guidance.errors import InputError
-from art_guidance.plan_view import DEPUTY_MARKERS_TOPIC as DEPUTY
-from art_guidance.plan_view import PLAN_MARKERS_TOPIC as MARKERS
-from art_guidance.plan_view import PLAN_PATH_TOPIC as PATH
+from art_guidance import topics
 from art_guidance.record.replay import read_log
 
-PLAN = "guidance/maneuver_plan"
+MARKERS, PATH, DEPUTY, PLAN = (topics.PLAN_MARKERS, topics.PLAN_PATH, topics.DEPUTY_MARKERS,
+                               topics.MANEUVER_PLAN)
 SPHERE, LINE_STRIP, ARROW = 2, 4, 0  # visualization_msgs/Marker types
 
 

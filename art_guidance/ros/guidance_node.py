@@ -32,6 +32,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+from art_guidance import topics
 from art_guidance.config import GuidanceConfig, node_parameter_defaults
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.plan_view import nav_position, plan_view
@@ -42,7 +43,7 @@ from art_guidance.planning.replan import (
     Action, Decision, ReplanPolicy, ReplanSettings, request_for, unusable_text,
 )
 from art_guidance.record.recorder import (
-    NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TOPIC, SOLVE_RECORD_TYPE, McapRecorder,
+    NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE, McapRecorder,
     default_log_dir,
 )
 from art_guidance.ros.parameters import SPECS, check_table, descriptor
@@ -58,9 +59,8 @@ DEPUTY_VIZ_PERIOD_S = 0.5  # smallest stamp-time spacing of the deputy's visuali
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "min_remaining_nodes")
 PARAMETERS = node_parameter_defaults()  # config/guidance_node.yaml: the one table
-VIZ_TYPES = {viz.PLAN_PATH_TOPIC: Path, viz.PLAN_MARKERS_TOPIC: MarkerArray,
-             viz.DEPUTY_MARKERS_TOPIC: MarkerArray,
-             viz.DEPUTY_POSE_TOPIC: PoseWithCovarianceStamped}
+VIZ_TYPES = {topics.PLAN_PATH: Path, topics.PLAN_MARKERS: MarkerArray,
+             topics.DEPUTY_MARKERS: MarkerArray, topics.DEPUTY_POSE: PoseWithCovarianceStamped}
 VIZ_TYPE_NAMES = {topic: f"{t.__module__.split('.')[0]}/msg/{t.__name__}"
                   for topic, t in VIZ_TYPES.items()}
 
@@ -157,8 +157,8 @@ class GuidanceCore:
 
     def _create_publishers(self, create: Callable) -> None:
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.plan_pub = create(ManeuverPlan, "guidance/maneuver_plan", qos)
-        self.diag_pub = create(DiagnosticArray, "/diagnostics", qos)
+        self.plan_pub = create(ManeuverPlan, topics.MANEUVER_PLAN, qos)
+        self.diag_pub = create(DiagnosticArray, topics.DIAGNOSTICS, qos)
         self.viz_pubs = {}
         if self.p["visualization"]:
             latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -174,9 +174,9 @@ class GuidanceCore:
         nav_qos = QoSProfile(depth=10, reliability=(
             ReliabilityPolicy.BEST_EFFORT if self.p["nav_qos_reliability"] == "best_effort"
             else ReliabilityPolicy.RELIABLE))
-        self.nav_sub = self.create_subscription(RelativeNavState, "nav/relative_state",
+        self.nav_sub = self.create_subscription(RelativeNavState, topics.NAV,
                                                 self._on_nav, nav_qos)
-        self.request_sub = self.create_subscription(ReplanRequest, "guidance/replan_request",
+        self.request_sub = self.create_subscription(ReplanRequest, topics.REPLAN_REQUEST,
                                                     self._on_request, qos)
 
     def _destroy_subscriptions(self) -> None:
@@ -210,10 +210,10 @@ class GuidanceCore:
         # is recorded only, under the node's own namespace
         # (resolved from the names, so it works before the endpoints exist: lifecycle)
         self._record_topics = {
-            NAV_TYPE: self.resolve_topic_name("nav/relative_state"),
-            REQUEST_TYPE: self.resolve_topic_name("guidance/replan_request"),
-            SOLVE_RECORD_TYPE: self.resolve_topic_name(SOLVE_RECORD_TOPIC),
-            PLAN_TYPE: self.resolve_topic_name("guidance/maneuver_plan")}
+            NAV_TYPE: self.resolve_topic_name(topics.NAV),
+            REQUEST_TYPE: self.resolve_topic_name(topics.REPLAN_REQUEST),
+            SOLVE_RECORD_TYPE: self.resolve_topic_name(topics.SOLVE_RECORD),
+            PLAN_TYPE: self.resolve_topic_name(topics.MANEUVER_PLAN)}
         self._viz_topics = {topic: self.resolve_topic_name(topic) for topic in VIZ_TYPES} \
             if self.p["visualization"] else {}
         self._recorded_request: ReplanRequest | None = None  # last one written (worker only)
@@ -224,10 +224,10 @@ class GuidanceCore:
                 "model_checksum": self.provider.sha256 if self.provider else "none",
                 "model": self.model_status, "parameters": self.p}
         self.get_logger().info(f"recording every solve to {directory}")
-        topics = {t: msg_type for msg_type, t in self._record_topics.items()}
-        topics.update({self._viz_topics[t]: VIZ_TYPE_NAMES[t] for t in self._viz_topics})
+        recorded = {t: msg_type for msg_type, t in self._record_topics.items()}
+        recorded.update({self._viz_topics[t]: VIZ_TYPE_NAMES[t] for t in self._viz_topics})
         return McapRecorder(directory, meta, max_bytes=int(self.p["record_max_bytes"]),
-                            topics=topics)
+                            topics=recorded)
 
     def _on_set_parameters(self, params: list) -> SetParametersResult:
         """Validate and apply run-time parameter changes (all or none)."""
@@ -371,9 +371,9 @@ class GuidanceCore:
             t0 = job.nav.stamp_ns
             markers, pose = self._deputy_view(job.nav)
             text = viz.status_line(plan_id, result)
-            return [(viz.PLAN_PATH_TOPIC, viz.path_msg(view, t0)),
-                    (viz.PLAN_MARKERS_TOPIC, viz.plan_markers(view, t0, text)),
-                    (viz.DEPUTY_MARKERS_TOPIC, markers), (viz.DEPUTY_POSE_TOPIC, pose)]
+            return [(topics.PLAN_PATH, viz.path_msg(view, t0)),
+                    (topics.PLAN_MARKERS, viz.plan_markers(view, t0, text)),
+                    (topics.DEPUTY_MARKERS, markers), (topics.DEPUTY_POSE, pose)]
         except Exception as exc:  # a picture never takes the plan down
             self._log().warning(f"visualisation of {plan_id} failed: {type(exc).__name__}: "
                                 f"{exc}")
@@ -397,8 +397,8 @@ class GuidanceCore:
         except Exception as exc:  # never die on a message
             self.get_logger().warning(f"deputy visualisation failed: {exc}")
             return
-        self.viz_pubs[viz.DEPUTY_MARKERS_TOPIC].publish(markers)
-        self.viz_pubs[viz.DEPUTY_POSE_TOPIC].publish(pose)
+        self.viz_pubs[topics.DEPUTY_MARKERS].publish(markers)
+        self.viz_pubs[topics.DEPUTY_POSE].publish(pose)
 
     def _record(self, job: Job, result: PlanResult, plan_id: str, plan_msg: ManeuverPlan,
                 views: list[tuple[str, object]]) -> None:

@@ -56,9 +56,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+from art_guidance import topics
 from art_guidance.errors import GuidanceError
 from art_guidance.ros.adapters import link_plan_from_msg, ns_to_stamp, stamp_to_ns
-from art_guidance.ros.visualization import TRUTH_PATH_TOPIC, truth_path_msg
+from art_guidance.ros.visualization import truth_path_msg
 from art_guidance.sim.closed_loop import FLOAT_PARAMETERS, PARAMETERS, ClosedLoop
 from art_guidance.sim.link import LinkPlan
 
@@ -90,12 +91,12 @@ class SimNode(Node):
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.nav_pub = self.create_publisher(RelativeNavState, "nav/relative_state", qos)
-        self.truth_pub = self.create_publisher(Path, TRUTH_PATH_TOPIC, latched)
-        self.req_pub = self.create_publisher(ReplanRequest, "guidance/replan_request", latched)
-        self.create_subscription(ManeuverPlan, "guidance/maneuver_plan", self._on_plan,
+        self.nav_pub = self.create_publisher(RelativeNavState, topics.NAV, qos)
+        self.truth_pub = self.create_publisher(Path, topics.TRUTH_PATH, latched)
+        self.req_pub = self.create_publisher(ReplanRequest, topics.REPLAN_REQUEST, latched)
+        self.create_subscription(ManeuverPlan, topics.MANEUVER_PLAN, self._on_plan,
                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
-        self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag,
+        self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag,
                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
         self._cv = threading.Condition()
         self._decisions: dict[int, dict[str, str]] = {}
@@ -148,8 +149,8 @@ class SimNode(Node):
         def matched() -> bool:
             return (self.nav_pub.get_subscription_count() > 0
                     and self.req_pub.get_subscription_count() > 0
-                    and self.count_publishers("guidance/maneuver_plan") > 0
-                    and self.count_publishers("/diagnostics") > 0)
+                    and self.count_publishers(topics.MANEUVER_PLAN) > 0
+                    and self.count_publishers(topics.DIAGNOSTICS) > 0)
         return bool(self._wait(matched, timeout_s))
 
     def wait_decision(self, stamp_ns: int, timeout_s: float) -> dict[str, str] | None:

@@ -32,9 +32,8 @@ from nav_msgs.msg import Path
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from art_guidance.plan_view import (  # noqa: F401 (the topic names are used through here)
-    DEPUTY_MARKERS_TOPIC, DEPUTY_POSE_TOPIC, FRAME_RTN, PLAN_MARKERS_TOPIC, PLAN_PATH_TOPIC,
-    TRUTH_PATH_TOPIC, ZONES, PlanView, ellipsoid_of, margin_rgb, quaternion_of,
+from art_guidance.plan_view import (
+    FRAME_RTN, ZONES, PlanView, ellipsoid_of, margin_rgb, quaternion_of,
 )
 from art_guidance.ros.adapters import ns_to_stamp
 

@@ -23,6 +23,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from helpers.spin_main import spin_until_shutdown
 
+from art_guidance import topics
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import Horizon, orbital_period_s
 from art_guidance.planning import GuidancePipeline, PlanRequest
@@ -37,10 +38,10 @@ class FakeGuidance(Node):
         super().__init__("fake_guidance")
         self.mode, self.replan_every, self.drop_first = mode, replan_every, drop_first
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.plan_pub = self.create_publisher(ManeuverPlan, "guidance/maneuver_plan", qos)
-        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos)
-        self.create_subscription(RelativeNavState, "nav/relative_state", self._on_nav, qos)
-        self.create_subscription(ReplanRequest, "guidance/replan_request", self._on_request,
+        self.plan_pub = self.create_publisher(ManeuverPlan, topics.MANEUVER_PLAN, qos)
+        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+        self.create_subscription(RelativeNavState, topics.NAV, self._on_nav, qos)
+        self.create_subscription(ReplanRequest, topics.REPLAN_REQUEST, self._on_request,
                                  qos)
         self.request: ReplanRequest | None = None
         self.scenario = ScenarioConfig.from_yaml()

@@ -11,6 +11,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from art_guidance import topics
 from art_guidance.config import ScenarioConfig
 
 
@@ -38,14 +39,14 @@ class Client:
             rclpy.init()
         self.node = rclpy.create_node(name, namespace=namespace)  # relative topics under it
         qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        self.nav_pub = self.node.create_publisher(RelativeNavState, "nav/relative_state", qos)
-        self.req_pub = self.node.create_publisher(ReplanRequest, "guidance/replan_request", qos)
+        self.nav_pub = self.node.create_publisher(RelativeNavState, topics.NAV, qos)
+        self.req_pub = self.node.create_publisher(ReplanRequest, topics.REPLAN_REQUEST, qos)
         self.plans: list[tuple[float, ManeuverPlan]] = []
         self.diags: list[tuple[float, dict, str]] = []
         self._cv = threading.Condition()
-        self.plan_sub = self.node.create_subscription(ManeuverPlan, "guidance/maneuver_plan",
+        self.plan_sub = self.node.create_subscription(ManeuverPlan, topics.MANEUVER_PLAN,
                                                       self._on_plan, qos)
-        self.diag_sub = self.node.create_subscription(DiagnosticArray, "/diagnostics",
+        self.diag_sub = self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS,
                                                       self._on_diag, qos)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)

@@ -17,6 +17,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
+from art_guidance import topics  # noqa: E402
 from art_guidance.config import ScenarioConfig  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -109,7 +110,7 @@ def test_plans_say_what_they_are(client):
 
 def test_best_effort_publisher_is_served(client):
     """A filter publishing with the sensor-data QoS (BEST_EFFORT) still gets plans."""
-    pub = client.node.create_publisher(RelativeNavState, "nav/relative_state",
+    pub = client.node.create_publisher(RelativeNavState, topics.NAV,
                                        QoSProfile(depth=10,
                                                   reliability=ReliabilityPolicy.BEST_EFFORT))
     try:

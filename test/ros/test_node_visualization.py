@@ -22,6 +22,7 @@ from rosbags.highlevel import AnyReader  # noqa: E402
 from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 from helpers.ros_client import Client  # noqa: E402
 
+from art_guidance import topics  # noqa: E402
 from art_guidance.config import ScenarioConfig  # noqa: E402
 from art_guidance.plan_view import DRIFT_SAMPLES  # noqa: E402
 from art_guidance.record.render import render_bag  # noqa: E402
@@ -32,8 +33,8 @@ ROOT = FilePath(__file__).resolve().parents[2]
 NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-TOPICS = {viz.PLAN_PATH_TOPIC: Path, viz.PLAN_MARKERS_TOPIC: MarkerArray,
-          viz.DEPUTY_MARKERS_TOPIC: MarkerArray, viz.DEPUTY_POSE_TOPIC: PoseWithCovarianceStamped}
+TOPICS = {topics.PLAN_PATH: Path, topics.PLAN_MARKERS: MarkerArray,
+          topics.DEPUTY_MARKERS: MarkerArray, topics.DEPUTY_POSE: PoseWithCovarianceStamped}
 
 
 class LateListener:
@@ -122,10 +123,10 @@ def test_visualisation_topics_over_dds_and_in_the_bag(ros_env, python_exe, tmp_p
         listener = LateListener()  # joins after the plan was published
         assert listener.wait_all(20.0), sorted(listener.got)
         got = listener.got
-        _check_plan_messages(got[viz.PLAN_PATH_TOPIC], got[viz.PLAN_MARKERS_TOPIC], plan, stamp)
-        deputy = got[viz.DEPUTY_MARKERS_TOPIC]
+        _check_plan_messages(got[topics.PLAN_PATH], got[topics.PLAN_MARKERS], plan, stamp)
+        deputy = got[topics.DEPUTY_MARKERS]
         assert [m.ns for m in deputy.markers] == ["deputy", "deputy_3sigma"]
-        pose = got[viz.DEPUTY_POSE_TOPIC]
+        pose = got[topics.DEPUTY_POSE]
         assert pose.header.frame_id == "chief_rtn" and _stamp(pose.header) == stamp
         p = pose.pose.pose.position
         np.testing.assert_allclose([p.x, p.y, p.z], NOMINAL_RTN[:3], rtol=0.01, atol=20.0)
@@ -145,7 +146,7 @@ def test_visualisation_topics_over_dds_and_in_the_bag(ros_env, python_exe, tmp_p
             last[conn.topic] = reader.deserialize(raw, conn.msgtype)
     for topic in TOPICS:
         assert counts[f"/{topic}"] == counts["/guidance/maneuver_plan"] == 1
-    recorded = last[f"/{viz.PLAN_MARKERS_TOPIC}"]
+    recorded = last[f"/{topics.PLAN_MARKERS}"]
     assert len([m for m in recorded.markers if m.ns == "drift"]) == len(plan.epochs_s)
     assert recorded.markers[0].header.frame_id == "chief_rtn"
     # the layout's picture drawn from the bag (`art-guidance bag render`)
@@ -169,7 +170,7 @@ def test_foxglove_layout_shows_only_published_topics():
     assert sorted(_leaves(layout["layout"])) == sorted(panels)
     three_d = [v for k, v in panels.items() if k.startswith("3D!")]
     assert len(three_d) == 1 and three_d[0]["followTf"] == "chief_rtn"
-    published = {f"/{t}" for t in (*TOPICS, viz.TRUTH_PATH_TOPIC)}
+    published = {f"/{t}" for t in (*TOPICS, topics.TRUTH_PATH)}
     assert set(three_d[0]["topics"]) <= published
     assert {f"/{t}" for t in TOPICS} <= set(three_d[0]["topics"])
     fields = set(ManeuverPlan.get_fields_and_field_types())
