@@ -16,6 +16,16 @@ import yaml
 
 from art_guidance.errors import ConfigError
 
+# The passive-safety modes as datasets, models, logs and reports name them (the planner and the
+# ROS interface carry the same choice as the bool `chance_constrained`).
+MODES = ("deterministic", "chance")
+
+
+def mode_name(chance_constrained: bool) -> str:
+    """"chance" or "deterministic" for a `chance_constrained` flag."""
+    return MODES[1] if chance_constrained else MODES[0]
+
+
 WAYPOINT_NAMES = ("plus_vbar", "minus_vbar", "plus_rbar", "minus_rbar")
 
 

@@ -33,7 +33,7 @@ import torch
 from art_guidance.art.checkpoint import TrainedArt
 from art_guidance.art.checkpoint import load as load_checkpoint
 from art_guidance.art.rollout import rollout, training_config
-from art_guidance.config import PosthocThresholds
+from art_guidance.config import PosthocThresholds, mode_name
 from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import ModelError
 from art_guidance.optim import ConvexSolution
@@ -98,7 +98,7 @@ def resolve_model_path(spec: str | None, chance_constrained: bool = True) -> Pat
     mode (chance-constrained or deterministic), "none" = no model (CVX only), anything else a
     file path."""
     if spec is None or str(spec).strip() == "":
-        return default_model_path("chance" if chance_constrained else "deterministic")
+        return default_model_path(mode_name(chance_constrained))
     if str(spec).strip().lower() == "none":
         return None
     return Path(spec).expanduser()

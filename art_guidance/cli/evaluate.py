@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from art_guidance.config import mode_name
 from art_guidance.data.generate import ENGINES, default_workers
 from art_guidance.errors import InputError
 from art_guidance.files import write_json_atomic
@@ -68,7 +69,7 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
         "model": Path(model_path).name, "model_sha256": art.sha256,
         "representation": art.config.representation, "n_scenarios": int(m),
         "scenario_indices": [int(held["index"][0]), int(held["index"][m - 1])],
-        "mode": "chance" if safety.uncertainty is not None else "deterministic",
+        "mode": mode_name(safety.uncertainty is not None),
         "c_art_t1": _distribution(c_art), "c_cvx_t1": _distribution(c_cvx),
         "c_cvx_label_agreement": float(np.mean(c_cvx == held["cvx_constraint_to_go0"][:m])),
         "frac_c_art_zero": float(np.mean(c_art == 0)),

@@ -12,7 +12,7 @@ from art_guidance.files import write_json_atomic
 
 def run(args: argparse.Namespace) -> int:
     """Plan one randomised transfer of the paper scenario and write it as JSON."""
-    from art_guidance.config import GuidanceConfig, ScenarioConfig
+    from art_guidance.config import GuidanceConfig, ScenarioConfig, mode_name
     from art_guidance.data.stages import sample_scenario
     from art_guidance.dynamics import roe_from_rtn_linear
     from art_guidance.planning import GuidancePipeline, PlanRequest
@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
                               provider=provider).plan(request)
     data = result.to_json()
     data.update(seed=args.seed, waypoint=args.waypoint or sample.waypoint,
-                mode="deterministic" if args.deterministic else "chance", model=model_text,
+                mode=mode_name(not args.deterministic), model=model_text,
                 model_sha256=getattr(provider, "sha256", None))
     write_json_atomic(args.json, data)
     t = result.timings_ms

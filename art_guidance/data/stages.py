@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from art_guidance import __version__
-from art_guidance.config import GuidanceConfig, ScenarioConfig, UncertaintyConfig
+from art_guidance.config import MODES, GuidanceConfig, ScenarioConfig, UncertaintyConfig
 from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.optim import ScpStatus, Scvx, solve_cvx
@@ -55,7 +55,6 @@ def sample_scenario(scenario: ScenarioConfig, seed: int) -> ScenarioSample:
 
 
 # =========================================================================== 3-stage pipeline
-MODES = ("deterministic", "chance")
 STAGES = ("cvx", "collision_avoidance", "passive_safety")
 SEED_STRIDE = 1_000_003
 SEED_RULE = f"seed_i = base_seed * {SEED_STRIDE} + i"

@@ -33,7 +33,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from art_guidance import __version__
-from art_guidance.config import GuidanceConfig
+from art_guidance.config import GuidanceConfig, mode_name
 from art_guidance.data.generate import check_run_options, run_missing
 from art_guidance.data.storage import (
     MANIFEST, SUMMARY, DatasetWriter, complete_shards, load_dataset, read_manifest,
@@ -198,7 +198,7 @@ def model_info(path: str | Path) -> ModelInfo:
     from art_guidance.art.rollout import build_safety
 
     art = load(path)
-    mode = "chance" if build_safety(art).uncertainty is not None else "deterministic"
+    mode = mode_name(build_safety(art).uncertainty is not None)
     data = (art.meta or {}).get("dataset", {})
     train_n = int(data.get("n_train", 0)) + int(data.get("n_val", 0))
     return ModelInfo(str(path), str(art.sha256), mode, art.config.representation, train_n,

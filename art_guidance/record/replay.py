@@ -19,6 +19,7 @@ from mcap.records import Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
+from art_guidance.config import mode_name
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, PlanRequest
 from art_guidance.record.bag_metadata import bag_files
@@ -132,7 +133,7 @@ def recorded_mode(log: RecordedLog) -> str:
             modes.add(bool(json.loads(record.request_json).get("chance_constrained", True)))
         except (ValueError, AttributeError):  # unreadable request: judged when it is replayed
             modes.add(True)
-    return "deterministic" if modes == {False} else "chance"
+    return mode_name(modes != {False})
 
 
 def _replay_provider(log: RecordedLog, model: str | Path | None) -> tuple[object | None, str]:

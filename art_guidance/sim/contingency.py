@@ -34,7 +34,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from art_guidance import __version__
-from art_guidance.config import GuidanceConfig
+from art_guidance.config import MODES, GuidanceConfig
 from art_guidance.data.generate import check_run_options, run_missing
 from art_guidance.data.storage import DatasetWriter, load_dataset, read_manifest, sha256_bytes
 from art_guidance.errors import InputError
@@ -188,7 +188,7 @@ def header(spec: ContingencySpec, config: GuidanceConfig) -> dict:
     from art_guidance.art.provider import default_model_path, pinned_sha256
 
     models = {mode: pinned_sha256(default_model_path(mode))
-              for mode in ("chance", "deterministic")}
+              for mode in MODES}
     identity = {"format": FORMAT, "spec": asdict(spec), "models": models,
                 "guidance_config_sha256": config.sha256()}
     return {"mode": KIND, "base_seed": spec.base_seed, "n": spec.n_flights,
