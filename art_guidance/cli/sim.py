@@ -42,18 +42,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "input; with --fault loss, 0 if the post-fault drift stayed outside the ellipsoid in "
         "force. More ROS parameters (rtn0, errors, mean_elements, warm_start, config_dir, "
         "max_steps, ...) after --ros-args (last).")
-    p.add_argument("--waypoint", default="plus_vbar", help="terminal waypoint name")
-    p.add_argument("--seed", type=int, default=0,
+    from art_guidance.sim.closed_loop import PARAMETERS as P
+
+    p.add_argument("--waypoint", default=P["waypoint"], help="terminal waypoint name")
+    p.add_argument("--seed", type=int, default=P["seed"],
                    help="initial state (Table I ranges) and error samples")
     p.add_argument("--deterministic", action="store_true",
                    help="request deterministic passive safety (default: chance-constrained)")
-    p.add_argument("--png", default="out/rendezvous.png", help="plot path ('' = none)")
-    p.add_argument("--summary-json", default="out/sim_summary.json",
+    p.add_argument("--png", default=P["png_path"], help="plot path ('' = none)")
+    p.add_argument("--summary-json", default=P["summary_path"],
                    help="summary JSON path ('' = none)")
-    p.add_argument("--step-timeout", type=float, default=30.0,
+    p.add_argument("--step-timeout", type=float, default=P["step_timeout_s"],
                    help="wall-clock wait for each decision/plan [s]")
-    p.add_argument("--max-steps", type=int, default=200, help="nav fixes at most")
-    p.add_argument("--miss-tolerance", type=float, default=50.0,
+    p.add_argument("--max-steps", type=int, default=P["max_steps"], help="nav fixes at most")
+    p.add_argument("--miss-tolerance", type=float, default=P["miss_tolerance_m"],
                    help="largest final position error counted as reached [m]")
     add_fault_options(p)
     p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
@@ -69,6 +71,8 @@ def add_fault_options(p: argparse.ArgumentParser) -> None:
                    "against the ellipsoid in force) or 'missed' (that burn is not executed, "
                    "control resumes and the guidance replans); the summary's 'fault' object "
                    "gives min_margin_m, t_closest_s and entered")
-    p.add_argument("--fault-node", type=int, default=1, metavar="K",
+    from art_guidance.sim.closed_loop import PARAMETERS
+
+    p.add_argument("--fault-node", type=int, default=PARAMETERS["fault_node"], metavar="K",
                    help="burn opportunity the fault hits, counted from 0 along the flown "
                    "trajectory (default 1: right after the first burn)")

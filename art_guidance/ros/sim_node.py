@@ -32,7 +32,7 @@ end the run). The request and the first fix are re-sent every 2 s until the firs
 message published right after discovery can be lost). Plans answering stamps this run never
 sent (e.g. a node replanning an earlier run's last fix on our request) are ignored, and
 rejection notices (STATUS_REJECTED_INPUT) do not count as replans. At the end one JSON line
-(`summarize` plus run fields) goes to stdout and `summary_path`, the PNG to `png_path`; exit 0
+(`run_outcome` plus run fields) goes to stdout and `summary_path`, the PNG to `png_path`; exit 0
 if the run reached the final epoch within `miss_tolerance_m` of the waypoint, 1 otherwise
 (also on timeouts, SIGINT/SIGTERM: a partial summary is still written), 2 on bad parameters.
 """

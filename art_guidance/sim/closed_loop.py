@@ -32,7 +32,7 @@ from art_guidance.sim.faults import (
 from art_guidance.sim.link import GuidanceLink, LinkPlan
 from art_guidance.sim.plot import plot_rendezvous
 from art_guidance.sim.simulator import (
-    EPOCH_MATCH_S, RendezvousSim, koz_switch_time_s, run_safety_model, summarize,
+    EPOCH_MATCH_S, RendezvousSim, koz_switch_time_s, run_outcome, run_safety_model,
 )
 
 SIM_EPOCH0_NS = 1_000_000_000 * 1_000_000_000  # sim t = 0 is stamped 1e9 s (2001-09-09)
@@ -70,8 +70,8 @@ class Snapshot:
 
 
 @dataclass(frozen=True)
-class ActivePlan:
-    """A usable plan in sim time.
+class FlownPlan:
+    """The plan the simulator flies (the guidance's plan in force), in sim time.
 
     Attributes:
         stamp_ns: the plan's header stamp (the nav stamp it answers) [ns].
@@ -108,7 +108,7 @@ def sim_stamp_ns(t_s: float, epoch0_ns: int = SIM_EPOCH0_NS) -> int:
     return int(epoch0_ns) + int(round(float(t_s) * 1e9))
 
 
-def parse_plan(msg: LinkPlan, epoch0_ns: int = SIM_EPOCH0_NS) -> ActivePlan:
+def parse_plan(msg: LinkPlan, epoch0_ns: int = SIM_EPOCH0_NS) -> FlownPlan:
     """Validate a plan's arrays and convert its epochs to sim time.
 
     Raises:
@@ -123,8 +123,8 @@ def parse_plan(msg: LinkPlan, epoch0_ns: int = SIM_EPOCH0_NS) -> ActivePlan:
         raise InputError("dv_rtn_mps", f"need {3 * n} finite values", dv.size)
     rtn = np.asarray(msg.rtn, dtype=float)
     rtn_ok = rtn.size == 6 * n and np.all(np.isfinite(rtn))
-    return ActivePlan(msg.stamp_ns, msg.plan_id, sim_time_s(msg.stamp_ns, epoch0_ns) + epochs,
-                      dv.reshape(n, 3), rtn.reshape(n, 6) if rtn_ok else None)
+    return FlownPlan(msg.stamp_ns, msg.plan_id, sim_time_s(msg.stamp_ns, epoch0_ns) + epochs,
+                     dv.reshape(n, 3), rtn.reshape(n, 6) if rtn_ok else None)
 
 
 def exit_code(outcome: str, miss_m: float, tolerance_m: float) -> int:
@@ -183,7 +183,7 @@ class ClosedLoop:
         a_m = float(self.sim.chief_mean_oe0[0])
         self.idle_dt_s = (self.scenario.n_orbits * orbital_period_s(a_m)
                           / (self.scenario.n_nodes - 1))
-        self.active: ActivePlan | None = None
+        self.active: FlownPlan | None = None
         self.first_plan_t_s: float | None = None
         self.executed: set[tuple[int, int]] = set()
         self.sent: set[int] = set()  # nav stamps published by this run
@@ -402,9 +402,9 @@ class ClosedLoop:
         p = self.p
         switch = koz_switch_time_s(self.scenario, self.sim.chief_mean_oe0[0],
                                    self.first_plan_t_s or 0.0)
-        summary = summarize(self.sim, self.target,
-                            run_safety_model(self.sim, koz_switch_t_s=switch),
-                            self.counts["replans"])
+        summary = run_outcome(self.sim, self.target,
+                              run_safety_model(self.sim, koz_switch_t_s=switch),
+                              self.counts["replans"])
         reached = exit_code(outcome, summary["miss_m"], p["miss_tolerance_m"]) == 0
         fault, drift = self.fault_report()
         code = fault_exit_code(fault, reached)

@@ -18,8 +18,9 @@ model of that mode with the post hoc check; "cvx": CVX only).
 
 Flights run as chunks on the local process pool or Ray (`data.generate.run_missing`) and each
 finished chunk is committed to the output directory, so an interrupted run resumes where it
-stopped. `summarize` turns the committed rows into entry rates with exact (Clopper-Pearson)
-95 % upper bounds, the worst margins, the missed-burn outcomes and the figures.
+stopped. `summarize_directory` turns the committed rows into entry rates with exact
+(Clopper-Pearson) 95 % upper bounds, the worst margins, the missed-burn outcomes and the
+figures.
 """
 from __future__ import annotations
 
@@ -244,7 +245,7 @@ def run(out: str | Path, spec: ContingencySpec | None = None, *, workers: int = 
             "flights": int(writer.done_indices.size) - done0, "wall_s": wall, "status": status,
             "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     runs = _previous_runs(out) + ([this] if this["flights"] else [])
-    summary = summarize(out, this, runs)
+    summary = summarize_directory(out, this, runs)
     if figures and summary["complete"]:
         summary["figures"] = render(out)
     write_json_atomic(out / "summary.json", summary)
@@ -281,8 +282,8 @@ def _previous_runs(out: Path) -> list[dict]:
         return []
 
 
-def summarize(out: str | Path, this: dict | None = None, runs: list[dict] | None = None
-              ) -> dict:
+def summarize_directory(out: str | Path, this: dict | None = None,
+                        runs: list[dict] | None = None) -> dict:
     """Entry rates, bounds, worst margins and missed-burn outcomes per configuration; `this`
     is the invocation that produced it, `runs` every invocation that flew flights."""
     head, rows = read_rows(out)

@@ -55,7 +55,7 @@ def plot_rendezvous(path: str | Path, sim: RendezvousSim, scenario: ScenarioConf
         scenario: scenario (ellipsoid semi-axes [m]).
         plan_rtn: (N, 6) planned RTN trajectory [m, m/s], or None.
         target_rtn: (6,) waypoint [m, m/s], or None.
-        summary: `summarize` output for the title, or None.
+        summary: `run_outcome` output for the title, or None.
         fault_drift: a `sim.faults.DriftCheck`: the truth drift after a fault (drawn in red,
             with its closest approach), or None.
     """

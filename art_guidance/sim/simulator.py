@@ -458,8 +458,8 @@ def run_safety_model(sim: RendezvousSim, uncertainty: UncertaintyConfig | None =
                          koz_switch_node=min(switch, n_nodes))
 
 
-def summarize(sim: RendezvousSim, target_rtn: object, safety_model: PassiveSafety | None = None,
-              n_replans: int = 0) -> dict:
+def run_outcome(sim: RendezvousSim, target_rtn: object,
+                safety_model: PassiveSafety | None = None, n_replans: int = 0) -> dict:
     """Outcome of a run, as JSON-ready numbers.
 
     Passive safety of the *realised* trajectory: at every executed node the post-burn state

@@ -13,7 +13,7 @@ from art_guidance.config import ScenarioConfig, UncertaintyConfig
 from art_guidance.errors import InputError
 from art_guidance.sim.simulator import (
     RendezvousSim, koz_switch_time_s, mean_elements_of_chief, propagate_truth,
-    run_safety_model, summarize,
+    run_outcome, run_safety_model,
 )
 from art_guidance.sim.plot import plot_rendezvous
 
@@ -249,7 +249,7 @@ def test_summarize_hand_built_run(scenario, vbar_run):
     the 1000 m approach ellipsoid (margin ~ -250 m, measured -260 m) and outside the 200 m
     keep-out zone when it applies from t = 0 (margin ~ 550 m, measured 540 m).
     """
-    s = summarize(vbar_run, VBAR, None, n_replans=1)
+    s = run_outcome(vbar_run, VBAR, None, n_replans=1)
     assert s["n_burns"] == 3 and s["n_replans"] == 1
     assert s["final_t_s"] == 600.0
     assert s["total_dv_mps"] == pytest.approx(3e-3, rel=1e-12)
@@ -260,17 +260,17 @@ def test_summarize_hand_built_run(scenario, vbar_run):
     assert 700.0 < s["min_range_m"] <= 750.0 + 1e-6
     assert np.allclose(s["target_rtn"], VBAR)
     koz = run_safety_model(vbar_run, koz_switch_t_s=0.0)
-    s_koz = summarize(vbar_run, VBAR, koz)
+    s_koz = run_outcome(vbar_run, VBAR, koz)
     assert 530.0 < s_koz["min_safety_margin_m"] < 570.0
     assert koz_switch_time_s(scenario, scenario.chief_oe[0]) == pytest.approx(
         55 / 99 * 1.29 * _period(scenario), rel=1e-12)
     with pytest.raises(InputError):
-        summarize(vbar_run, VBAR[:3])
+        run_outcome(vbar_run, VBAR[:3])
 
 
 def test_summarize_before_any_burn(scenario):
     sim = RendezvousSim(scenario, None, VBAR, 0)
-    s = summarize(sim, VBAR)
+    s = run_outcome(sim, VBAR)
     assert s["n_burns"] == 0 and s["min_safety_margin_m"] is None
     assert s["miss_m"] < 1e-6 and s["total_dv_mps"] == 0.0
 
@@ -280,7 +280,7 @@ def test_plot_rendezvous_writes_png(tmp_path, scenario, vbar_run):
     path = tmp_path / "sub" / "run.png"
     plan = np.tile(VBAR, (3, 1))
     plot_rendezvous(path, vbar_run, scenario, plan, target_rtn=VBAR,
-                    summary=summarize(vbar_run, VBAR, None, 1))
+                    summary=run_outcome(vbar_run, VBAR, None, 1))
     data = path.read_bytes()
     assert data[:8] == PNG_MAGIC and len(data) > 10_000
     image = imread(path)
