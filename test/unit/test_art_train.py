@@ -71,6 +71,7 @@ def test_training_uses_the_train_split_only_and_its_statistics(dataset):
     assert torch.allclose(z.reshape(-1, 6).mean(0), torch.zeros(6), atol=1e-5)
 
 
+@pytest.mark.slow
 def test_training_overfits_a_tiny_dataset(dataset, tmp_path):
     out = tmp_path / "overfit.pt"
     data = load_training_data([str(dataset)], "roe", OVERFIT["val_fraction"], seed=0)

@@ -26,11 +26,14 @@ from art_guidance.art import checkpoint
 from art_guidance.art.train import state_path
 from art_guidance.data.generate import generate
 
+pytestmark = pytest.mark.slow  # training processes (SIGKILL, resume, torchrun)
+
 # The `train` subcommand alone, with the CLI's error handling (exit 2 on GuidanceError).
 RUNNER = """
 import argparse, json, sys
 from art_guidance.cli.train import add_parser
 from art_guidance.errors import GuidanceError
+
 parser = argparse.ArgumentParser(prog="art-guidance")
 add_parser(parser.add_subparsers(dest="command"))
 args = parser.parse_args(sys.argv[1:])

@@ -168,6 +168,7 @@ def test_reruns_chunkings_and_resume_give_identical_data(src, model, dag, dag_di
     assert (cut / MANIFEST).read_bytes() == manifest
 
 
+@pytest.mark.slow
 def test_ray_engine_gives_the_same_data(src, model, dag, tmp_path):
     ray = pytest.importorskip("ray", reason="Ray is not installed (pip install .[distributed])")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)

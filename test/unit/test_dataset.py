@@ -110,6 +110,7 @@ def _run_cli(args: list[str]) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
+@pytest.mark.slow
 def test_resume_after_sigkill_loses_and_duplicates_nothing(tmp_path, ref):
     out = tmp_path / "killed"
     args = CMD + ["--out", str(out)]
@@ -294,6 +295,7 @@ def test_stored_quantities_are_consistent(chance):
         assert np.array_equal(ctg, safety.evaluate(roe, dv).constraint_to_go)
 
 
+@pytest.mark.slow
 def test_ray_engine_gives_the_same_data(tmp_path, ref):
     ray = pytest.importorskip("ray", reason="Ray is not installed (pip install .[distributed])")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)

@@ -85,6 +85,7 @@ def ref(inputs, tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_each_model_runs_on_the_datasets_of_its_mode(ref, inputs):
     summary = json.loads((ref / "summary.json").read_text())
     assert summary["complete"] and summary["n_done"] == summary["n_scenarios"] == 2 * N_EVAL

@@ -28,6 +28,8 @@ from art_guidance.optim import Scvx, solve_cvx
 from art_guidance.safety import PassiveSafety
 from helpers import orbit_truth as truth
 
+pytestmark = pytest.mark.slow  # Monte Carlo / SCVx* plans integrated in the truth
+
 SEEDS = tuple(range(20))
 STEP_S = 5.0
 BUDGET_M, BUDGET_REL = 2.0, 2.5e-3  # minimum-distance error budget [m] + fraction of rho

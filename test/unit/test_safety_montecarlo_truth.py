@@ -32,6 +32,8 @@ from art_guidance.optim import Scvx, solve_cvx
 from art_guidance.safety import PassiveSafety
 from helpers import orbit_truth as truth
 
+pytestmark = pytest.mark.slow  # Monte Carlo / SCVx* plans integrated in the truth
+
 SC = ScenarioConfig()
 UNC = UncertaintyConfig()
 N_MC = 60_000
