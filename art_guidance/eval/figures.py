@@ -22,8 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-from art_guidance.config import GuidanceConfig
-from art_guidance.eval import example as ex_io
 from art_guidance.eval.warmstart import BINS, EC_EDGES, ER_PCT_EDGES
 
 _COLORS = {"cvx": "tab:gray", "art": "tab:orange", "ps_cvx": "tab:blue", "ps_art": "tab:red"}
@@ -305,62 +303,20 @@ def plot_example_constraints(path: Path, ex: dict, m: dict) -> str:
     return _save(fig, path)
 
 
-def _example(out: Path, head: dict, cols: dict, m: dict, recompute: bool) -> dict | None:
-    """Model k's example: stored, or recomputed (and stored) when asked and missing."""
-    from art_guidance.eval import runner
-
-    k = m["k"]
-    i = runner.example_index(cols, k)
-    if i is None:
-        return None
-    path = runner.example_path(out, k)
-    ex = ex_io.load(path)
-    if (ex is None or int(ex["index"]) != i) and recompute:
-        info = runner.ModelInfo(**head["evaluation"]["models"][k])
-        provider, safety = runner.load_model(info)
-        pos = int(np.flatnonzero(cols["index"] == i)[0])
-        config = GuidanceConfig.from_json(head["evaluation"]["config"])
-        request = runner.request_of(cols["roe0_m"][pos], cols["target_rtn"][pos], safety)
-        ex = ex_io.recompute(request, safety, provider, config,
-                             {f: cols[f][pos] for f in cols})
-        ex_io.save(path, ex, i)
-        ex = ex_io.load(path)
-    if ex is None or int(ex["index"]) != i:
-        return None
-    pos = int(np.flatnonzero(cols["index"] == i)[0])
-    m["example"] = {"pair_index": i, "dataset": int(cols["dataset"][pos]),
-                    "sample": int(cols["sample"][pos]),
-                    "gain_mps": float(ex["j_scp_cvx"] - ex["j_scp_art"]),
-                    "reproduced": bool(ex["reproduced"]),
-                    "file": str(path.relative_to(out))}
-    return ex
-
-
-def render(out: str | Path, summary: dict, recompute: bool = True) -> list[str]:
-    """Write every figure of an evaluation directory; returns the file names.
+def render_model(figs: Path, m: dict, thresholds: dict, ex: dict | None) -> list[str]:
+    """Draw one model's figures into `figs` (the directory); returns the file names.
 
     Args:
-        out: the evaluation directory (its figures go to `out/figures`).
-        summary: its summary (`runner.build_summary`); each model's "example" entry is set.
-        recompute: solve the example scenarios that are not stored yet (else skip them).
+        figs: output directory.
+        m: the model's summary entry (`runner.build_summary`).
+        thresholds: the post hoc region (the evaluation's planning.posthoc configuration).
+        ex: its largest-gain example (`eval.example`), or None to skip its two figures.
     """
-    from art_guidance.eval import runner
-
-    out = Path(out)
-    head, cols = runner.read_results(out)
-    thresholds = head["evaluation"]["config"]["planning"]["posthoc"]
-    figs = out / runner.FIGURES
-    names = []
-    for m in summary["models"]:
-        if not m.get("n"):
-            continue
-        slug = f"{m['k']}-{m['representation']}-{m['mode']}"
-        names.append(plot_warmstart(figs / f"warmstart-{slug}.png", m))
-        names.append(plot_posthoc_maps(figs / f"posthoc-maps-{slug}.png", m, thresholds))
-        names.append(plot_posthoc_hist(figs / f"posthoc-hist-{slug}.png", m))
-        ex = _example(out, head, cols, m, recompute)
-        if ex is not None:
-            names.append(plot_example(figs / f"example-{slug}.png", ex, m))
-            names.append(plot_example_constraints(figs / f"example-constraints-{slug}.png",
-                                                  ex, m))
+    slug = f"{m['k']}-{m['representation']}-{m['mode']}"
+    names = [plot_warmstart(figs / f"warmstart-{slug}.png", m),
+             plot_posthoc_maps(figs / f"posthoc-maps-{slug}.png", m, thresholds),
+             plot_posthoc_hist(figs / f"posthoc-hist-{slug}.png", m)]
+    if ex is not None:
+        names.append(plot_example(figs / f"example-{slug}.png", ex, m))
+        names.append(plot_example_constraints(figs / f"example-constraints-{slug}.png", ex, m))
     return names

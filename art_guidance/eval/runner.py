@@ -40,6 +40,7 @@ from art_guidance.data.storage import (
     sha256_bytes,
 )
 from art_guidance.errors import DatasetError, InputError
+from art_guidance.eval import example as ex_io
 from art_guidance.eval.warmstart import ROW_FIELDS, columns, compare, gains, summarize
 
 KIND = "evaluation"   # the manifest header's "mode" of an evaluation directory
@@ -435,8 +436,6 @@ def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequ
         summary = build_summary(out, this, held)
         write_summary(out, summary)
     if summary["complete"] and figures:
-        from art_guidance.eval.figures import render
-
         summary["figures"] = render(out, summary, recompute=True)
         write_summary(out, summary)
     _report(summary, log)
@@ -520,8 +519,6 @@ def rerender(out: str | Path, log: Callable[[str], None] = print) -> dict:
     Raises:
         DatasetError: not an evaluation directory.
     """
-    from art_guidance.eval.figures import render
-
     out = Path(out)
     summary = build_summary(out, None)
     summary["figures"] = render(out, summary, recompute=False)
@@ -549,6 +546,56 @@ def _report(summary: dict, log: Callable[[str], None]) -> None:
             f"{b['iterations_cvx']['mean']:.1f} ART {b['iterations_art']['mean']:.1f}; "
             f"not converged CVX {100 * b['infeasible_rate_cvx']:.0f} % ART "
             f"{100 * b['infeasible_rate_art']:.0f} %")
+
+
+def _example(out: Path, head: dict, cols: dict, m: dict, recompute: bool) -> dict | None:
+    """Model k's example: stored, or recomputed (and stored) when asked and missing."""
+    k = m["k"]
+    i = example_index(cols, k)
+    if i is None:
+        return None
+    path = example_path(out, k)
+    ex = ex_io.load(path)
+    if (ex is None or int(ex["index"]) != i) and recompute:
+        info = ModelInfo(**head["evaluation"]["models"][k])
+        provider, safety = load_model(info)
+        pos = int(np.flatnonzero(cols["index"] == i)[0])
+        config = GuidanceConfig.from_json(head["evaluation"]["config"])
+        request = request_of(cols["roe0_m"][pos], cols["target_rtn"][pos], safety)
+        ex = ex_io.recompute(request, safety, provider, config,
+                             {f: cols[f][pos] for f in cols})
+        ex_io.save(path, ex, i)
+        ex = ex_io.load(path)
+    if ex is None or int(ex["index"]) != i:
+        return None
+    pos = int(np.flatnonzero(cols["index"] == i)[0])
+    m["example"] = {"pair_index": i, "dataset": int(cols["dataset"][pos]),
+                    "sample": int(cols["sample"][pos]),
+                    "gain_mps": float(ex["j_scp_cvx"] - ex["j_scp_art"]),
+                    "reproduced": bool(ex["reproduced"]),
+                    "file": str(path.relative_to(out))}
+    return ex
+
+
+def render(out: str | Path, summary: dict, recompute: bool = True) -> list[str]:
+    """Write every figure of an evaluation directory (`eval.figures`); returns the file names.
+
+    Args:
+        out: the evaluation directory (its figures go to `out/figures`).
+        summary: its summary (`build_summary`); each model's "example" entry is set.
+        recompute: solve the example scenarios that are not stored yet (else skip them).
+    """
+    from art_guidance.eval.figures import render_model
+
+    out = Path(out)
+    head, cols = read_results(out)
+    thresholds = head["evaluation"]["config"]["planning"]["posthoc"]
+    names = []
+    for m in summary["models"]:
+        if m.get("n"):
+            ex = _example(out, head, cols, m, recompute)
+            names += render_model(out / FIGURES, m, thresholds, ex)
+    return names
 
 
 def example_path(out: str | Path, k: int) -> Path:
