@@ -13,7 +13,7 @@ missed-burn outcomes; the throughput is losses per CPU second.
 """
 from __future__ import annotations
 
-from art_guidance.data.generate import default_workers
+from art_guidance.jobs import default_workers
 from art_guidance.sim.contingency import ContingencySpec, run as run_mc
 
 

@@ -17,7 +17,7 @@ import torch
 
 from art_guidance.art.provider import ArtWarmStart
 from art_guidance.config import ScenarioConfig
-from art_guidance.data.stages import sample_scenario
+from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import GuidancePipeline, PlanRequest
 

@@ -15,7 +15,7 @@ import numpy as np
 from tqdm import tqdm
 
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
-from art_guidance.data.stages import sample_scenario
+from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.optim import ScpStatus, Scvx, solve_cvx
 from cvxpy_reference import cvxpy_tpbvp

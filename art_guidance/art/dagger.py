@@ -47,9 +47,8 @@ import numpy as np
 from art_guidance import __version__
 from art_guidance.config import GuidanceConfig
 from art_guidance.data import stages as _stages
-from art_guidance.data.generate import (
-    check_run_options, default_workers, run_missing, shard_stats,
-)
+from art_guidance.data.generate import shard_stats
+from art_guidance.jobs import check_run_options, default_workers, run_missing
 from art_guidance.data.stages import (
     KEPT_INFEASIBLE, STAGES, GenerationSpec, Stage, infeasible_trajectory_fields,
     solve_stages, stage_fields, trajectory_fields,

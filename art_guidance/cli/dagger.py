@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from art_guidance.data.generate import ENGINES
+from art_guidance.jobs import ENGINES
 
 
 def run(args: argparse.Namespace) -> int:

@@ -6,7 +6,7 @@ import inspect
 import sys
 from pathlib import Path
 
-from art_guidance.data.generate import ENGINES, default_workers
+from art_guidance.jobs import ENGINES, default_workers
 from art_guidance.errors import InputError
 from art_guidance.files import write_json_atomic
 

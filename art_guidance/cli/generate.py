@@ -5,7 +5,7 @@ import argparse
 from pathlib import Path
 
 from art_guidance.data.stages import MODES, SEED_STRIDE
-from art_guidance.data.generate import ENGINES
+from art_guidance.jobs import ENGINES
 
 
 def run(args: argparse.Namespace) -> int:

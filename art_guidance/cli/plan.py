@@ -13,7 +13,7 @@ from art_guidance.files import write_json_atomic
 def run(args: argparse.Namespace) -> int:
     """Plan one randomised transfer of the paper scenario and write it as JSON."""
     from art_guidance.config import GuidanceConfig, ScenarioConfig, mode_name
-    from art_guidance.data.stages import sample_scenario
+    from art_guidance.scenarios import sample_scenario
     from art_guidance.dynamics import roe_from_rtn_linear
     from art_guidance.planning import GuidancePipeline, PlanRequest
 

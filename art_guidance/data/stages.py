@@ -1,7 +1,7 @@
 """Randomised rendezvous scenarios and the paper's 3-stage dataset pipeline.
 
-`sample_scenario` draws one transfer (paper Table I ranges) from an integer seed. A dataset of
-n samples uses the seeds of SEED_RULE; every sample is solved in three stages (paper,
+A dataset of n samples draws its transfers with `scenarios.sample_scenario` from the seeds of
+`scenarios.SEED_RULE`; every sample is solved in three stages (paper,
 "Dataset generation"): the convex TPBVP (CVX), a collision-avoidance SCP warm-started by it, and
 the passive-safety SCP (deterministic or chance-constrained) warm-started by that; the last
 feasible solution is stored with its reward-to-go and constraint-to-go. Every record depends on
@@ -27,6 +27,9 @@ from art_guidance.errors import GuidanceError, InputError
 from art_guidance.optim import ScpStatus, Scvx, solve_cvx
 from art_guidance.safety import PassiveSafety
 from art_guidance.data.storage import load_dataset
+from art_guidance.scenarios import (
+    SEED_RULE, SEED_STRIDE, ScenarioSample, sample_scenario, sample_seed,
+)
 
 __all__ = ["FIELDS", "MODES", "SEED_RULE", "SEED_STRIDE", "STAGES", "TIMING_FIELDS",
            "GenerationSpec", "ScenarioSample", "Stage", "generate_chunk",
@@ -34,30 +37,8 @@ __all__ = ["FIELDS", "MODES", "SEED_RULE", "SEED_STRIDE", "STAGES", "TIMING_FIEL
            "solve_sample", "solve_stages", "stage_fields", "trajectory_fields"]
 
 
-@dataclass(frozen=True)
-class ScenarioSample:
-    """One randomised transfer: initial RTN state and a terminal waypoint."""
-
-    seed: int
-    rtn0: np.ndarray       # (6,) initial relative RTN state [m, m/s]
-    waypoint: str          # name of the waypoint in the scenario config
-    target_rtn: np.ndarray  # (6,) terminal RTN state [m, m/s]
-
-
-def sample_scenario(scenario: ScenarioConfig, seed: int) -> ScenarioSample:
-    """Uniform initial state around the nominal one and a uniformly chosen waypoint."""
-    rng = np.random.default_rng(int(seed))
-    half = np.asarray(scenario.rtn0_half_width)
-    rtn0 = np.asarray(scenario.rtn0_nominal) + rng.uniform(-1.0, 1.0, 6) * half
-    names = sorted(scenario.waypoints_rtn)
-    name = names[int(rng.integers(len(names)))]
-    return ScenarioSample(int(seed), rtn0, name, np.asarray(scenario.waypoints_rtn[name]))
-
-
 # =========================================================================== 3-stage pipeline
 STAGES = ("cvx", "collision_avoidance", "passive_safety")
-SEED_STRIDE = 1_000_003
-SEED_RULE = f"seed_i = base_seed * {SEED_STRIDE} + i"
 # Bump when a code change alters the stored data of a given seed. 2: passive safety over the
 # continuous drift arc (certified t*, issue 13): new SCP solutions, constraint-to-go and margins.
 # 3: SCVx* plans with B at the deputy's state and the second-order along-track drift
@@ -99,14 +80,6 @@ FIELDS = {
     "stage_cost_mps": "(3,) cost of each stage's returned trajectory [m/s]",
     "stage_time_ms": "(3,) wall time per stage [ms] (not reproducible)",
 }
-
-
-def sample_seed(base_seed: int, index: int) -> int:
-    """Scenario seed of sample `index` of a dataset started with `base_seed` (SEED_RULE).
-
-    With index < SEED_STRIDE the seeds of different base seeds never collide.
-    """
-    return int(base_seed) * SEED_STRIDE + int(index)
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,6 @@ import numpy as np
 
 from art_guidance import __version__
 from art_guidance.config import GuidanceConfig, mode_name
-from art_guidance.data.generate import check_run_options, run_missing
 from art_guidance.data.storage import (
     MANIFEST, SUMMARY, DatasetWriter, complete_shards, load_dataset, read_manifest,
     sha256_bytes,
@@ -42,6 +41,7 @@ from art_guidance.data.storage import (
 from art_guidance.errors import DatasetError, InputError
 from art_guidance.eval import example as ex_io
 from art_guidance.eval.warmstart import ROW_FIELDS, columns, compare, gains, summarize
+from art_guidance.jobs import check_run_options, run_missing
 
 KIND = "evaluation"   # the manifest header's "mode" of an evaluation directory
 FORMAT = 1

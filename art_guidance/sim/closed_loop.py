@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
-from art_guidance.data.stages import sample_scenario
+from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import InputError
 from art_guidance.files import write_json_atomic

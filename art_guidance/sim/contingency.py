@@ -16,7 +16,7 @@ model of that mode with the post hoc check; "cvx": CVX only).
   (a missed zero burn changes nothing). Each reports whether the waypoint was still reached
   and the worst truth drift from the nodes flown after the fault.
 
-Flights run as chunks on the local process pool or Ray (`data.generate.run_missing`) and each
+Flights run as chunks on the local process pool or Ray (`jobs.run_missing`) and each
 finished chunk is committed to the output directory, so an interrupted run resumes where it
 stopped. `summarize_directory` turns the committed rows into entry rates with exact
 (Clopper-Pearson) 95 % upper bounds, the worst margins, the missed-burn outcomes and the
@@ -36,10 +36,10 @@ import numpy as np
 
 from art_guidance import __version__
 from art_guidance.config import MODES, GuidanceConfig
-from art_guidance.data.generate import check_run_options, run_missing
 from art_guidance.data.storage import DatasetWriter, load_dataset, read_manifest, sha256_bytes
 from art_guidance.errors import InputError
 from art_guidance.files import write_json_atomic
+from art_guidance.jobs import check_run_options, run_missing
 from art_guidance.sim.faults import ZONES, Fault
 
 KIND = "contingency"

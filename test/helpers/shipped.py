@@ -5,7 +5,7 @@ import numpy as np
 
 from art_guidance.art.provider import DEFAULT_MODEL, shipped_models
 from art_guidance.config import ScenarioConfig
-from art_guidance.data.stages import sample_scenario, sample_seed
+from art_guidance.scenarios import sample_scenario, sample_seed
 from art_guidance.data.storage import train_test_split
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import PlanRequest

@@ -14,7 +14,7 @@ from helpers.rosbag2_metadata import consistency_problems, metadata_problems
 
 from art_guidance.cli import main as cli_main
 from art_guidance.config import GuidanceConfig, ScenarioConfig
-from art_guidance.data.stages import sample_scenario
+from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import GuidancePipeline, PlanRequest
 from art_guidance.errors import ConfigError, InputError

@@ -16,7 +16,7 @@ from helpers.art_models import write_untrained_checkpoint
 from art_guidance.art.provider import ArtWarmStart
 from art_guidance.cli import main as cli_main
 from art_guidance.config import GuidanceConfig, ScenarioConfig
-from art_guidance.data.stages import sample_scenario
+from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import CheckpointError
 from art_guidance.optim import ScpStatus

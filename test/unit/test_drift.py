@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
-from art_guidance.data.stages import sample_scenario
+from art_guidance.scenarios import sample_scenario
 from art_guidance.drift import CERT_TOL, CERT_TOL_REL, ArcPoints
 from art_guidance.dynamics import (
     Horizon, propagate_mean_oe, roe_from_rtn_linear, stm_basis, stm_basis_orders, stm_j2,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from art_guidance.config import GuidanceConfig, ScenarioConfig
-from art_guidance.data.stages import sample_scenario
+from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import ConfigError
 from art_guidance.optim import ScpStatus

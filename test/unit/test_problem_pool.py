@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
-from art_guidance.data.stages import sample_scenario
+from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.optim import Scvx, solve_cvx
 from art_guidance.optim import problem

@@ -26,7 +26,7 @@ import pytest
 from scipy import stats
 
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
-from art_guidance.data.stages import sample_scenario
+from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import Horizon
 from art_guidance.optim import Scvx, solve_cvx
 from art_guidance.safety import PassiveSafety
