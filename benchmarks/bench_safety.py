@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
-from art_guidance.drift import CERT_TOL, CERT_TOL_REL
+from art_guidance.safety.drift import CERT_TOL, CERT_TOL_REL
 from art_guidance.dynamics import Horizon, control_matrix_deputy, time_grid_s
 from art_guidance.safety import PassiveSafety
 

@@ -1,8 +1,9 @@
 """Continuous-time passive safety: closed-form drift arcs, certified minimum, fly-by, node API.
 
-The references here are independent of `drift.py`: drift positions from `PassiveSafety.drift_maps`
-(dynamics.stm_j2 and psi_from_latitude at each instant) and margins from a dense 1 s evaluation
-of those maps, with the covariance propagated explicitly (Phi X Phi^T) for the chance margin.
+The references here are independent of `safety/drift.py`: drift positions from
+`PassiveSafety.drift_maps` (dynamics.stm_j2 and psi_from_latitude at each instant) and margins
+from a dense 1 s evaluation of those maps, with the covariance propagated explicitly (Phi X
+Phi^T) for the chance margin.
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.scenarios import sample_scenario
-from art_guidance.drift import CERT_TOL, CERT_TOL_REL, ArcPoints
+from art_guidance.safety.drift import CERT_TOL, CERT_TOL_REL, ArcPoints
 from art_guidance.dynamics import (
     Horizon, propagate_mean_oe, roe_from_rtn_linear, stm_basis, stm_basis_orders, stm_j2,
     stm_j2_terms,

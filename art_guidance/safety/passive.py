@@ -42,7 +42,7 @@ import numpy as np
 
 from art_guidance.checks import as_finite_array
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
-from art_guidance.drift import ArcItems, ArcMinimum, DriftArcs
+from art_guidance.safety.drift import ArcItems, ArcMinimum, DriftArcs
 from art_guidance.dynamics import (
     Horizon, mean_arg_latitude, mean_motion, orbital_period_s, propagate_mean_oe,
     psi_from_latitude, stm_j2,

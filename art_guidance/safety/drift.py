@@ -64,7 +64,7 @@ from math import comb
 
 import numpy as np
 
-from art_guidance.drift_bounds import N_ORDERS, ArcItems, ArcPoints, lower_bound
+from art_guidance.safety.drift_bounds import N_ORDERS, ArcItems, ArcPoints, lower_bound
 from art_guidance.dynamics import (
     j2_secular_rates, mean_arg_latitude, psi_from_latitude, stm_basis_orders, stm_j2_terms,
 )

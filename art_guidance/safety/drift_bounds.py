@@ -1,6 +1,6 @@
 """Certified lower bounds of the passive-safety margin on intervals of a drift arc.
 
-Step 2 of `art_guidance.drift` (see its docstring for the closed form and the search). On an
+Step 2 of `art_guidance.safety.drift` (see its docstring for the closed form and the search). On an
 interval ``[a, a + h]`` of an arc with sampled values and slopes at both ends (`ArcPoints`) and
 the derivative bounds ``Y_r``, ``A_r`` of its `ArcItems`, `lower_bound` returns a number that
 the margin ``m = d - 1 - q sigma`` cannot go below anywhere in the interval, in stages of

@@ -1,0 +1,10 @@
+"""Passive (free-drift) safety with state uncertainty, the paper's central constraint.
+
+- `passive`: `PassiveSafety` (ellipsoids, the drift maps, the q-sigma margin, its evaluation
+  and linearisation for SCVx*);
+- `drift`: the free drift in closed form and its certified continuous minimum (`DriftArcs`);
+- `drift_bounds`: the lower bounds that let that search skip sample intervals.
+"""
+from art_guidance.safety.passive import (  # noqa: F401
+    PassiveSafety, SafetyEvaluation, SafetyLinearization,
+)
