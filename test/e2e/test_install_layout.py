@@ -46,7 +46,7 @@ def test_ament_index_marker_and_share(prefix):
 
 def test_installed_cli_runs_from_prefix(prefix):
     site = next(prefix.glob("lib/python3*/site-packages"))
-    assert (site / "art_guidance" / "dynamics.py").is_file()
+    assert (site / "art_guidance" / "dynamics" / "horizon.py").is_file()
     env = dict(os.environ, PYTHONPATH=str(site), ART_GUIDANCE_CONFIG_DIR="")
     out = subprocess.run([sys.executable, str(prefix / "lib/art_guidance/art-guidance"), "--help"],
                          env=env, capture_output=True, text=True, timeout=60, cwd=prefix)

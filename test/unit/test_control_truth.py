@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from art_guidance import dynamics as dyn
+from art_guidance.errors import InputError
 from art_guidance.config import ScenarioConfig
 from helpers import orbit_truth as truth
 
@@ -81,5 +82,5 @@ def test_deputy_control_matrix_reduces_to_the_chief_one() -> None:
                                   dyn.control_matrix(chief))
     single = dyn.control_matrix_deputy(chief, STATES[0])
     np.testing.assert_allclose(single, dyn.control_matrix_deputy(chief, STATES)[0], rtol=1e-15)
-    with pytest.raises(dyn.InputError):
+    with pytest.raises(InputError):
         dyn.control_matrix_deputy(chief, np.full(5, 1.0))

@@ -145,7 +145,7 @@ def test_chief_mean_model_follows_the_truth(scenario):
         sim.advance(dyn.orbital_period_s(sim.chief_mean_oe0[0]))
         truth = mean_elements_of_chief(sim.chief_eci)
         model = sim.chief_mean_oe()
-        drift[mean] = float(dyn._wrap(truth[4] + truth[5] - model[4] - model[5]))
+        drift[mean] = float(dyn.elements._wrap(truth[4] + truth[5] - model[4] - model[5]))
     assert abs(drift[True]) < 1e-4
     assert abs(drift[False]) > 5e-3
     sim = RendezvousSim(scenario, None, VBAR, 0)

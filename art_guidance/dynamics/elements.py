@@ -1,0 +1,175 @@
+"""Orbit elements: constants, mean motion, J2 secular rates, ROE <-> elements, Kepler,
+elements <-> inertial states.
+
+Orbit elements are ``(a [m], e, i, raan, argp, M)`` with angles in radians; ROE are
+quasi-nonsingular and scaled by the chief's a, ``roe_m = a * [da, dlambda, dex, dey, dix, diy]``
+[m]. The exact conversions treat the elements they are given as osculating Keplerian elements.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from art_guidance.checks import as_finite_array
+from art_guidance.errors import InputError
+
+MU_M3PS2 = 3.986004415e14
+R_EARTH_M = 6378136.3
+J2 = 1.082635819197e-3
+
+
+# --------------------------------------------------------------------------- orbit elements
+def check_oe(oe: object, field: str = "chief_oe") -> np.ndarray:
+    """Validate orbit elements (a [m], e, i, raan, argp, M [rad]); return a (6,) array."""
+    arr = as_finite_array(field, oe, (6,))
+    if arr[0] <= 0:
+        raise InputError(field, "semi-major axis must be positive [m]", arr[0])
+    if arr[0] < R_EARTH_M:
+        raise InputError(field, "semi-major axis is below the Earth's radius [m]", arr[0])
+    if not 0.0 <= arr[1] < 1.0:
+        raise InputError(field, "eccentricity must be in [0, 1)", arr[1])
+    return arr
+
+
+def mean_motion(a_m: float) -> float:
+    """Keplerian mean motion [rad/s] for semi-major axis `a_m` [m]."""
+    return float(np.sqrt(MU_M3PS2 / a_m**3))
+
+
+def orbital_period_s(a_m: float) -> float:
+    """Keplerian period [s]."""
+    return 2.0 * np.pi / mean_motion(a_m)
+
+
+def j2_secular_rates(oe: np.ndarray) -> tuple[float, float, float]:
+    """Mean J2 secular rates (raan_dot, argp_dot, M_dot) [rad/s] for mean elements `oe`."""
+    a, e, i = oe[0], oe[1], oe[2]
+    eta = np.sqrt(1.0 - e * e)
+    kappa = 0.75 * J2 * R_EARTH_M**2 * np.sqrt(MU_M3PS2) / (a**3.5 * eta**4)
+    cos_i = np.cos(i)
+    raan_dot = -2.0 * kappa * cos_i
+    argp_dot = kappa * (5.0 * cos_i**2 - 1.0)
+    m_dot = mean_motion(a) + kappa * eta * (3.0 * cos_i**2 - 1.0)
+    return float(raan_dot), float(argp_dot), float(m_dot)
+
+
+def propagate_mean_oe(oe: object, tau_s: float | np.ndarray) -> np.ndarray:
+    """Propagate mean elements by `tau_s` [s] with the J2 secular rates: (6,) or (K, 6)."""
+    oe = check_oe(oe)
+    raan_dot, argp_dot, m_dot = j2_secular_rates(oe)
+    tau = np.asarray(tau_s, dtype=float)
+    out = np.broadcast_to(oe, tau.shape + (6,)).copy()
+    out[..., 3] = oe[3] + raan_dot * tau
+    out[..., 4] = oe[4] + argp_dot * tau
+    out[..., 5] = oe[5] + m_dot * tau
+    return out
+
+
+def mean_arg_latitude(oe: np.ndarray) -> np.ndarray:
+    """Mean argument of latitude u = argp + M [rad] of (..., 6) elements."""
+    return oe[..., 4] + oe[..., 5]
+
+
+# --------------------------------------------------------------------------- ROE <-> OE
+def roe_from_oe(chief_oe: object, deputy_oe: object) -> np.ndarray:
+    """Exact a-scaled quasi-nonsingular ROE [m], shape (6,), from chief and deputy elements."""
+    c = check_oe(chief_oe)
+    d = check_oe(deputy_oe, "deputy_oe")
+    a, e, i, raan, w, m = c
+    ad, ed, idp, raand, wd, md = d
+    draan = _wrap(raand - raan)
+    dlam = _wrap((wd + md) - (w + m)) + draan * np.cos(i)
+    return a * np.array([
+        (ad - a) / a,
+        dlam,
+        ed * np.cos(wd) - e * np.cos(w),
+        ed * np.sin(wd) - e * np.sin(w),
+        idp - i,
+        draan * np.sin(i),
+    ])
+
+
+def oe_from_roe(chief_oe: object, roe_m: object) -> np.ndarray:
+    """Deputy elements (6,) from chief elements and a-scaled ROE [m] (exact inverse)."""
+    c = check_oe(chief_oe)
+    x = as_finite_array("roe_m", roe_m, (6,)) / c[0]
+    a, e, i, raan, w, m = c
+    if abs(np.sin(i)) < 1e-9:
+        raise InputError("chief_oe", "ROE inclination vector is singular for equatorial orbits")
+    ad = a * (1.0 + x[0])
+    exd = e * np.cos(w) + x[2]
+    eyd = e * np.sin(w) + x[3]
+    ed = float(np.hypot(exd, eyd))
+    wd = float(np.arctan2(eyd, exd)) if ed > 0 else 0.0
+    idp = i + x[4]
+    draan = x[5] / np.sin(i)
+    ud = (w + m) + x[1] - draan * np.cos(i)
+    deputy = np.array([ad, ed, idp, raan + draan, wd, ud - wd])
+    return check_oe(deputy, "deputy_oe")
+
+
+def _wrap(angle: float | np.ndarray) -> float | np.ndarray:
+    """Wrap to [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+# --------------------------------------------------------------------------- inertial states
+def solve_kepler(m_rad: float, e: float, tol: float = 1e-14) -> float:
+    """Eccentric anomaly [rad] from mean anomaly by Newton iteration."""
+    ecc = m_rad if e < 0.8 else np.pi
+    for _ in range(50):
+        step = (ecc - e * np.sin(ecc) - m_rad) / (1.0 - e * np.cos(ecc))
+        ecc -= step
+        if abs(step) < tol:
+            break
+    return float(ecc)
+
+
+def eci_from_oe(oe: object) -> np.ndarray:
+    """Inertial position [m] and velocity [m/s], shape (6,), from Keplerian elements."""
+    a, e, i, raan, w, m = check_oe(oe, "oe")
+    ecc = solve_kepler(float(_wrap(m)), e)
+    nu = 2.0 * np.arctan2(np.sqrt(1 + e) * np.sin(ecc / 2), np.sqrt(1 - e) * np.cos(ecc / 2))
+    p = a * (1 - e * e)
+    r = p / (1 + e * np.cos(nu))
+    r_pf = np.array([r * np.cos(nu), r * np.sin(nu), 0.0])
+    v_pf = np.sqrt(MU_M3PS2 / p) * np.array([-np.sin(nu), e + np.cos(nu), 0.0])
+    rot = _rot3(-raan) @ _rot1(-i) @ _rot3(-w)
+    return np.concatenate([rot @ r_pf, rot @ v_pf])
+
+
+def oe_from_eci(state: object) -> np.ndarray:
+    """Keplerian elements (6,) from an inertial state [m, m/s] (non-equatorial, elliptic)."""
+    s = as_finite_array("eci_state", state, (6,))
+    r, v = s[:3], s[3:]
+    rn = np.linalg.norm(r)
+    h = np.cross(r, v)
+    hn = np.linalg.norm(h)
+    node = np.cross([0.0, 0.0, 1.0], h)
+    e_vec = np.cross(v, h) / MU_M3PS2 - r / rn
+    e = float(np.linalg.norm(e_vec))
+    energy = 0.5 * v @ v - MU_M3PS2 / rn
+    if energy >= 0 or hn == 0:
+        raise InputError("eci_state", "state is not on a closed orbit")
+    if not np.linalg.norm(node) > 1e-12 * hn:
+        raise InputError("eci_state", "equatorial orbit: node and RAAN are undefined")
+    a = -MU_M3PS2 / (2.0 * energy)
+    i = float(np.arccos(np.clip(h[2] / hn, -1, 1)))
+    raan = float(np.arctan2(node[1], node[0]))
+    node_hat = node / np.linalg.norm(node)
+    # argument of latitude of the position (true), robust for small e
+    u_true = float(np.arctan2(r @ np.cross(h / hn, node_hat), r @ node_hat))
+    w = float(np.arctan2(e_vec @ np.cross(h / hn, node_hat), e_vec @ node_hat))
+    nu = u_true - w
+    ecc = 2.0 * np.arctan2(np.sqrt(1 - e) * np.sin(nu / 2), np.sqrt(1 + e) * np.cos(nu / 2))
+    m = ecc - e * np.sin(ecc)
+    return np.array([a, e, i, raan % (2 * np.pi), w % (2 * np.pi), m % (2 * np.pi)])
+
+
+def _rot1(ang: float) -> np.ndarray:
+    c, s = np.cos(ang), np.sin(ang)
+    return np.array([[1, 0, 0], [0, c, s], [0, -s, c]])
+
+
+def _rot3(ang: float) -> np.ndarray:
+    c, s = np.cos(ang), np.sin(ang)
+    return np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
