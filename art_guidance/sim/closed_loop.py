@@ -31,9 +31,8 @@ from art_guidance.sim.faults import (
 )
 from art_guidance.sim.link import GuidanceLink, LinkPlan
 from art_guidance.sim.plot import plot_rendezvous
-from art_guidance.sim.simulator import (
-    EPOCH_MATCH_S, RendezvousSim, koz_switch_time_s, run_outcome, run_safety_model,
-)
+from art_guidance.sim.report import koz_switch_time_s, run_outcome, run_safety_model
+from art_guidance.sim.simulator import EPOCH_MATCH_S, RendezvousSim
 
 SIM_EPOCH0_NS = 1_000_000_000 * 1_000_000_000  # sim t = 0 is stamped 1e9 s (2001-09-09)
 DECISIONS = ("replanning", "on_plan", "rejected")

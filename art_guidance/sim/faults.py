@@ -174,7 +174,7 @@ def free_drift_check(chief_eci: object, deputy_eci: object, t0_s: float, duratio
     Raises:
         InputError: on non-finite states, a non-positive duration or step, an unknown zone.
     """
-    from art_guidance.sim.simulator import _integrate, rtn_from_eci_batch
+    from art_guidance.sim.truth import integrate_truth, rtn_from_eci_batch
 
     c = as_finite_array("chief_eci", chief_eci, (6,))
     d = as_finite_array("deputy_eci", deputy_eci, (6,))
@@ -182,7 +182,7 @@ def free_drift_check(chief_eci: object, deputy_eci: object, t0_s: float, duratio
         if not (np.isfinite(value) and value > 0):
             raise InputError(name, "must be finite and > 0 [s]", value)
     axes = zone_semi_axes_m(scenario, zone)
-    sol = _integrate(np.concatenate([c, d]), float(duration_s), dense=True)
+    sol = integrate_truth(np.concatenate([c, d]), float(duration_s), dense=True)
     tau = np.linspace(0.0, float(duration_s), int(np.ceil(duration_s / step_s)) + 1)
 
     def rtn_at(times: np.ndarray) -> np.ndarray:

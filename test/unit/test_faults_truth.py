@@ -24,7 +24,7 @@ from art_guidance.sim.closed_loop import (
 )
 from art_guidance.sim.faults import safety_duration_s
 from art_guidance.sim.inprocess import InProcessGuidance
-from art_guidance.sim.simulator import run_safety_model
+from art_guidance.sim.report import run_safety_model
 from helpers import orbit_truth as truth
 
 pytestmark = pytest.mark.slow

@@ -11,10 +11,10 @@ from matplotlib.image import imread
 from art_guidance import dynamics as dyn
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
 from art_guidance.errors import InputError
-from art_guidance.sim.simulator import (
-    RendezvousSim, koz_switch_time_s, mean_elements_of_chief, propagate_truth,
-    run_outcome, run_safety_model,
-)
+from art_guidance.sim.mean_elements import mean_elements_of_chief
+from art_guidance.sim.report import koz_switch_time_s, run_outcome, run_safety_model
+from art_guidance.sim.simulator import RendezvousSim
+from art_guidance.sim.truth import propagate_truth
 from art_guidance.sim.plot import plot_rendezvous
 
 # Constants typed in from docs/design.md (independent of the package).
