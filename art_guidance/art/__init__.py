@@ -12,12 +12,12 @@ package imports torch.
 
 from art_guidance.art.checkpoint import TrainedArt, load
 from art_guidance.art.config import PRESETS, ArtConfig, TrainConfig, preset
-from art_guidance.art.evaluate import (
-    RolloutEvaluation, evaluate_oracle, evaluate_rollouts, heldout_scenarios,
+from art_guidance.art.scoring import (
+    RolloutScores, score_oracle, score_rollouts, heldout_scenarios,
 )
 from art_guidance.art.model import ArtModel
 from art_guidance.art.rollout import RolloutResult, build_safety
 
-__all__ = ["PRESETS", "ArtConfig", "ArtModel", "RolloutEvaluation", "RolloutResult",
-           "TrainConfig", "TrainedArt", "build_safety", "evaluate_oracle", "evaluate_rollouts",
+__all__ = ["PRESETS", "ArtConfig", "ArtModel", "RolloutScores", "RolloutResult",
+           "TrainConfig", "TrainedArt", "build_safety", "score_oracle", "score_rollouts",
            "heldout_scenarios", "load", "preset"]

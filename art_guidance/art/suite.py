@@ -34,7 +34,7 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
     import torch
     from tqdm import tqdm
 
-    from art_guidance.art import build_safety, evaluate_rollouts, heldout_scenarios, load
+    from art_guidance.art import build_safety, score_rollouts, heldout_scenarios, load
 
     torch.set_num_threads(threads)
     art = load(model_path)
@@ -55,9 +55,9 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
     for s in tqdm(range(0, m, batch), desc=f"rollouts {Path(model_path).name}", unit="batch",
                   disable=not progress):
         sl = slice(s, min(s + batch, m))
-        parts.append(evaluate_rollouts(art, safety, held["roe0_m"][sl], held["target_rtn"][sl],
-                                       held["cvx_cost_mps"][sl], c_cvx_now[sl],
-                                       batch_size=batch, reward_scales=reward_scales))
+        parts.append(score_rollouts(art, safety, held["roe0_m"][sl], held["target_rtn"][sl],
+                                    held["cvx_cost_mps"][sl], c_cvx_now[sl],
+                                    batch_size=batch, reward_scales=reward_scales))
     wall = time.perf_counter() - t0
     c_art = np.concatenate([p.c_art for p in parts])
     c_cvx = np.concatenate([p.c_cvx for p in parts])
@@ -99,11 +99,11 @@ def _training_summary(art: object) -> dict:
 
 def _oracle(safety: object, held: dict, m: int, c_cvx_now: np.ndarray) -> dict:
     """A perfect model: the plans' own controls through the rollout machinery (`replay`)."""
-    from art_guidance.art import evaluate_oracle
+    from art_guidance.art import score_oracle
 
     ok = held["feasible"][:m]
-    ev = evaluate_oracle(safety, held["roe0_m"][:m][ok], held["dv_rtn_mps"][:m][ok],
-                         held["cvx_cost_mps"][:m][ok], c_cvx_now[ok])
+    ev = score_oracle(safety, held["roe0_m"][:m][ok], held["dv_rtn_mps"][:m][ok],
+                      held["cvx_cost_mps"][:m][ok], c_cvx_now[ok])
     labels_c = held["constraint_to_go"][:m][ok][:, 0]
     labels_e_r = (held["cost_mps"][:m][ok] - held["cvx_cost_mps"][:m][ok]) \
         / held["cvx_cost_mps"][:m][ok]

@@ -51,14 +51,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _warmstart(args: argparse.Namespace) -> int:
-    from art_guidance.eval.runner import evaluate
+    from art_guidance.eval.runner import run_evaluation
 
-    summary = evaluate(args.out, args.data, args.model, n=args.n,
-                       workers=args.workers or default_workers(), engine=args.engine,
-                       ray_address=args.ray_address, shard_size=args.shard_size,
-                       figures=not args.no_figures, progress=not args.no_progress,
-                       command=["art-guidance", *sys.argv[1:]], split=args.split,
-                       single_rollout=args.single_rollout)
+    summary = run_evaluation(args.out, args.data, args.model, n=args.n,
+                             workers=args.workers or default_workers(), engine=args.engine,
+                             ray_address=args.ray_address, shard_size=args.shard_size,
+                             figures=not args.no_figures, progress=not args.no_progress,
+                             command=["art-guidance", *sys.argv[1:]], split=args.split,
+                             single_rollout=args.single_rollout)
     print(f"summary -> {Path(args.out) / 'summary.json'}")
     return 130 if summary["status"] == "interrupted" else 0
 

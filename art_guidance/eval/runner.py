@@ -207,14 +207,14 @@ def model_info(path: str | Path) -> ModelInfo:
 
 
 def heldout(path: str | Path, split: str = "test") -> dict[str, np.ndarray]:
-    """`art.evaluate.heldout_scenarios` of a complete dataset, read shard by shard so that only
+    """`art.scoring.heldout_scenarios` of a complete dataset, read shard by shard so that only
     the held-out rows of the fields it selects are kept in memory (sorted by sample index).
     `split` "all" takes every scenario (a dataset no model under evaluation was trained on).
 
     Raises:
         DatasetError: an incomplete or corrupt dataset.
     """
-    from art_guidance.art.evaluate import heldout_scenarios
+    from art_guidance.art.scoring import heldout_scenarios
 
     parts = [heldout_scenarios(arrays, split=split) for arrays in complete_shards(path)]
     cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -372,12 +372,13 @@ def example_index(cols: dict[str, np.ndarray], k: int) -> int | None:
 
 
 # --------------------------------------------------------------------------- driver
-def evaluate(out: str | Path, data_dirs: Sequence[str | Path], model_paths: Sequence[str | Path],
-             *, n: int | None = None, workers: int = 1, engine: str = "local",
-             ray_address: str | None = None, shard_size: int = 4,
-             config: GuidanceConfig | None = None, figures: bool = True, progress: bool = True,
-             command: Sequence[str] | None = None, split: str = "test",
-             single_rollout: bool = False, log: Callable[[str], None] = print) -> dict:
+def run_evaluation(out: str | Path, data_dirs: Sequence[str | Path],
+                   model_paths: Sequence[str | Path], *, n: int | None = None,
+                   workers: int = 1, engine: str = "local", ray_address: str | None = None,
+                   shard_size: int = 4, config: GuidanceConfig | None = None,
+                   figures: bool = True, progress: bool = True,
+                   command: Sequence[str] | None = None, split: str = "test",
+                   single_rollout: bool = False, log: Callable[[str], None] = print) -> dict:
     """Evaluate (or resume evaluating) models against CVX on held-out scenarios.
 
     Args:

@@ -2,7 +2,7 @@
 planner did.
 
 A perfect model would emit the dataset's controls. Driven through the rollout's propagation,
-R and C updates and post hoc metrics (`art.rollout.replay`, `art.evaluate.evaluate_oracle`),
+R and C updates and post hoc metrics (`art.rollout.replay`, `art.scoring.score_oracle`),
 they must reproduce the dataset's states, its constraint-to-go labels C(t_1) and its
 E_R = (J - J_CVX) / J_CVX; otherwise even a perfect model is rejected by the post hoc check.
 The scenarios come from a seed no shipped model was trained on.
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from art_guidance.art.evaluate import evaluate_oracle, heldout_scenarios
+from art_guidance.art.scoring import score_oracle, heldout_scenarios
 from art_guidance.art.rollout import replay
 from art_guidance.config import GuidanceConfig
 from art_guidance.data.generate import generate
@@ -54,8 +54,8 @@ def test_replayed_plans_reproduce_their_states_and_labels(plans):
 
 def test_oracle_metrics_equal_the_datasets(plans):
     held, safety = plans
-    ev = evaluate_oracle(safety, held["roe0_m"], held["dv_rtn_mps"], held["cvx_cost_mps"],
-                         held["cvx_constraint_to_go0"])
+    ev = score_oracle(safety, held["roe0_m"], held["dv_rtn_mps"], held["cvx_cost_mps"],
+                      held["cvx_constraint_to_go0"])
     e_r = (held["cost_mps"] - held["cvx_cost_mps"]) / held["cvx_cost_mps"]
     assert np.allclose(ev.e_r, e_r, rtol=0, atol=1e-12)
     assert np.array_equal(ev.c_art, held["constraint_to_go"][:, 0])

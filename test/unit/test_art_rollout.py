@@ -16,7 +16,7 @@ from helpers.art_models import untrained_art
 
 from art_guidance.art import ArtModel, TrainedArt, preset
 from art_guidance.art.config import FEATURES, SLOTS
-from art_guidance.art.evaluate import evaluate_rollouts, heldout_scenarios
+from art_guidance.art.scoring import score_rollouts, heldout_scenarios
 from art_guidance.art.model import loss_terms
 from art_guidance.art.rollout import rollout
 from art_guidance.config import ScenarioConfig
@@ -173,7 +173,7 @@ def test_evaluate_rollouts_against_cvx(setup):
     sc, horizon, safety, x0, targets = setup
     art = _art("tiny", seed=6)
     j_cvx = np.array([0.05, 0.5, 50.0])  # R_des = -J_CVX: tiny, plausible, huge
-    ev = evaluate_rollouts(art, safety, x0, targets, j_cvx, [0, 3, 1], batch_size=2)
+    ev = score_rollouts(art, safety, x0, targets, j_cvx, [0, 3, 1], batch_size=2)
     res = rollout(art, safety, x0, targets, -j_cvx, 0.0)
     cost = np.linalg.norm(res.dv_rtn_mps, axis=2).sum(1)
     assert np.allclose(ev.cost_mps, cost, rtol=1e-6)
@@ -187,7 +187,7 @@ def test_evaluate_rollouts_against_cvx(setup):
     assert summary["n"] == 3 and summary["mean_c_cvx"] == pytest.approx(4 / 3)
     assert summary["frac_c_art_zero"] == np.mean(ev.c_art == 0)
     with pytest.raises(InputError):
-        evaluate_rollouts(art, safety, x0, targets, [0.1, 0.0, 0.1], [0, 0, 0])
+        score_rollouts(art, safety, x0, targets, [0.1, 0.0, 0.1], [0, 0, 0])
     data = {"is_test": np.array([True, False, True]), "cvx_constraint_to_go0": np.array(
         [0, 0, -1]), "roe0_m": x0, "target_rtn": targets, "cvx_cost_mps": j_cvx,
         "index": np.arange(3)}

@@ -62,8 +62,8 @@ def inputs(tmp_path_factory) -> dict:
 def _run(inputs: dict, out: Path, **kw) -> dict:
     kw = {"n": N_EVAL, "workers": 1, "progress": False, "figures": False,
           "log": lambda _: None, **kw}
-    return runner.evaluate(out, [inputs["chance"], inputs["det"]],
-                           [inputs["model_c"], inputs["model_d"]], **kw)
+    return runner.run_evaluation(out, [inputs["chance"], inputs["det"]],
+                                 [inputs["model_c"], inputs["model_d"]], **kw)
 
 
 def _rows(out: Path) -> dict:
@@ -195,8 +195,8 @@ def test_another_command_on_the_same_out_is_refused(ref, inputs, tmp_path, capsy
     with pytest.raises(InputError, match="--n"):
         _run(inputs, copy, n=1)
     with pytest.raises(InputError, match="--model"):
-        runner.evaluate(copy, [inputs["chance"]], [inputs["model_c"]], n=N_EVAL,
-                        progress=False, log=lambda _: None)
+        runner.run_evaluation(copy, [inputs["chance"]], [inputs["model_c"]], n=N_EVAL,
+                              progress=False, log=lambda _: None)
     with pytest.raises(InputError, match="holds a dataset"):
         _run(inputs, inputs["chance"])
     assert main(["evaluate", "--suite", "warmstart", "--data", str(inputs["chance"]),
@@ -207,8 +207,8 @@ def test_another_command_on_the_same_out_is_refused(ref, inputs, tmp_path, capsy
 
 def test_a_model_whose_mode_matches_no_dataset_is_refused(inputs, tmp_path, capsys):
     with pytest.raises(InputError, match="deterministic data"):
-        runner.evaluate(tmp_path / "x", [inputs["chance"]], [inputs["model_d"]], n=1,
-                        progress=False, log=lambda _: None)
+        runner.run_evaluation(tmp_path / "x", [inputs["chance"]], [inputs["model_d"]], n=1,
+                              progress=False, log=lambda _: None)
     assert main(["evaluate", "--suite", "warmstart", "--data", str(inputs["chance"]),
                  "--model", str(inputs["model_c"]), "--model", str(inputs["model_d"]),
                  "--out", str(tmp_path / "y"), "--no-progress"]) == 2
@@ -288,7 +288,7 @@ def test_summary_of_stored_columns_equals_summary_of_rows():
 
 
 def test_heldout_reads_the_same_scenarios_as_the_full_load(inputs):
-    from art_guidance.art.evaluate import heldout_scenarios
+    from art_guidance.art.scoring import heldout_scenarios
     from art_guidance.data.storage import load_dataset
 
     full = heldout_scenarios(load_dataset(inputs["chance"]))

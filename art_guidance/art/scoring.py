@@ -23,7 +23,7 @@ from art_guidance.safety import PassiveSafety
 
 
 @dataclass(frozen=True)
-class RolloutEvaluation:
+class RolloutScores:
     """Per-scenario results and their summary.
 
     Attributes:
@@ -72,11 +72,11 @@ def heldout_scenarios(data: dict[str, np.ndarray], extra: tuple[str, ...] = (),
                                        "cvx_constraint_to_go0", "index", *extra)}
 
 
-def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
-                      target_rtn: object, cvx_cost_mps: object, cvx_constraint_to_go0: object,
-                      thresholds: PosthocThresholds | None = None,
-                      batch_size: int = 64,
-                      reward_scales: tuple[float, ...] = (1.0,)) -> RolloutEvaluation:
+def score_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
+                   target_rtn: object, cvx_cost_mps: object, cvx_constraint_to_go0: object,
+                   thresholds: PosthocThresholds | None = None,
+                   batch_size: int = 64,
+                   reward_scales: tuple[float, ...] = (1.0,)) -> RolloutScores:
     """Roll the model out on held-out scenarios and compare with CVX.
 
     Args:
@@ -93,7 +93,7 @@ def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
             model's single rollout.
 
     Returns:
-        RolloutEvaluation (call `.summary()` for the aggregate numbers).
+        RolloutScores (call `.summary()` for the aggregate numbers).
 
     Raises:
         InputError: mismatched shapes, non-finite values or a non-positive J_CVX.
@@ -122,10 +122,10 @@ def evaluate_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
     return _judge(c_art, c_cvx, cost, j_cvx, region)
 
 
-def evaluate_oracle(safety: PassiveSafety, roe0_m: object, dv_rtn_mps: object,
-                    cvx_cost_mps: object, cvx_constraint_to_go0: object,
-                    thresholds: PosthocThresholds | None = None) -> RolloutEvaluation:
-    """The metrics of `evaluate_rollouts` for a perfect model: the plans' own controls driven
+def score_oracle(safety: PassiveSafety, roe0_m: object, dv_rtn_mps: object,
+                 cvx_cost_mps: object, cvx_constraint_to_go0: object,
+                 thresholds: PosthocThresholds | None = None) -> RolloutScores:
+    """The metrics of `score_rollouts` for a perfect model: the plans' own controls driven
     through the rollout machinery (`replay`: same propagation, R and C updates).
 
     Args:
@@ -145,10 +145,10 @@ def evaluate_oracle(safety: PassiveSafety, roe0_m: object, dv_rtn_mps: object,
 
 
 def _judge(c_art: np.ndarray, c_cvx: np.ndarray, cost: np.ndarray, j_cvx: np.ndarray,
-           thresholds: PosthocThresholds | None) -> RolloutEvaluation:
+           thresholds: PosthocThresholds | None) -> RolloutScores:
     """E_R, E_C and the post hoc decision of realised rollouts against CVX."""
     t = thresholds or PosthocThresholds()
     r_des = -j_cvx
     e_r = (-cost - r_des) / r_des
     accepted = t.contains(100.0 * e_r, c_art - 0)
-    return RolloutEvaluation(c_art.astype(int), c_cvx.astype(int), e_r, accepted, cost)
+    return RolloutScores(c_art.astype(int), c_cvx.astype(int), e_r, accepted, cost)
