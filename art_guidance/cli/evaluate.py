@@ -65,7 +65,7 @@ def _warmstart(args: argparse.Namespace) -> int:
 
 def _figures_only(args: argparse.Namespace) -> int:
     from art_guidance.data.storage import MANIFEST
-    from art_guidance.eval.runner import rerender
+    from art_guidance.eval.results import rerender
 
     if not (Path(args.out) / MANIFEST).is_file():
         raise InputError("--out", "holds no evaluation to render", args.out)

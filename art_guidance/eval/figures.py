@@ -308,7 +308,7 @@ def render_model(figs: Path, m: dict, thresholds: dict, ex: dict | None) -> list
 
     Args:
         figs: output directory.
-        m: the model's summary entry (`runner.build_summary`).
+        m: the model's summary entry (`results.build_summary`).
         thresholds: the post hoc region (the evaluation's planning.posthoc configuration).
         ex: its largest-gain example (`eval.example`), or None to skip its two figures.
     """

@@ -6,7 +6,7 @@ mode of the dataset it was trained on, `art.build_safety`): for every scenario
 both warm starts (PS-CVX-D / PS-ART-D with a deterministic model, PS-CVX-C / PS-ART-C with a
 chance-constrained one). The (model, scenario) pairs are numbered 0..M-1 in the order of the
 models, then the datasets, then the sample index; chunks of them run on the engines of
-`data.generate` (`run_chunks`: a local process pool or Ray; one worker runs in this process)
+`jobs` (`run_missing`: a local process pool or Ray; one worker runs in this process)
 and every finished chunk is committed as one shard of the output directory, with the storage
 of `data.storage` (atomic shards, JSON-lines manifest, lock). Re-running the same command
 resumes and skips the committed pairs; a different command on the same directory is refused.
@@ -19,6 +19,9 @@ Output directory::
     summary.json                  per model: `warmstart.summarize`, throughput, checksums
     examples/example-<k>.npz      model k's scenario with the largest ART gain, recomputed
     figures/*.png                 `eval.figures`
+
+The inputs (models, datasets, held-out scenarios) are `eval.inputs`; reading, summarising and
+drawing an evaluation directory is `eval.results`.
 """
 from __future__ import annotations
 
@@ -33,60 +36,19 @@ from typing import Callable, Sequence
 import numpy as np
 
 from art_guidance import __version__
-from art_guidance.config import GuidanceConfig, mode_name
-from art_guidance.data.storage import (
-    MANIFEST, SUMMARY, DatasetWriter, complete_shards, load_dataset, read_manifest,
-    sha256_bytes,
+from art_guidance.config import GuidanceConfig
+from art_guidance.data.storage import MANIFEST, DatasetWriter, read_manifest, sha256_bytes
+from art_guidance.errors import InputError
+from art_guidance.eval.warmstart import columns, compare
+from art_guidance.eval.inputs import (
+    FORMAT, KIND, DatasetInfo, ModelInfo, dataset_info, heldout, load_model, model_info,
+    request_of,
 )
-from art_guidance.errors import DatasetError, InputError
-from art_guidance.eval import example as ex_io
-from art_guidance.eval.warmstart import ROW_FIELDS, columns, compare, gains, summarize
+from art_guidance.eval.results import build_summary, log_run, render, write_summary
 from art_guidance.jobs import check_run_options, run_missing
 
-KIND = "evaluation"   # the manifest header's "mode" of an evaluation directory
-FORMAT = 1
-EXAMPLES = "examples"
-FIGURES = "figures"
-ID_FIELDS = ("index", "model", "dataset", "sample")
+
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-@dataclass(frozen=True)
-class ModelInfo:
-    """A checkpoint under evaluation.
-
-    Attributes:
-        path: checkpoint file.
-        sha256: its payload checksum (workers refuse a file that changed since).
-        mode: "deterministic" or "chance", the mode of its training data.
-        representation: "roe" or "rtn", its state representation.
-        train_n: trajectories it was trained on (train + validation share; 0: not recorded).
-        n_parameters: its parameter count.
-        trained_on: manifest sha256 of each dataset it was trained on.
-    """
-
-    path: str
-    sha256: str
-    mode: str
-    representation: str
-    train_n: int = 0
-    n_parameters: int = 0
-    trained_on: tuple[str, ...] = ()
-
-    @property
-    def label(self) -> str:
-        """Short name for figures and logs, e.g. "roe-chance (art.pt)"."""
-        return f"{self.representation}-{self.mode} ({Path(self.path).name})"
-
-
-@dataclass(frozen=True)
-class DatasetInfo:
-    """A dataset directory whose held-out split is evaluated."""
-
-    path: str
-    sha256: str  # of its manifest (which holds every shard's sha256)
-    mode: str
-    n_samples: int
 
 
 @dataclass(frozen=True)
@@ -116,9 +78,6 @@ class EvaluationSpec:
 
 
 # --------------------------------------------------------------------------- worker side
-_LOADED: dict[tuple[str, bool], tuple] = {}
-
-
 def single_thread() -> None:
     """One thread for torch and for BLAS/OpenMP libraries started from now on."""
     import torch
@@ -126,30 +85,6 @@ def single_thread() -> None:
     for var in THREAD_VARS:
         os.environ[var] = "1"
     torch.set_num_threads(1)
-
-
-def load_model(info: ModelInfo, single_rollout: bool = False) -> tuple:
-    """(ArtWarmStart on 1 thread, its PassiveSafety), cached per process; `single_rollout`:
-    conditioned on R(t_1) = -J_CVX alone (the paper), else the provider's default sweep."""
-    from art_guidance.art.provider import DEFAULT_REWARD_SCALES, ArtWarmStart
-    from art_guidance.art.rollout import build_safety
-
-    key = (info.sha256, single_rollout)
-    if key not in _LOADED:
-        scales = (1.0,) if single_rollout else DEFAULT_REWARD_SCALES
-        provider = ArtWarmStart.load(info.path, expected_sha256=info.sha256, threads=1,
-                                     reward_scales=scales)
-        _LOADED[key] = (provider, build_safety(provider.art))
-    return _LOADED[key]
-
-
-def request_of(roe0_m: np.ndarray, target_rtn: np.ndarray, safety: object) -> object:
-    """The plan request from `roe0_m` (6,) [m] to `target_rtn` (6,) [m, m/s] on `safety`'s
-    horizon and mode."""
-    from art_guidance.planning.types import PlanRequest
-
-    return PlanRequest(safety.horizon.chief_oe[0], roe0_m, target_rtn,
-                       chance_constrained=safety.uncertainty is not None)
 
 
 def evaluate_chunk(spec: EvaluationSpec, indices: Sequence[int]) -> dict[str, np.ndarray]:
@@ -174,54 +109,6 @@ def evaluate_chunk(spec: EvaluationSpec, indices: Sequence[int]) -> dict[str, np
 
 
 # --------------------------------------------------------------------------- inputs
-def dataset_info(path: str | Path) -> DatasetInfo:
-    """Mode, size and checksum of a dataset directory (its manifest is read, not the shards).
-
-    Raises:
-        DatasetError: not a dataset directory, or a corrupt manifest.
-        InputError: an evaluation directory given as a dataset.
-    """
-    header, _, valid = read_manifest(path)
-    if header.get("mode") == KIND:
-        raise InputError("--data", "is an evaluation output directory, not a dataset", str(path))
-    digest = sha256_bytes((Path(path) / MANIFEST).read_bytes()[:valid])
-    return DatasetInfo(str(path), digest, str(header["mode"]), int(header["n"]))
-
-
-def model_info(path: str | Path) -> ModelInfo:
-    """Checksum, mode and representation of a checkpoint (loaded and verified once).
-
-    Raises:
-        CheckpointError: missing, corrupt or incompatible file.
-    """
-    from art_guidance.art.checkpoint import load
-    from art_guidance.art.data import trained_manifests
-    from art_guidance.art.rollout import build_safety
-
-    art = load(path)
-    mode = mode_name(build_safety(art).uncertainty is not None)
-    data = (art.meta or {}).get("dataset", {})
-    train_n = int(data.get("n_train", 0)) + int(data.get("n_val", 0))
-    return ModelInfo(str(path), str(art.sha256), mode, art.config.representation, train_n,
-                     art.model.n_parameters(), trained_manifests(art.meta))
-
-
-def heldout(path: str | Path, split: str = "test") -> dict[str, np.ndarray]:
-    """`art.scoring.heldout_scenarios` of a complete dataset, read shard by shard so that only
-    the held-out rows of the fields it selects are kept in memory (sorted by sample index).
-    `split` "all" takes every scenario (a dataset no model under evaluation was trained on).
-
-    Raises:
-        DatasetError: an incomplete or corrupt dataset.
-    """
-    from art_guidance.art.scoring import heldout_scenarios
-
-    parts = [heldout_scenarios(arrays, split=split) for arrays in complete_shards(path)]
-    cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    order = np.argsort(cols["index"], kind="stable")
-    return {k: v[order] for k, v in cols.items()}
-
-
 def _pairs(models: Sequence[ModelInfo], datasets: Sequence[DatasetInfo]) -> list[list[int]]:
     """For each model, the datasets of its mode (InputError if there is none)."""
     out = []
@@ -328,49 +215,6 @@ def check_out(out: Path, head: dict) -> None:
                      "use a new --out", str(out))
 
 
-# --------------------------------------------------------------------------- results
-def read_results(out: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
-    """The header and the committed rows of an evaluation directory, sorted by pair index.
-
-    Raises:
-        DatasetError: not an evaluation directory, or corrupt shards.
-    """
-    head = read_manifest(out)[0]
-    if head.get("mode") != KIND:
-        raise DatasetError(f"{out}: holds a dataset, not an evaluation")
-    return head, load_dataset(out, require_complete=False)
-
-
-def model_summaries(head: dict, cols: dict[str, np.ndarray]) -> list[dict]:
-    """Per model: what it is, how far the run is, its throughput and `summarize` of its rows."""
-    ev = head["evaluation"]
-    out = []
-    for k, m in enumerate(ev["models"]):
-        sel = cols["model"] == k if cols else np.zeros(0, bool)
-        rows = {f: v[sel] for f, v in cols.items()}
-        worker_s = float(rows["ms_task"].sum()) / 1e3 if cols else 0.0
-        info = ModelInfo(**m)
-        entry = {"k": k, "label": info.label, "name": Path(info.path).name, **m,
-                 "datasets": sorted({int(d) for d in rows.get("dataset", [])}),
-                 "n_done": int(sel.sum()), "worker_s": worker_s,
-                 "scenarios_per_worker_s": int(sel.sum()) / worker_s if worker_s else None}
-        entry.update(summarize(rows) if sel.any() else {"n": 0, "bins": {}})
-        out.append(entry)
-    return out
-
-
-def example_index(cols: dict[str, np.ndarray], k: int) -> int | None:
-    """Pair index of model k's scenario with the largest J_SCP,CVX - J_SCP,ART (None: none
-    with both SCVx* runs converged)."""
-    sel = np.flatnonzero(cols["model"] == k) if cols else np.zeros(0, int)
-    if not sel.size:
-        return None
-    gain = gains({f: cols[f][sel] for f in ROW_FIELDS})["gain_mps"]
-    if not np.isfinite(gain).any():
-        return None
-    return int(cols["index"][sel[int(np.nanargmax(gain))]])
-
-
 # --------------------------------------------------------------------------- driver
 def run_evaluation(out: str | Path, data_dirs: Sequence[str | Path],
                    model_paths: Sequence[str | Path], *, n: int | None = None,
@@ -439,166 +283,7 @@ def run_evaluation(out: str | Path, data_dirs: Sequence[str | Path],
     if summary["complete"] and figures:
         summary["figures"] = render(out, summary, recompute=True)
         write_summary(out, summary)
-    _report(summary, log)
+    log_run(summary, log)
     if status == "interrupted":
         log("interrupted: re-run the same command to resume")
     return summary
-
-
-def build_summary(out: Path, this: dict | None, held: list[dict] | None = None) -> dict:
-    """summary.json from the committed rows; `this` (the run's numbers) is appended to the
-    runs recorded in an existing summary.json."""
-    head, cols = read_results(out)
-    previous = _read_summary(out)
-    runs = previous.get("runs", []) + ([this] if this else [])
-    datasets = head["evaluation"]["datasets"]
-    for j, d in enumerate(datasets):
-        d = dict(d, **(held[j] if held else previous.get("datasets", [{}] * len(datasets))[j]))
-        d["n_evaluated"] = int(np.sum(cols["dataset"] == j)) if cols else 0
-        datasets[j] = d
-    n_done = int(cols["index"].size) if cols else 0
-    _, shards, _ = read_manifest(out)
-    return {
-        "out": str(out), "kind": KIND, "format": FORMAT, "n_scenarios": head["n"],
-        "n_done": n_done, "complete": n_done == head["n"],
-        "status": this["status"] if this else previous.get("status", "complete"),
-        "this_run": this or previous.get("this_run"), "runs": runs,
-        "wall_s_total": float(sum(r.get("wall_s", 0.0) for r in runs)),
-        "datasets": datasets, "models": model_summaries(head, cols),
-        "sizes": {"shards": len(shards), "bytes": int(sum(e["bytes"] for e in shards))},
-        "config_sha256": head["config_sha256"], "art_guidance_version": __version__,
-        "definitions": DEFINITIONS, "figures": previous.get("figures", []),
-    }
-
-
-DEFINITIONS = {
-    "bins": "cumulative: scenarios with C_CVX(t_1) >= the bin value (paper section V)",
-    "subopt_*_mps": "J_SCP - J_CVX over the scenarios where both SCVx* runs converged [m/s]",
-    "improvement_ratio": "(J_SCP,CVX - J_SCP,ART) / (J_SCP,CVX - J_CVX): per-scenario mean and "
-                         "median (where J_SCP,CVX - J_CVX > 1e-6 m/s), and the ratio of sums",
-    "iterations_*": "convex subproblems solved by SCVx* from that warm start",
-    "runtime_ms_median": "ws_cvx: CVX solve; ws_art: ART rollout + post hoc check; total_cvx: "
-                         "CVX + SCP from CVX; total_art: CVX (J_CVX conditions the rollout) + "
-                         "rollout + SCP from ART; measured in the same worker",
-    "infeasible_rate_*": "share of scenarios whose SCVx* run did not converge (infeasible, "
-                         "solver error or iteration limit)",
-    "gain_histogram": "J_SCP,CVX - J_SCP,ART [m/s], both converged; > 0: ART better",
-    "gain_histogram_posthoc": "the same for the plan flown with the post hoc check (rejected "
-                              "rollout: PS-CVX, difference 0)",
-    "posthoc_maps": "cells of (100 E_R [%], E_C): population, mean improvement ratio, mean "
-                    "SCP iterations saved by ART",
-}
-
-
-def _read_summary(out: Path) -> dict:
-    try:
-        data = json.loads((out / SUMMARY).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return {}
-    return data if isinstance(data, dict) and data.get("kind") == KIND else {}
-
-
-def write_summary(out: str | Path, summary: dict) -> None:
-    """Atomically (re)write OUT/summary.json and OUT/report.md."""
-    from art_guidance.files import write_atomic
-
-    write_atomic(Path(out) / SUMMARY, json.dumps(summary, indent=1, sort_keys=True).encode())
-    write_report(out, summary)
-
-
-def write_report(out: str | Path, summary: dict) -> None:
-    """Atomically (re)write OUT/report.md (`eval.report`: our numbers beside the paper's)."""
-    from art_guidance.eval.report import REPORT, report_markdown
-    from art_guidance.files import write_atomic
-
-    write_atomic(Path(out) / REPORT, report_markdown(summary).encode())
-
-
-def rerender(out: str | Path, log: Callable[[str], None] = print) -> dict:
-    """Rebuild summary.json and the figures from the stored rows and examples (no solving).
-
-    Raises:
-        DatasetError: not an evaluation directory.
-    """
-    out = Path(out)
-    summary = build_summary(out, None)
-    summary["figures"] = render(out, summary, recompute=False)
-    write_summary(out, summary)
-    log(f"{len(summary['figures'])} figures -> {out / FIGURES}")
-    return summary
-
-
-def _report(summary: dict, log: Callable[[str], None]) -> None:
-    this = summary["this_run"]
-    rate = this.get("scenarios_per_s")
-    log(f"evaluated {this['scenarios']} scenarios in {this['wall_s']:.1f} s"
-        + (f" ({rate:.3f} scenarios/s, {this['engine']} engine, {this['workers']} workers)"
-           if rate else "")
-        + f"; {summary['n_done']} of {summary['n_scenarios']} done")
-    for m in summary["models"]:
-        b = m["bins"].get(">=0")
-        if not b:
-            continue
-        h = m.get("gain_histogram") or {}
-        log(f"{m['label']}: {m['n']} scenarios, ART accepted {m['accepted']}, "
-            f"J_SCP,CVX - J_SCP,ART [mm/s] min {1e3 * h.get('min_mps', np.nan):.1f} "
-            f"median {1e3 * h.get('median_mps', np.nan):.1f} max "
-            f"{1e3 * h.get('max_mps', np.nan):.1f}; iterations CVX "
-            f"{b['iterations_cvx']['mean']:.1f} ART {b['iterations_art']['mean']:.1f}; "
-            f"not converged CVX {100 * b['infeasible_rate_cvx']:.0f} % ART "
-            f"{100 * b['infeasible_rate_art']:.0f} %")
-
-
-def _example(out: Path, head: dict, cols: dict, m: dict, recompute: bool) -> dict | None:
-    """Model k's example: stored, or recomputed (and stored) when asked and missing."""
-    k = m["k"]
-    i = example_index(cols, k)
-    if i is None:
-        return None
-    path = example_path(out, k)
-    ex = ex_io.load(path)
-    if (ex is None or int(ex["index"]) != i) and recompute:
-        info = ModelInfo(**head["evaluation"]["models"][k])
-        provider, safety = load_model(info)
-        pos = int(np.flatnonzero(cols["index"] == i)[0])
-        config = GuidanceConfig.from_json(head["evaluation"]["config"])
-        request = request_of(cols["roe0_m"][pos], cols["target_rtn"][pos], safety)
-        ex = ex_io.recompute(request, safety, provider, config,
-                             {f: cols[f][pos] for f in cols})
-        ex_io.save(path, ex, i)
-        ex = ex_io.load(path)
-    if ex is None or int(ex["index"]) != i:
-        return None
-    pos = int(np.flatnonzero(cols["index"] == i)[0])
-    m["example"] = {"pair_index": i, "dataset": int(cols["dataset"][pos]),
-                    "sample": int(cols["sample"][pos]),
-                    "gain_mps": float(ex["j_scp_cvx"] - ex["j_scp_art"]),
-                    "reproduced": bool(ex["reproduced"]),
-                    "file": str(path.relative_to(out))}
-    return ex
-
-
-def render(out: str | Path, summary: dict, recompute: bool = True) -> list[str]:
-    """Write every figure of an evaluation directory (`eval.figures`); returns the file names.
-
-    Args:
-        out: the evaluation directory (its figures go to `out/figures`).
-        summary: its summary (`build_summary`); each model's "example" entry is set.
-        recompute: solve the example scenarios that are not stored yet (else skip them).
-    """
-    from art_guidance.eval.figures import render_model
-
-    out = Path(out)
-    head, cols = read_results(out)
-    thresholds = head["evaluation"]["config"]["planning"]["posthoc"]
-    names = []
-    for m in summary["models"]:
-        if m.get("n"):
-            ex = _example(out, head, cols, m, recompute)
-            names += render_model(out / FIGURES, m, thresholds, ex)
-    return names
-
-
-def example_path(out: str | Path, k: int) -> Path:
-    """Where model k's recomputed example is stored."""
-    return Path(out) / EXAMPLES / f"example-{k}.npz"

@@ -17,7 +17,8 @@ from art_guidance.data.stages import GenerationSpec, sample_scenario, sample_see
 from art_guidance.data.storage import DatasetWriter
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import InputError
-from art_guidance.eval import runner
+from art_guidance.eval import inputs as eval_inputs
+from art_guidance.eval import results, runner
 from art_guidance.eval.report import REPORT, high_bin, report_markdown
 from art_guidance.eval.warmstart import ROW_FIELDS, WarmStartRow, summarize
 from art_guidance.optim import ScpStatus
@@ -67,7 +68,7 @@ def _run(inputs: dict, out: Path, **kw) -> dict:
 
 
 def _rows(out: Path) -> dict:
-    return runner.read_results(out)[1]
+    return results.read_results(out)[1]
 
 
 def _assert_same_rows(a: dict, b: dict) -> None:
@@ -131,7 +132,7 @@ def test_figures_and_the_recomputed_example(ref, monkeypatch):
     def no_solving(*_):
         raise AssertionError("figures-only must not solve")
 
-    monkeypatch.setattr(runner, "load_model", no_solving)
+    monkeypatch.setattr(results, "load_model", no_solving)
     assert main(["evaluate", "--figures-only", "--out", str(ref)]) == 0
     assert sorted(p.name for p in (ref / "figures").iterdir()) == sorted(names)
 
@@ -292,7 +293,7 @@ def test_heldout_reads_the_same_scenarios_as_the_full_load(inputs):
     from art_guidance.data.storage import load_dataset
 
     full = heldout_scenarios(load_dataset(inputs["chance"]))
-    lean = runner.heldout(inputs["chance"])
+    lean = eval_inputs.heldout(inputs["chance"])
     assert set(full) == set(lean) and full["index"].size == N_DATA // 10
     for key in full:
         assert np.array_equal(full[key], lean[key]), key
