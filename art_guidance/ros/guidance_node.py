@@ -10,12 +10,10 @@ by a ManeuverPlan whose header.stamp is that nav stamp.
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
@@ -36,12 +34,9 @@ from art_guidance import topics
 from art_guidance.config import GuidanceConfig, node_parameter_defaults
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.plan_view import nav_position, plan_view
-from art_guidance.planning import (
-    GuidancePipeline, NavState, PlanRequest, PlanResult, Target,
-)
-from art_guidance.planning.replan import (
-    Action, Decision, ReplanPolicy, ReplanSettings, request_for, unusable_text,
-)
+from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
+from art_guidance.planning.guidance import GuidanceCore, Job
+from art_guidance.planning.replan import Action, ReplanSettings
 from art_guidance.record.recorder import (
     NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE, McapRecorder,
     default_log_dir,
@@ -65,20 +60,11 @@ VIZ_TYPE_NAMES = {topic: f"{t.__module__.split('.')[0]}/msg/{t.__name__}"
                   for topic, t in VIZ_TYPES.items()}
 
 
-@dataclass(frozen=True)
-class Job:
-    """A planning job for the worker."""
-
-    nav: NavState
-    request: PlanRequest
-    trigger: str
-    nav_msg: RelativeNavState
-    request_msg: ReplanRequest | None
-
-
-class GuidanceCore:
-    """The guidance node's behaviour, mixed into an rclpy `Node` (`GuidanceNode`) or a
-    `LifecycleNode` (`ManagedGuidanceNode`): parameters, planning state, endpoints, worker."""
+class GuidanceNodeBase:
+    """The ROS wiring of a `planning.guidance.GuidanceCore`, mixed into an rclpy `Node`
+    (`GuidanceNode`) or a `LifecycleNode` (`ManagedGuidanceNode`): parameters, publishers and
+    subscriptions, the worker thread, the recorder, diagnostics and visualisation. The decision
+    sequence itself is the core's."""
 
     def _declare_parameters(self) -> None:
         check_table(PARAMETERS)
@@ -89,7 +75,7 @@ class GuidanceCore:
                                descriptor("samples_per_node"))
         self.p = {name: spec.coerce(name, self.get_parameter(name).value)
                   for name, spec in SPECS.items()}
-        self.policy: ReplanPolicy | None = None
+        self.core: GuidanceCore | None = None  # None: not configured
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
     def _configure(self) -> None:
@@ -106,22 +92,13 @@ class GuidanceCore:
         self.pipeline = GuidancePipeline(config, provider=self.provider,
                                          deadline_s=self.p["solve_deadline_s"])
         settings = {name: self.p[name] for name in POLICY_PARAMETERS}
-        self.policy = ReplanPolicy(ReplanSettings(
-            **settings, ae_to_koz_node=self.scenario.ae_to_koz_node))
-        self.target = Target(self.p["default_waypoint"],
-                             np.asarray(self.scenario.waypoints_rtn[self.p["default_waypoint"]]),
-                             self.p["chance_constrained"], self.p["warm_start"], None)
-        self._lock = threading.Condition()
-        self._job: Job | None = None
-        self._busy = False
-        self._stop = False
+        target = Target(self.p["default_waypoint"],
+                        np.asarray(self.scenario.waypoints_rtn[self.p["default_waypoint"]]),
+                        self.p["chance_constrained"], self.p["warm_start"], None)
+        self.core = GuidanceCore(self.pipeline, ReplanSettings(
+            **settings, ae_to_koz_node=self.scenario.ae_to_koz_node), target)
         self._worker: threading.Thread | None = None
-        self._latest_nav: NavState | None = None
-        self._latest_nav_msg: RelativeNavState | None = None
-        self._ids = itertools.count(1)
-        self._request_msg: ReplanRequest | None = None
         self.recorder = self._make_recorder()
-        self.stats = {"nav": 0, "rejected": 0, "plans": 0, "superseded": 0}
 
     def _load_model(self) -> tuple[object | None, str]:
         """Load the learned warm start once, at start-up (never in a callback).
@@ -184,11 +161,10 @@ class GuidanceCore:
             self.destroy_subscription(sub)
 
     def _start_worker(self) -> None:
-        with self._lock:
-            self._stop = False
+        self.core.start()
         self._worker = threading.Thread(target=self._work, name="guidance_worker", daemon=True)
         self._worker.start()
-        self.get_logger().info(f"guidance_node planning (target {self.target.waypoint}, "
+        self.get_logger().info(f"guidance_node planning (target {self.core.target.waypoint}, "
                                f"stamp_check {self.p['stamp_check']}, warm start "
                                f"{self.p['warm_start']}, {self.model_status})")
         self._publish_diag("art_guidance/model", OK if self.provider is not None else WARN,
@@ -198,10 +174,7 @@ class GuidanceCore:
         """Stop taking jobs; the running solve finishes (and is recorded and published)."""
         if self._worker is None:
             return
-        with self._lock:
-            self._stop = True
-            self._job = None
-            self._lock.notify()
+        self.core.stop()
         self._worker.join(timeout=30.0)
         self._worker = None
 
@@ -242,13 +215,9 @@ class GuidanceCore:
         except ConfigError as exc:
             self.get_logger().warning(f"parameter change refused: {exc}")
             return SetParametersResult(successful=False, reason=str(exc))
-        if self.policy is None:  # not configured yet: the values are used at configure
-            self.p = new
-            return SetParametersResult(successful=True)
-        with self._lock:
-            self.p = new
-            self.policy.settings = dataclasses.replace(
-                settings, ae_to_koz_node=self.policy.settings.ae_to_koz_node)
+        self.p = new
+        if self.core is not None:  # not configured yet: the values are used at configure
+            self.core.update_settings(settings)
             self.pipeline.deadline_s = new["solve_deadline_s"]
         changed = ", ".join(f"{p.name}={new[p.name]!r}" for p in params)
         self.get_logger().info(f"parameters changed: {changed}")
@@ -256,12 +225,11 @@ class GuidanceCore:
 
     # ------------------------------------------------------------------ callbacks
     def _on_nav(self, msg: RelativeNavState) -> None:
-        self.stats["nav"] += 1
+        self.core.stats["nav"] += 1
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         try:
             nav = nav_from_msg(msg)
-            with self._lock:
-                self.policy.check_stamp(nav.stamp_ns, time.time_ns())
+            decision, deviation = self.core.on_nav(nav, time.time_ns(), msg)
         except GuidanceError as exc:
             self._reject(stamp_ns, str(exc))
             return
@@ -269,12 +237,6 @@ class GuidanceCore:
             self._reject(stamp_ns, f"unexpected {type(exc).__name__}: {exc}")
             return
         self._publish_deputy(nav)
-        with self._lock:
-            self._latest_nav, self._latest_nav_msg = nav, msg
-            self.policy.accept(nav)
-            decision, deviation = self.policy.decide(nav, self._busy or self._job is not None)
-            if decision is Decision.REPLANNING:
-                self._submit(self._job_for(nav, msg, "nav"))
         self._diag(nav.stamp_ns, OK, decision.value, {"deviation_sigma": round(deviation, 3)})
 
     def _on_request(self, msg: ReplanRequest) -> None:
@@ -284,34 +246,13 @@ class GuidanceCore:
             self.get_logger().warning(f"replan request rejected: {exc}")
             self._publish_diag("art_guidance/replan_request", WARN, str(exc), {})
             return
-        with self._lock:
-            self.target, self._request_msg = target, msg
-            self.policy.reset()  # a new target restarts the horizon and the stamp sequence
-            if self._latest_nav is not None:
-                self._submit(self._job_for(self._latest_nav, self._latest_nav_msg, "request"))
+        self.core.on_target(target, msg)  # restarts the horizon, replans from the newest fix
         self._publish_diag("art_guidance/replan_request", OK, f"target {target.waypoint}",
                            {"waypoint": target.waypoint})
 
-    def _job_for(self, nav: NavState, msg: RelativeNavState, trigger: str) -> Job:
-        window = self.policy.window(nav, self.target.n_orbits)
-        return Job(nav, request_for(nav, self.target, window), trigger, msg, self._request_msg)
-
-    def _submit(self, job: Job) -> None:
-        """Called with the lock held: replace any queued job, wake the worker."""
-        if self._job is not None:
-            self.stats["superseded"] += 1
-        self._job = job
-        self._lock.notify()
-
     # ------------------------------------------------------------------ worker
     def _work(self) -> None:
-        while True:
-            with self._lock:
-                while self._job is None and not self._stop:
-                    self._lock.wait()
-                if self._stop:
-                    return
-                job, self._job, self._busy = self._job, None, True
+        while (job := self.core.take_job()) is not None:
             try:
                 self._solve(job)
             except Exception as exc:  # the worker must survive anything
@@ -322,29 +263,24 @@ class GuidanceCore:
                     job.nav.stamp_ns, self._next_id(), ManeuverPlan.STATUS_SOLVER_ERROR,
                     f"{type(exc).__name__}: {exc}", self._active_id()))
             finally:
-                with self._lock:
-                    self._busy = False
+                self.core.job_done()
 
     def _solve(self, job: Job) -> None:
-        result = self.pipeline.plan(job.request)
-        plan_id = self._next_id()
+        solved = self.core.solve(job)
+        result, plan_id, action, active_id = (solved.result, solved.plan_id, solved.action,
+                                              solved.active_id)
         plan_msg = plan_to_msg(result, job.nav.stamp_ns, plan_id)
-        with self._lock:  # an unusable replan never replaces the plan in force
-            action = self.policy.on_result(plan_id, job.nav.stamp_ns, result)
-            active_id = self.policy.active_id
         plan_msg.active_plan_id = active_id
         if action is not Action.ACTIVATED:
-            plan_msg.status_text = unusable_text(result, active_id)
-        with self._lock:  # a plan a queued solve replaces at once is not drawn (bursts)
-            superseded = self._job is not None
+            plan_msg.status_text = solved.status_text
+        # a plan a queued solve replaces at once is not drawn (bursts)
         views = (self._plan_views(job, result, plan_id)
-                 if action is Action.ACTIVATED and not superseded else [])
+                 if action is Action.ACTIVATED and not self.core.job_queued() else [])
         # recorded (and fsync'ed) before it is published: a crash never loses a published plan
         self._record(job, result, plan_id, plan_msg, views)
         self.plan_pub.publish(plan_msg)
         for topic, msg in views:
             self.viz_pubs[topic].publish(msg)
-        self.stats["plans"] += 1
         level = OK if result.scp.feasible else WARN
         t = result.timings_ms
         self._log().info(
@@ -404,8 +340,8 @@ class GuidanceCore:
                 views: list[tuple[str, object]]) -> None:
         if self.recorder is None:
             return
-        topic, request = self._record_topics, job.request_msg
-        msgs = [(topic[NAV_TYPE], job.nav_msg)]
+        topic, request = self._record_topics, job.request_payload
+        msgs = [(topic[NAV_TYPE], job.nav_payload)]
         # each request once (same stamp and content = same request): played back, every copy
         # would reset a live node's plan; the solve record links to it by stamp
         new_request = request is not None and request != self._recorded_request
@@ -428,15 +364,14 @@ class GuidanceCore:
 
     def _active_id(self) -> str:
         """Id of the plan in force ("" = none)."""
-        with self._lock:
-            return self.policy.active_id
+        return self.core.active_id
 
     def _next_id(self) -> str:
-        return f"plan-{next(self._ids)}"
+        return self.core.next_id()
 
     # ------------------------------------------------------------------ publishing
     def _reject(self, stamp_ns: int, reason: str) -> None:
-        self.stats["rejected"] += 1
+        self.core.stats["rejected"] += 1
         self.get_logger().warning(f"nav message rejected: {reason}")
         self.plan_pub.publish(status_plan_msg(stamp_ns, self._next_id(),
                                               ManeuverPlan.STATUS_REJECTED_INPUT, reason,
@@ -452,7 +387,7 @@ class GuidanceCore:
 
     def shutdown_worker(self) -> None:
         """Stop the worker thread (after the running solve) and finish the recording."""
-        if self.policy is None:  # never configured
+        if self.core is None:  # never configured
             return
         self._stop_worker()
         if self.recorder is not None:
@@ -469,7 +404,7 @@ class GuidanceCore:
         return rclpy.logging.get_logger("art_guidance.shutdown")
 
 
-class GuidanceNode(GuidanceCore, Node):
+class GuidanceNode(GuidanceNodeBase, Node):
     """The guidance node: configured and planning as soon as it is constructed."""
 
     def __init__(self, **kwargs) -> None:
@@ -481,7 +416,7 @@ class GuidanceNode(GuidanceCore, Node):
         self._start_worker()
 
 
-class ManagedGuidanceNode(GuidanceCore, LifecycleNode):
+class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
     """The guidance node as a managed (lifecycle) node, for deterministic bring-up.
 
     unconfigured --configure--> inactive (configuration and model loaded, recorder open,
@@ -499,7 +434,7 @@ class ManagedGuidanceNode(GuidanceCore, LifecycleNode):
             self._configure()
         except GuidanceError as exc:
             self.get_logger().error(f"configure failed: {exc}")
-            self.policy = None
+            self.core = None
             return TransitionCallbackReturn.FAILURE
         self._create_publishers(self.create_lifecycle_publisher)
         return TransitionCallbackReturn.SUCCESS
@@ -518,12 +453,12 @@ class ManagedGuidanceNode(GuidanceCore, LifecycleNode):
         self.shutdown_worker()
         for pub in self._all_publishers():
             self.destroy_lifecycle_publisher(pub)
-        self.policy = None
+        self.core = None
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.shutdown_worker()
-        self.policy = None
+        self.core = None
         return TransitionCallbackReturn.SUCCESS
 
 

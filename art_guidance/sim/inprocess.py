@@ -1,12 +1,12 @@
 """The guidance called directly, without DDS: a `GuidanceLink` for Monte Carlo closed loops.
 
-`InProcessGuidance` runs the same replan policy and pipeline as the guidance node, synchronously:
-`publish_nav` validates the fix, decides, and (when replanning) plans before it returns, so the
-`wait_*` calls answer at once. Plans it publishes are kept with their `PlanResult`.
+`InProcessGuidance` runs the guidance node's `GuidanceCore` (replan policy and pipeline)
+synchronously: `publish_nav` validates the fix, decides, and (when replanning) plans before it
+returns, so the `wait_*` calls answer at once. Plans it publishes are kept with their
+`PlanResult`.
 """
 from __future__ import annotations
 
-import itertools
 import time
 
 import numpy as np
@@ -15,16 +15,16 @@ from art_guidance.checks import as_finite_array, check_psd
 from art_guidance.dynamics import check_oe
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
-from art_guidance.planning.replan import (
-    Action, Decision, ReplanPolicy, ReplanSettings, request_for, unusable_text,
-)
+from art_guidance.planning.guidance import GuidanceCore, Job
+from art_guidance.planning.replan import Decision, ReplanSettings
 from art_guidance.sim.link import LinkPlan
 
 _EMPTY = np.zeros(0)
 
 
 class InProcessGuidance:
-    """A guidance instance in this process (see the module docstring).
+    """A guidance instance in this process (see the module docstring): the node's
+    `GuidanceCore`, called synchronously.
 
     Args:
         pipeline: the planner.
@@ -37,13 +37,17 @@ class InProcessGuidance:
                  settings: ReplanSettings | None = None) -> None:
         self.pipeline = pipeline
         self.epoch0_ns = int(epoch0_ns)
-        self.policy = ReplanPolicy(settings or ReplanSettings(
-            stamp_check="order", ae_to_koz_node=pipeline.scenario.ae_to_koz_node))
-        self.target: Target | None = None
+        self.core: GuidanceCore | None = None
+        self._settings = settings or ReplanSettings(
+            stamp_check="order", ae_to_koz_node=pipeline.scenario.ae_to_koz_node)
         self.results: list[tuple[str, PlanResult]] = []
         self._decisions: dict[int, dict[str, str]] = {}
         self._plans: list[LinkPlan] = []
-        self._ids = itertools.count(1)
+
+    @property
+    def policy(self) -> object:
+        """The core's replan policy (None before the first request)."""
+        return None if self.core is None else self.core.policy
 
     def wait_matched(self, timeout_s: float) -> bool:
         """Always reachable."""
@@ -54,45 +58,48 @@ class InProcessGuidance:
         waypoints = self.pipeline.scenario.waypoints_rtn
         if waypoint not in waypoints:
             raise InputError("waypoint", f"unknown; choose from {sorted(waypoints)}", waypoint)
-        self.target = Target(waypoint, np.asarray(waypoints[waypoint], float),
-                             bool(chance_constrained), warm_start, None)
-        self.policy.reset()
+        target = Target(waypoint, np.asarray(waypoints[waypoint], float),
+                        bool(chance_constrained), warm_start, None)
+        if self.core is None:
+            self.core = GuidanceCore(self.pipeline, self._settings, target)
+        else:
+            self.core.on_target(target)
+            self.core.take_job(wait=False)  # the node would replan the newest fix; a run's
+            # request comes before its first fix, so there is none to replan here
 
     def publish_nav(self, stamp_ns: int, chief_oe: np.ndarray, roe_m: np.ndarray,
                     cov_m2: np.ndarray) -> None:
         """Decide on a fix and, when replanning, plan before returning."""
         try:
-            if self.target is None:
+            if self.core is None:
                 raise GuidanceError("no replan request received yet")
             nav = NavState(int(stamp_ns), check_oe(chief_oe),
                            as_finite_array("roe_m", roe_m, (6,)),
                            check_psd("cov_m2", as_finite_array("cov_m2", cov_m2, (6, 6))))
-            self.policy.check_stamp(nav.stamp_ns, time.time_ns())
+            decision, deviation = self.core.on_nav(nav, time.time_ns())
         except GuidanceError as exc:
+            active = "" if self.core is None else self.core.active_id
             self._decisions[int(stamp_ns)] = {"decision": Decision.REJECTED.value,
                                               "reason": str(exc)}
-            self._plans.append(LinkPlan(int(stamp_ns), "rejected", None, str(exc),
-                                        self.policy.active_id, _EMPTY, _EMPTY, _EMPTY))
+            self._plans.append(LinkPlan(int(stamp_ns), "rejected", None, str(exc), active,
+                                        _EMPTY, _EMPTY, _EMPTY))
             return
-        self.policy.accept(nav)
-        decision, deviation = self.policy.decide(nav, busy=False)
         self._decisions[nav.stamp_ns] = {"decision": decision.value,
                                          "deviation_sigma": f"{deviation:.3f}"}
-        if decision is Decision.REPLANNING:
-            self._solve(nav)
+        job = self.core.take_job(wait=False)
+        if job is not None:
+            try:
+                self._solve(job)
+            finally:
+                self.core.job_done()
 
-    def _solve(self, nav: NavState) -> None:
-        window = self.policy.window(nav, self.target.n_orbits)
-        result = self.pipeline.plan(request_for(nav, self.target, window))
-        plan_id = f"plan-{next(self._ids)}"
-        action = self.policy.on_result(plan_id, nav.stamp_ns, result)
-        active_id = self.policy.active_id
-        text = (result.status.name if action is Action.ACTIVATED
-                else unusable_text(result, active_id))
-        self.results.append((plan_id, result))
-        self._plans.append(LinkPlan(nav.stamp_ns, plan_id, result.status, text, active_id,
-                                    result.epochs_s, result.dv_rtn_mps.ravel(),
-                                    result.rtn.ravel()))
+    def _solve(self, job: Job) -> None:
+        solved = self.core.solve(job)
+        result = solved.result
+        self.results.append((solved.plan_id, result))
+        self._plans.append(LinkPlan(job.nav.stamp_ns, solved.plan_id, result.status,
+                                    solved.status_text, solved.active_id, result.epochs_s,
+                                    result.dv_rtn_mps.ravel(), result.rtn.ravel()))
 
     def wait_decision(self, stamp_ns: int, timeout_s: float) -> dict[str, str] | None:
         """The decision made on fix `stamp_ns` (None if it was never published)."""

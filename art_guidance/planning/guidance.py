@@ -1,0 +1,198 @@
+"""The guidance's decision sequence without ROS: check -> decide -> request -> plan -> keep.
+
+One `GuidanceCore` holds a guidance instance's state: the replan policy, the target, the job
+mailbox and the plan ids. The ROS 2 node (plain and lifecycle) wires it to topics and runs
+`take_job` / `solve` in its worker thread; the simulator's in-process link
+(`sim.inprocess.InProcessGuidance`) calls the same methods synchronously, so both follow the
+same sequence:
+
+1. `on_nav`: refuse a stale, out-of-order or future stamp (GuidanceError), accept the fix,
+   decide between replanning and staying on the plan in force; a replan becomes a `Job` over the
+   remaining window in the mailbox (newest wins: a queued job is superseded, never queued
+   without bound).
+2. `on_target`: a new target restarts the horizon and replans from the newest fix.
+3. `take_job` / `job_done`: the worker's side of the mailbox.
+4. `solve`: plan the job and put a usable plan in force (an unusable one never replaces the
+   plan in force); returns what happened, with the status text to publish.
+
+Thread-safe: every method takes the core's lock except the planning itself.
+"""
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+from art_guidance.planning.pipeline import GuidancePipeline
+from art_guidance.planning.replan import (
+    Action, Decision, ReplanPolicy, ReplanSettings, request_for, unusable_text,
+)
+from art_guidance.planning.types import NavState, PlanRequest, PlanResult, Target
+
+
+@dataclass(frozen=True)
+class Job:
+    """A planning job.
+
+    Attributes:
+        nav: the fix it plans from.
+        request: the planning request over the remaining window.
+        trigger: "nav" (a fix) or "request" (a new target).
+        nav_payload, request_payload: what the caller attached to the fix and to the target
+            (the node: the ROS messages it records with the solve).
+    """
+
+    nav: NavState
+    request: PlanRequest
+    trigger: str
+    nav_payload: Any = None
+    request_payload: Any = None
+
+
+@dataclass(frozen=True)
+class Solved:
+    """A finished job.
+
+    Attributes:
+        plan_id: the new plan's id.
+        result: the pipeline's result.
+        action: what it did to the plan in force.
+        active_id: the plan in force afterwards ("" = none).
+        status_text: the plan's status in words (why it is not in force, if it is not).
+    """
+
+    plan_id: str
+    result: PlanResult
+    action: Action
+    active_id: str
+    status_text: str
+
+
+class GuidanceCore:
+    """A guidance instance without ROS (see the module docstring).
+
+    Args:
+        pipeline: the planner.
+        settings: the replan policy's settings.
+        target: the target until `on_target` names another.
+    """
+
+    def __init__(self, pipeline: GuidancePipeline, settings: ReplanSettings,
+                 target: Target) -> None:
+        self.pipeline = pipeline
+        self.policy = ReplanPolicy(settings)
+        self.target = target
+        self.stats = {"nav": 0, "rejected": 0, "plans": 0, "superseded": 0}
+        self._lock = threading.Condition()
+        self._job: Job | None = None
+        self._busy = False
+        self._stop = False
+        self._latest: tuple[NavState, Any] | None = None
+        self._target_payload: Any = None
+        self._ids = itertools.count(1)
+
+    # ------------------------------------------------------------------ decisions
+    def on_nav(self, nav: NavState, now_ns: int, payload: Any = None) -> tuple[Decision, float]:
+        """Check, accept and decide on a fix; a replan is queued as a job.
+
+        Returns:
+            The decision and the largest per-axis deviation from the plan [nav sigma] (NaN
+            if not computed).
+
+        Raises:
+            GuidanceError: a stale, out-of-order or future stamp (nothing changes).
+        """
+        with self._lock:
+            self.policy.check_stamp(nav.stamp_ns, now_ns)
+            self._latest = (nav, payload)
+            self.policy.accept(nav)
+            decision, deviation = self.policy.decide(nav, self._busy or self._job is not None)
+            if decision is Decision.REPLANNING:
+                self._submit(self._job_for(nav, payload, "nav"))
+        return decision, deviation
+
+    def on_target(self, target: Target, payload: Any = None) -> None:
+        """A new target: restart the horizon and the stamp sequence, replan from the newest
+        fix (if any)."""
+        with self._lock:
+            self.target, self._target_payload = target, payload
+            self.policy.reset()
+            if self._latest is not None:
+                self._submit(self._job_for(*self._latest, "request"))
+
+    def update_settings(self, settings: ReplanSettings) -> None:
+        """New policy settings (the AE -> KOZ switch node of the plans in force stays)."""
+        with self._lock:
+            self.policy.settings = dataclasses.replace(
+                settings, ae_to_koz_node=self.policy.settings.ae_to_koz_node)
+
+    def _job_for(self, nav: NavState, payload: Any, trigger: str) -> Job:
+        window = self.policy.window(nav, self.target.n_orbits)
+        return Job(nav, request_for(nav, self.target, window), trigger, payload,
+                   self._target_payload)
+
+    def _submit(self, job: Job) -> None:
+        """Called with the lock held: replace any queued job, wake the worker."""
+        if self._job is not None:
+            self.stats["superseded"] += 1
+        self._job = job
+        self._lock.notify()
+
+    # ------------------------------------------------------------------ the mailbox
+    def take_job(self, wait: bool = True) -> Job | None:
+        """The newest queued job (marked busy until `job_done`); None once stopped, or when
+        nothing is queued and `wait` is False."""
+        with self._lock:
+            while wait and self._job is None and not self._stop:
+                self._lock.wait()
+            if self._stop or self._job is None:
+                return None
+            job, self._job, self._busy = self._job, None, True
+            return job
+
+    def job_done(self) -> None:
+        """The worker finished its job (solved or failed)."""
+        with self._lock:
+            self._busy = False
+
+    def job_queued(self) -> bool:
+        """A newer job waits (the one being solved will be replaced at once)."""
+        with self._lock:
+            return self._job is not None
+
+    def start(self) -> None:
+        """Accept jobs (again)."""
+        with self._lock:
+            self._stop = False
+
+    def stop(self) -> None:
+        """Drop the queued job and wake a waiting worker: `take_job` returns None."""
+        with self._lock:
+            self._stop = True
+            self._job = None
+            self._lock.notify_all()
+
+    # ------------------------------------------------------------------ planning
+    def solve(self, job: Job) -> Solved:
+        """Plan a job (outside the lock) and put a usable plan in force."""
+        result = self.pipeline.plan(job.request)
+        plan_id = self.next_id()
+        with self._lock:  # an unusable replan never replaces the plan in force
+            action = self.policy.on_result(plan_id, job.nav.stamp_ns, result)
+            active_id = self.policy.active_id
+        text = (result.status.name if action is Action.ACTIVATED
+                else unusable_text(result, active_id))
+        self.stats["plans"] += 1
+        return Solved(plan_id, result, action, active_id, text)
+
+    def next_id(self) -> str:
+        """A new plan id (also for status-only plans: rejections, failures)."""
+        return f"plan-{next(self._ids)}"
+
+    @property
+    def active_id(self) -> str:
+        """Id of the plan in force ("" = none)."""
+        with self._lock:
+            return self.policy.active_id

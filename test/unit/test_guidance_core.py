@@ -1,0 +1,76 @@
+"""The guidance's decision sequence without ROS (`planning.guidance.GuidanceCore`): the stamp
+check, the newest-wins mailbox, a new target, a solve putting a plan in force, a blocked worker
+woken by a fix and released by `stop` (the same core the node and the in-process link run)."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from art_guidance.config import ScenarioConfig
+from art_guidance.dynamics import roe_from_rtn_linear
+from art_guidance.errors import GuidanceError
+from art_guidance.planning import GuidancePipeline, NavState, Target
+from art_guidance.planning.guidance import GuidanceCore
+from art_guidance.planning.replan import Action, Decision, ReplanSettings
+
+SC = ScenarioConfig()
+CHIEF = np.array(SC.chief_oe)
+T0 = 10**18
+
+
+def _nav(k: int, offset_m: float = 0.0) -> NavState:
+    rtn = np.array(SC.rtn0_nominal) + [offset_m, 0, 0, 0, 0, 0]
+    return NavState(T0 + k * 10**9, CHIEF, roe_from_rtn_linear(CHIEF, rtn), np.eye(6))
+
+
+def _target(name: str = "plus_vbar") -> Target:
+    return Target(name, np.asarray(SC.waypoints_rtn[name], float), True, "cvx", None)
+
+
+@pytest.fixture(scope="module")
+def pipeline():
+    return GuidancePipeline()
+
+
+def test_mailbox_keeps_the_newest_job_and_refuses_stale_stamps(pipeline):
+    core = GuidanceCore(pipeline, ReplanSettings(stamp_check="order"), _target())
+    assert core.on_nav(_nav(1), 0, "first")[0] is Decision.REPLANNING
+    assert core.on_nav(_nav(2, 50.0), 0, "second")[0] is Decision.REPLANNING
+    assert core.stats["superseded"] == 1 and core.job_queued()
+    with pytest.raises(GuidanceError, match="stale"):
+        core.on_nav(_nav(2), 0)
+    job = core.take_job(wait=False)
+    assert job.nav.stamp_ns == T0 + 2 * 10**9 and job.nav_payload == "second"
+    assert job.trigger == "nav" and job.request.n_nodes is None  # nothing in force: fresh
+    assert core.take_job(wait=False) is None and not core.job_queued()
+    solved = core.solve(job)
+    core.job_done()
+    assert solved.action is Action.ACTIVATED and core.active_id == solved.plan_id
+    assert solved.status_text == solved.result.status.name and core.stats["plans"] == 1
+    # a new target drops the plan in force and replans the newest fix at once
+    core.on_target(_target("minus_rbar"), "request")
+    again = core.take_job(wait=False)
+    assert again.trigger == "request" and again.request_payload == "request"
+    assert again.nav.stamp_ns == job.nav.stamp_ns and core.active_id == ""
+    assert np.allclose(again.request.target_rtn, SC.waypoints_rtn["minus_rbar"])
+
+
+def test_a_waiting_worker_is_woken_by_a_fix_and_released_by_stop(pipeline):
+    core = GuidanceCore(pipeline, ReplanSettings(stamp_check="order"), _target())
+    got = []
+    worker = threading.Thread(target=lambda: got.append(core.take_job()))
+    worker.start()
+    core.on_nav(_nav(1), 0)
+    worker.join(timeout=5.0)
+    assert not worker.is_alive() and got[0].nav.stamp_ns == T0 + 10**9
+    core.job_done()
+    worker = threading.Thread(target=lambda: got.append(core.take_job()))
+    worker.start()
+    core.stop()
+    worker.join(timeout=5.0)
+    assert not worker.is_alive() and got[1] is None
+    core.start()
+    core.on_nav(_nav(2), 0)
+    assert core.take_job(wait=False) is not None
