@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from art_guidance.config import ScenarioConfig, node_parameter_defaults
 from art_guidance.dynamics import (
     control_matrix, orbital_period_s, propagate_mean_oe, stm_j2,
 )
@@ -21,6 +22,7 @@ from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.planning.types import NavState, PlanRequest, PlanResult, Target
 
 STAMP_CHECKS = ("wallclock", "order", "off")
+_NODE = node_parameter_defaults()  # the defaults are the node's: config/guidance_node.yaml
 
 
 class Decision(str, enum.Enum):
@@ -41,7 +43,8 @@ class Action(str, enum.Enum):
 
 @dataclass(frozen=True)
 class ReplanSettings:
-    """Policy parameters (the node's ROS parameters of the same names).
+    """Policy parameters (the node's ROS parameters of the same names; the defaults are read
+    from config/guidance_node.yaml and scenario.yaml, declared there once).
 
     Attributes:
         replan_sigma_threshold: replan when any ROE axis deviates more than this [nav sigma].
@@ -52,13 +55,13 @@ class ReplanSettings:
         ae_to_koz_node: node of the approach-ellipsoid -> keep-out-zone switch of a new plan.
     """
 
-    replan_sigma_threshold: float = 3.0
-    replan_period_s: float = 0.0
-    stamp_check: str = "wallclock"
-    max_nav_age_s: float = 5.0
-    max_nav_future_s: float = 1.0
-    min_remaining_nodes: int = 3
-    ae_to_koz_node: int = 55
+    replan_sigma_threshold: float = _NODE["replan_sigma_threshold"]
+    replan_period_s: float = _NODE["replan_period_s"]
+    stamp_check: str = _NODE["stamp_check"]
+    max_nav_age_s: float = _NODE["max_nav_age_s"]
+    max_nav_future_s: float = _NODE["max_nav_future_s"]
+    min_remaining_nodes: int = _NODE["min_remaining_nodes"]
+    ae_to_koz_node: int = ScenarioConfig().ae_to_koz_node
 
     def __post_init__(self) -> None:
         if self.stamp_check not in STAMP_CHECKS:
