@@ -40,7 +40,7 @@ __all__ = ["FIELDS", "MODES", "SEED_RULE", "SEED_STRIDE", "STAGES", "TIMING_FIEL
 # =========================================================================== 3-stage pipeline
 STAGES = ("cvx", "collision_avoidance", "passive_safety")
 # Bump when a code change alters the stored data of a given seed. 2: passive safety over the
-# continuous drift arc (certified t*, issue 13): new SCP solutions, constraint-to-go and margins.
+# continuous drift arc (certified t*): new SCP solutions, constraint-to-go and margins.
 # 3: SCVx* plans with B at the deputy's state and the second-order along-track drift
 # (`Horizon.propagate_nonlinear`): new SCP solutions and trajectories.
 PIPELINE_VERSION = 3

@@ -534,7 +534,7 @@ def test_domain_errors_raise_input_error(chief: np.ndarray) -> None:
     equatorial[2] = 0.0
     with pytest.raises(InputError):
         dyn.oe_from_roe(equatorial, np.zeros(6))
-    with pytest.raises(InputError):  # node undefined: used to return NaN silently
+    with pytest.raises(InputError):  # node undefined: an error, never a silent NaN
         dyn.oe_from_eci(dyn.eci_from_oe(equatorial))
     with pytest.raises(InputError):
         dyn.oe_from_roe(chief, [-chief[0], 0, 0, 0, 0, 0])
