@@ -7,10 +7,8 @@ import numpy as np
 
 from art_guidance.checks import as_finite_array
 from art_guidance.config import ScenarioConfig
-from art_guidance.dynamics import (
-    mean_arg_latitude, mean_motion, orbital_period_s, propagate_mean_oe, psi_from_latitude,
-    stm_j2,
-)
+from art_guidance.dynamics import orbital_period_s
+from art_guidance.plan_view import drift_rtn
 from art_guidance.sim.simulator import RendezvousSim
 
 
@@ -27,17 +25,9 @@ def drift_arcs_rtn(sim: RendezvousSim, n_samples: int = 60,
         (K, n_samples, 6) RTN states [m, m/s] along the K arcs (first-order map Psi).
     """
     t, _, _, roe_post = sim.node_arrays()
-    a_m = float(sim.chief_mean_oe0[0])
     if duration_s is None:
-        duration_s = sim.scenario.t_safety_orbits * orbital_period_s(a_m)
-    tau = np.linspace(0.0, float(duration_s), int(n_samples))
-    n = mean_motion(a_m)
-    out = np.zeros((t.size, tau.size, 6))
-    for k in range(t.size):
-        oe_k = propagate_mean_oe(sim.chief_mean_oe0, t[k])
-        psi = psi_from_latitude(mean_arg_latitude(propagate_mean_oe(oe_k, tau)), n)
-        out[k] = np.einsum("sij,sjk,k->si", psi, stm_j2(oe_k, tau), roe_post[k])
-    return out
+        duration_s = sim.scenario.t_safety_orbits * orbital_period_s(sim.chief_mean_oe0[0])
+    return drift_rtn(sim.chief_mean_oe0, t, roe_post, duration_s, n_samples)
 
 
 def plot_rendezvous(path: str | Path, sim: RendezvousSim, scenario: ScenarioConfig,
