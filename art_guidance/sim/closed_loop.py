@@ -360,10 +360,15 @@ class ClosedLoop:
         number of nodes flown) is the drift after the final burn. Nodes passed by a fault are
         not included (a loss run ends at its fault; nothing later was flown).
         """
+        return [(k, self.drift_check(s)) for k, s in self.loss_states(first_node)]
+
+    def loss_states(self, first_node: int = 1) -> list[tuple[int, Snapshot]]:
+        """The truth state a loss at each node from `first_node` on drifts from (the pre-burn
+        snapshots, then the state after the final burn), as (node, state)."""
         states = list(enumerate(self.snapshots))
         if self.final_state is not None:
             states.append((len(self.snapshots), self.final_state))
-        return [(k, self.drift_check(s)) for k, s in states if k >= first_node]
+        return [(k, s) for k, s in states if k >= first_node]
 
     def fault_report(self) -> tuple[dict | None, DriftCheck | None]:
         """The summary's `fault` object (None without a fault) and its worst drift.

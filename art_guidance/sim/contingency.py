@@ -151,7 +151,7 @@ def _flight_row(spec: ContingencySpec, index: int) -> dict[str, np.ndarray]:
            "loss_zone": np.full(n, -1, np.int8), "loss_state": np.full((n, 12), np.nan),
            "loss_dv_cmd_mps": np.full(n, np.nan)}
     dv_cmd = np.array([h.dv_cmd_mps for h in loop.sim.history]).reshape(-1, 3)
-    states = loop.snapshots + ([loop.final_state] if loop.final_state is not None else [])
+    states = dict(loop.loss_states())
     for j, (k, c) in enumerate(checks[:n]):
         row["loss_node"][j] = k
         row["loss_margin_m"][j] = c.min_margin_m
@@ -266,6 +266,12 @@ def upper_bound(entries: int, trials: int, confidence: float = CONFIDENCE) -> fl
     return float(beta.ppf(confidence, entries + 1, trials - entries))
 
 
+def spec_of(head: dict) -> ContingencySpec:
+    """The `ContingencySpec` a contingency directory's header records."""
+    stored = head["contingency"]["spec"]
+    return ContingencySpec(**dict(stored, configs=tuple(tuple(c) for c in stored["configs"])))
+
+
 def read_rows(out: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
     """The header and the committed rows of a contingency directory."""
     head = read_manifest(out)[0]
@@ -287,8 +293,7 @@ def summarize_directory(out: str | Path, this: dict | None = None,
     """Entry rates, bounds, worst margins and missed-burn outcomes per configuration; `this`
     is the invocation that produced it, `runs` every invocation that flew flights."""
     head, rows = read_rows(out)
-    spec = ContingencySpec(**{k: (tuple(tuple(c) for c in v) if k == "configs" else v)
-                              for k, v in head["contingency"]["spec"].items()})
+    spec = spec_of(head)
     per = []
     for c in range(len(spec.configs)):
         sel = rows["config"] == c if rows else np.zeros(0, bool)
@@ -389,8 +394,8 @@ def render(out: str | Path, n_worst: int = 6) -> list[str]:
 
     out = Path(out)
     head, rows = read_rows(out)
-    labels = [ContingencySpec(configs=tuple(tuple(c) for c in head["contingency"]["spec"][
-        "configs"])).label(c) for c in range(len(head["contingency"]["spec"]["configs"]))]
+    spec = spec_of(head)
+    labels = [spec.label(c) for c in range(len(spec.configs))]
     scenario = ScenarioConfig.from_yaml(None)
     fig = Figure(figsize=(10, 4.5), dpi=100)
     FigureCanvasAgg(fig)
