@@ -137,6 +137,7 @@ class GuidanceNodeBase:
         self.plan_pub = create(ManeuverPlan, topics.MANEUVER_PLAN, qos)
         self.diag_pub = create(DiagnosticArray, topics.DIAGNOSTICS, qos)
         self.viz_pubs = {}
+        self._deputy_viz_ns: int | None = None  # stamp of the last deputy drawn
         if self.p["visualization"]:
             latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                                  durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -324,7 +325,7 @@ class GuidanceNodeBase:
         DEPUTY_VIZ_PERIOD_S apart in stamp time (a 100 Hz burst costs the callbacks nothing)."""
         if not self.viz_pubs:
             return
-        last = getattr(self, "_deputy_viz_ns", None)
+        last = self._deputy_viz_ns
         if last is not None and 0 <= nav.stamp_ns - last < DEPUTY_VIZ_PERIOD_S * 1e9:
             return
         self._deputy_viz_ns = nav.stamp_ns

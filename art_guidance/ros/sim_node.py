@@ -177,9 +177,9 @@ class SimNode(Node):
         msg.warm_start = warm_start
         self.req_pub.publish(msg)
 
-    def publish_truth(self, t_s: np.ndarray, rtn: np.ndarray) -> None:
+    def publish_truth(self, t_s: Sequence[float], rtn: Sequence[np.ndarray]) -> None:
         """The truth trajectory so far on sim/viz/truth_path (frame chief_rtn, sim stamps)."""
-        self.truth_pub.publish(truth_path_msg(t_s, rtn, self.epoch0_ns))
+        self.truth_pub.publish(truth_path_msg(np.asarray(t_s), np.asarray(rtn), self.epoch0_ns))
 
     def publish_nav(self, stamp_ns: int, chief_oe: np.ndarray, roe_m: np.ndarray,
                     cov_m2: np.ndarray) -> None:

@@ -212,7 +212,7 @@ class ClosedLoop:
         for _ in range(int(p["max_steps"])):
             self.counts["steps"] += 1
             sim = self.sim
-            self.link.publish_truth(np.asarray(sim.trajectory_t_s), np.asarray(sim.trajectory_rtn))
+            self.link.publish_truth(sim.trajectory_t_s, sim.trajectory_rtn)
             stamp = sim_stamp_ns(sim.t_s, self.link.epoch0_ns)
             self.sent.add(stamp)
             roe, cov = sim.nav_estimate()

@@ -28,6 +28,7 @@ from art_guidance.checks import as_finite_array
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import InputError
+from art_guidance.sim.truth import integrate_truth, rtn_from_eci_batch
 
 FAULT_KINDS = ("loss", "missed")
 ZONES = ("approach_ellipsoid", "keep_out_zone")
@@ -174,8 +175,6 @@ def free_drift_check(chief_eci: object, deputy_eci: object, t0_s: float, duratio
     Raises:
         InputError: on non-finite states, a non-positive duration or step, an unknown zone.
     """
-    from art_guidance.sim.truth import integrate_truth, rtn_from_eci_batch
-
     c = as_finite_array("chief_eci", chief_eci, (6,))
     d = as_finite_array("deputy_eci", deputy_eci, (6,))
     for name, value in (("duration_s", duration_s), ("step_s", step_s)):

@@ -113,5 +113,5 @@ class InProcessGuidance:
         """Plans from index `start` on, in publication order."""
         return list(self._plans[start:])
 
-    def publish_truth(self, t_s: np.ndarray, rtn: np.ndarray) -> None:
+    def publish_truth(self, t_s: object, rtn: object) -> None:
         """Nothing to show in-process."""

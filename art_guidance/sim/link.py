@@ -7,7 +7,7 @@ offline demo). Plans cross it as `LinkPlan`: plain arrays, no message types.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, Sequence
 
 import numpy as np
 
@@ -72,6 +72,6 @@ class GuidanceLink(Protocol):
     def take_plans(self, start: int) -> list[LinkPlan]:
         """Plans received from index `start` on, in arrival order."""
 
-    def publish_truth(self, t_s: np.ndarray, rtn: np.ndarray) -> None:
-        """Show the truth trajectory so far: sim times (K,) [s], RTN states (K, 6) [m, m/s]
-        (a visualisation; a link without one ignores it)."""
+    def publish_truth(self, t_s: Sequence[float], rtn: Sequence[np.ndarray]) -> None:
+        """Show the truth trajectory so far: K sim times [s] and K RTN states (6,) [m, m/s]
+        (the simulator's record, passed as is; a link without a visualisation ignores it)."""
