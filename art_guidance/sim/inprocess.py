@@ -15,7 +15,7 @@ from art_guidance.checks import as_finite_array, check_psd
 from art_guidance.dynamics import check_oe
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
-from art_guidance.planning.guidance import GuidanceCore, Job
+from art_guidance.planning.guidance import GuidanceCore
 from art_guidance.planning.replan import Decision, ReplanSettings
 from art_guidance.sim.link import LinkPlan
 
@@ -44,17 +44,13 @@ class InProcessGuidance:
         self._decisions: dict[int, dict[str, str]] = {}
         self._plans: list[LinkPlan] = []
 
-    @property
-    def policy(self) -> object:
-        """The core's replan policy (None before the first request)."""
-        return None if self.core is None else self.core.policy
-
     def wait_matched(self, timeout_s: float) -> bool:
         """Always reachable."""
         return True
 
     def publish_request(self, waypoint: str, chance_constrained: bool, warm_start: str) -> None:
-        """Set the target (a configured waypoint) and restart the horizon."""
+        """Set the target (a configured waypoint) and restart the horizon; as the node does, a
+        later request replans from the newest fix before returning."""
         waypoints = self.pipeline.scenario.waypoints_rtn
         if waypoint not in waypoints:
             raise InputError("waypoint", f"unknown; choose from {sorted(waypoints)}", waypoint)
@@ -64,8 +60,7 @@ class InProcessGuidance:
             self.core = GuidanceCore(self.pipeline, self._settings, target)
         else:
             self.core.on_target(target)
-            self.core.take_job(wait=False)  # the node would replan the newest fix; a run's
-            # request comes before its first fix, so there is none to replan here
+            self._solve_queued()
 
     def publish_nav(self, stamp_ns: int, chief_oe: np.ndarray, roe_m: np.ndarray,
                     cov_m2: np.ndarray) -> None:
@@ -86,15 +81,18 @@ class InProcessGuidance:
             return
         self._decisions[nav.stamp_ns] = {"decision": decision.value,
                                          "deviation_sigma": f"{deviation:.3f}"}
-        job = self.core.take_job(wait=False)
-        if job is not None:
-            try:
-                self._solve(job)
-            finally:
-                self.core.job_done()
+        self._solve_queued()
 
-    def _solve(self, job: Job) -> None:
-        solved = self.core.solve(job)
+    def _solve_queued(self) -> None:
+        """Solve the job the core queued, if any (what the node's worker does), and keep the
+        plan it publishes."""
+        job = self.core.take_job(wait=False)
+        if job is None:
+            return
+        try:
+            solved = self.core.solve(job)
+        finally:
+            self.core.job_done()
         result = solved.result
         self.results.append((solved.plan_id, result))
         self._plans.append(LinkPlan(job.nav.stamp_ns, solved.plan_id, result.status,

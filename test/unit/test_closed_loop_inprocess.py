@@ -52,3 +52,9 @@ def test_fixes_before_a_request_or_out_of_order_are_rejected():
     assert last.active_plan_id == "plan-1"  # the plan in force is unchanged
     with pytest.raises(Exception, match="waypoint"):
         link.publish_request("nowhere", True, "cvx")
+    # a new target replans from the newest accepted fix at once, as the node does
+    link.publish_request("minus_vbar", True, "cvx")
+    replan = link.take_plans(0)[-1]
+    assert replan.stamp_ns == SIM_EPOCH0_NS + 1 and not replan.rejection
+    assert replan.plan_id == "plan-2" == replan.active_plan_id
+    assert np.allclose(link.results[-1][1].rtn[-1, :3], [0.0, -750.0, 0.0], atol=1.0)
