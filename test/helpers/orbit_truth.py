@@ -153,6 +153,20 @@ def rtn_position(chief_state: np.ndarray, deputy_state: np.ndarray) -> np.ndarra
                     -1)
 
 
+def sphere_clearance_m(chief: np.ndarray, deputy: np.ndarray, duration_s: float,
+                       radius_m: float, step_s: float) -> float:
+    """Smallest |r| - radius [m] of the free drift of (6,) inertial chief and deputy states over
+    [0, duration_s]: this module's DOP853 truth sampled every `step_s`, refined by a parabola
+    at the sampled minimum (the fault checks' independent reference)."""
+    sol = integrate(np.vstack([chief, deputy]), duration_s)
+    t = np.linspace(0.0, duration_s, int(duration_s / step_s) + 1)
+    y = sol(t).reshape(2, 6, -1).transpose(2, 0, 1)  # (S, 2, 6)
+    r = np.linalg.norm(rtn_position(y[:, 0], y[:, 1]), axis=1) - radius_m
+    j = int(np.clip(np.argmin(r), 1, r.size - 2))
+    curv = r[j - 1] - 2 * r[j] + r[j + 1]
+    return float(r[j] - (r[j - 1] - r[j + 1]) ** 2 / (8 * curv)) if curv > 0 else float(r.min())
+
+
 # --------------------------------------------------------------------------- mean elements
 def _period(a: np.ndarray) -> np.ndarray:
     return 2.0 * np.pi * np.sqrt(np.asarray(a) ** 3 / MU)

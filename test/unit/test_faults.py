@@ -35,18 +35,6 @@ def _fly(**overrides) -> tuple[ClosedLoop, dict, int]:
     return loop, summary, code
 
 
-def _independent_margin_m(chief, deputy, duration_s: float, radius_m: float) -> float:
-    """Smallest |r| - radius over the drift: the test helpers' own DOP853 truth, 0.5 s samples
-    (a sphere, as configured), refined by a parabola at the minimum."""
-    sol = truth.integrate(np.vstack([chief, deputy]), duration_s)
-    t = np.linspace(0.0, duration_s, int(duration_s / 0.5) + 1)
-    y = sol(t).reshape(2, 6, -1).transpose(2, 0, 1)  # (S, 2, 6)
-    r = np.linalg.norm(truth.rtn_position(y[:, 0], y[:, 1]), axis=1) - radius_m
-    j = int(np.clip(np.argmin(r), 1, r.size - 2))
-    curv = r[j - 1] - 2 * r[j] + r[j + 1]
-    return float(r[j] - (r[j - 1] - r[j + 1]) ** 2 / (8 * curv)) if curv > 0 else float(r.min())
-
-
 # --------------------------------------------------------------------------- distance
 def test_sphere_distance_is_exact():
     p = np.array([[300.0, 0, 0], [0, 0, 0], [100.0, 100.0, 0], [0, -1500.0, 0]])
@@ -89,7 +77,7 @@ def test_drift_check_agrees_with_independent_truth(rtn0, zone, entered):
     duration = 5500.0
     check = free_drift_check(sim.chief_eci, sim.deputy_eci, 12.0, duration, SC, zone)
     radius = SC.koz_semi_axes_m[0] if zone == "keep_out_zone" else SC.ae_semi_axes_m[0]
-    ref = _independent_margin_m(sim.chief_eci, sim.deputy_eci, duration, radius)
+    ref = truth.sphere_clearance_m(sim.chief_eci, sim.deputy_eci, duration, radius, 0.5)
     assert check.min_margin_m == pytest.approx(ref, abs=0.05)
     assert check.entered is entered and (check.min_margin_m < 0) is entered
     assert 12.0 <= check.t_closest_s <= 12.0 + duration

@@ -50,17 +50,10 @@ def _closest_node(loop: ClosedLoop) -> int:
 
 
 def _truth_margin_m(loop: ClosedLoop, node: int, radius_m: float) -> float:
-    """Smallest |r| - radius of the drift from the state at `node`: 0.25 s samples of the
-    helpers' DOP853 integration, parabola-refined."""
+    """Smallest |r| - radius of the drift from the state at `node` (helpers, 0.25 s)."""
     state = loop.snapshots[node]
     duration = safety_duration_s(loop.scenario, loop.sim.chief_mean_oe0[0])
-    sol = truth.integrate(np.vstack([state.chief_eci, state.deputy_eci]), duration)
-    t = np.linspace(0.0, duration, int(duration / 0.25) + 1)
-    y = sol(t).reshape(2, 6, -1).transpose(2, 0, 1)
-    r = np.linalg.norm(truth.rtn_position(y[:, 0], y[:, 1]), axis=1) - radius_m
-    j = int(np.clip(np.argmin(r), 1, r.size - 2))
-    curv = r[j - 1] - 2 * r[j] + r[j + 1]
-    return float(r[j] - (r[j - 1] - r[j + 1]) ** 2 / (8 * curv)) if curv > 0 else float(r.min())
+    return truth.sphere_clearance_m(state.chief_eci, state.deputy_eci, duration, radius_m, 0.25)
 
 
 @pytest.mark.parametrize("chance, entered", [(True, False), (False, True)])
