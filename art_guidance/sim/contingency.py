@@ -48,6 +48,7 @@ NODES_MAX = 128            # per-flight loss columns (a flight has n_nodes + 1 l
 CONFIDENCE = 0.95
 DESIGN_RATE = 1e-3         # the chance constraint's probability per node
 WORST_SHOWN = 10
+HISTOGRAM_EDGES_M = (0, 10, 25, 50, 100, 200, 500, 1000)  # post-fault margin bins (+-inf added)
 CONFIGS = ((True, "auto"), (True, "cvx"), (False, "auto"), (False, "cvx"))
 _LOG = logging.getLogger("art_guidance.contingency")
 _PIPELINES: dict[tuple[bool, str], object] = {}  # per worker process
@@ -313,57 +314,59 @@ def summarize_directory(out: str | Path, this: dict | None = None,
 def _config_summary(rows: dict, sel: np.ndarray) -> dict:
     if not sel.any():
         return {"flights": 0, "losses": {"n": 0}, "missed": {"n": 0}}
-    node = rows["loss_node"][sel]
+    r = {k: v[sel] for k, v in rows.items()}  # this configuration's flights
+    return {"flights": int(sel.sum()),
+            "nominal": {"reached": int(r["reached"].sum()), "miss_m": _dist(r["miss_m"]),
+                        "total_dv_mps": _dist(r["total_dv_mps"])},
+            "losses": _loss_summary(r), "missed": _missed_summary(r)}
+
+
+def _loss_summary(r: dict) -> dict:
+    """Entries, bounds, margins and the worst losses of one configuration's flights."""
+    node, margin_all = r["loss_node"], r["loss_margin_m"]
     valid = node >= 1
-    margin = rows["loss_margin_m"][sel][valid]
-    entries = int((margin < 0).sum())
-    flights_entered = int(np.any((rows["loss_margin_m"][sel] < 0) & valid, axis=1).sum())
-    n_flights = int(sel.sum())
-    order = np.argsort(rows["loss_margin_m"][sel], axis=None)
+    margin = margin_all[valid]
+    n, entries = int(valid.sum()), int((margin < 0).sum())
+    flights_entered = int(np.any((margin_all < 0) & valid, axis=1).sum())
     worst = []
-    for flat in order[:WORST_SHOWN]:
+    for flat in np.argsort(margin_all, axis=None)[:WORST_SHOWN]:
         i, j = np.unravel_index(flat, node.shape)
-        if not valid[i, j]:
-            continue
-        worst.append({"seed": int(rows["seed"][sel][i]), "node": int(node[i, j]),
-                      "min_margin_m": round(float(rows["loss_margin_m"][sel][i, j]), 3),
-                      "zone": ZONES[int(rows["loss_zone"][sel][i, j])],
-                      "lost_burn_mps": _round(rows["loss_dv_cmd_mps"][sel][i, j])})
-    zones = rows["loss_zone"][sel][valid]
-    by_zone = {z: _dist(margin[zones == k]) for k, z in enumerate(ZONES)}
-    hist_edges = np.array([-np.inf, 0, 10, 25, 50, 100, 200, 500, 1000, np.inf])
-    counts = np.histogram(margin, bins=hist_edges)[0]
-    mm = rows["missed_node"][sel] >= 0
-    missed_n = int(mm.sum())
-    missed = {"n": missed_n}
-    if missed_n:
-        reached = rows["missed_reached"][sel][mm]
-        missed.update(
-            reached=int(reached.sum()), reached_share=float(reached.mean()),
-            entered=int(rows["missed_entered"][sel][mm].sum()),
-            min_post_fault_margin_m=_round(np.nanmin(rows["missed_margin_m"][sel][mm])),
-            missed_burn_mps=_dist(rows["missed_dv_cmd_mps"][sel][mm]),
-            miss_m=_dist(rows["missed_miss_m"][sel][mm]),
-            replanned_share=float((rows["missed_replans_after"][sel][mm] > 0).mean()),
-            not_reached=[{"seed": int(s), "node": int(k), "miss_m": _round(d)} for s, k, d in
-                         zip(np.broadcast_to(rows["seed"][sel][:, None], mm.shape)[mm],
-                             rows["missed_node"][sel][mm], rows["missed_miss_m"][sel][mm])
-                         if d > 50.0][:WORST_SHOWN])
-    return {"flights": n_flights,
-            "nominal": {"reached": int(rows["reached"][sel].sum()),
-                        "miss_m": _dist(rows["miss_m"][sel]),
-                        "total_dv_mps": _dist(rows["total_dv_mps"][sel])},
-            "losses": {"n": int(valid.sum()), "entries": entries,
-                       "per_1000": 1e3 * entries / max(int(valid.sum()), 1),
-                       "upper_95_per_1000": _round(1e3 * (upper_bound(entries, int(valid.sum()))
-                                                          or np.nan)),
-                       "flights_with_entry": flights_entered,
-                       "flights_upper_95": _round(upper_bound(flights_entered, n_flights)),
-                       "min_margin_m": _dist(margin), "by_zone": by_zone,
-                       "histogram_m": {"edges": ["-inf", 0, 10, 25, 50, 100, 200, 500, 1000,
-                                                 "inf"], "counts": counts.tolist()},
-                       "worst": worst},
-            "missed": missed}
+        if valid[i, j]:
+            worst.append({"seed": int(r["seed"][i]), "node": int(node[i, j]),
+                          "min_margin_m": round(float(margin_all[i, j]), 3),
+                          "zone": ZONES[int(r["loss_zone"][i, j])],
+                          "lost_burn_mps": _round(r["loss_dv_cmd_mps"][i, j])})
+    zones = r["loss_zone"][valid]
+    edges = np.array([-np.inf, *HISTOGRAM_EDGES_M, np.inf])
+    return {"n": n, "entries": entries, "per_1000": 1e3 * entries / max(n, 1),
+            "upper_95_per_1000": _round(1e3 * (upper_bound(entries, n) or np.nan)),
+            "flights_with_entry": flights_entered,
+            "flights_upper_95": _round(upper_bound(flights_entered, len(node))),
+            "min_margin_m": _dist(margin),
+            "by_zone": {z: _dist(margin[zones == k]) for k, z in enumerate(ZONES)},
+            "histogram_m": {"edges": ["-inf", *HISTOGRAM_EDGES_M, "inf"],
+                            "counts": np.histogram(margin, bins=edges)[0].tolist()},
+            "worst": worst}
+
+
+def _missed_summary(r: dict) -> dict:
+    """Outcomes of one configuration's missed-burn flights."""
+    mm = r["missed_node"] >= 0
+    if not mm.any():
+        return {"n": 0}
+    reached = r["missed_reached"][mm]
+    seeds = np.broadcast_to(r["seed"][:, None], mm.shape)[mm]
+    return {"n": int(mm.sum()), "reached": int(reached.sum()),
+            "reached_share": float(reached.mean()),
+            "entered": int(r["missed_entered"][mm].sum()),
+            "min_post_fault_margin_m": _round(np.nanmin(r["missed_margin_m"][mm])),
+            "missed_burn_mps": _dist(r["missed_dv_cmd_mps"][mm]),
+            "miss_m": _dist(r["missed_miss_m"][mm]),
+            "replanned_share": float((r["missed_replans_after"][mm] > 0).mean()),
+            "not_reached": [{"seed": int(s), "node": int(k), "miss_m": _round(d)}
+                            for s, k, d in zip(seeds, r["missed_node"][mm],
+                                               r["missed_miss_m"][mm])
+                            if d > 50.0][:WORST_SHOWN]}
 
 
 def _round(x: float) -> float | None:
