@@ -45,7 +45,7 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 
 from art_guidance import __version__
-from art_guidance.config import GuidanceConfig
+from art_guidance.config import MODES, GuidanceConfig
 from art_guidance.data import stages as _stages
 from art_guidance.data.generate import shard_stats
 from art_guidance.jobs import check_run_options, default_workers, run_missing
@@ -290,7 +290,7 @@ def _check_model(art: object, generation: GenerationSpec, model: str) -> None:
 
     data = art.meta.get("dataset", {}) if isinstance(art.meta, dict) else {}
     config = training_config(art)
-    if config is None or data.get("mode") not in _stages.MODES:
+    if config is None or data.get("mode") not in MODES:
         raise InputError("--model", "records no training data mode and configuration; "
                          "DAgger needs a model trained with `art-guidance train`", model)
     trained = GenerationSpec.build(data["mode"], 0, config).config_sha256
@@ -310,7 +310,7 @@ def _generation(src: str | Path, header: dict) -> GenerationSpec:
         raise InputError("--data", "is a DAgger dataset; pass the dataset its scenarios come "
                          f"from ({header['dagger'].get('src_dir')})", str(src))
     bundle = header.get("config", {}).get("guidance_config")
-    if bundle is None or header.get("mode") not in _stages.MODES:
+    if bundle is None or header.get("mode") not in MODES:
         raise InputError("--data", "is not a dataset of `art-guidance generate` (no mode or "
                          "configuration bundle in its header)", str(src))
     spec = GenerationSpec.build(header["mode"], 0, GuidanceConfig.from_json(bundle))

@@ -4,8 +4,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from art_guidance.data.stages import MODES, SEED_STRIDE
+from art_guidance.config import MODES
 from art_guidance.jobs import ENGINES
+from art_guidance.scenarios import SEED_STRIDE
 
 
 def run(args: argparse.Namespace) -> int:

@@ -13,12 +13,11 @@ from typing import Callable
 import numpy as np
 
 from art_guidance.config import GuidanceConfig
-from art_guidance.data.stages import (
-    KEPT_INFEASIBLE, SEED_RULE, SEED_STRIDE, STAGES, GenerationSpec, generate_chunk,
-)
+from art_guidance.data.stages import KEPT_INFEASIBLE, STAGES, GenerationSpec, generate_chunk
 from art_guidance.errors import InputError
 from art_guidance.jobs import check_run_options, default_workers, run_missing
 from art_guidance.optim import FEASIBLE_STATUSES, ScpStatus
+from art_guidance.scenarios import SEED_RULE, SEED_STRIDE
 from art_guidance.data.storage import SUMMARY, DatasetWriter, aggregate_stats
 
 _FEASIBLE = [s.value for s in FEASIBLE_STATUSES]

@@ -26,14 +26,10 @@ from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.optim import ScpStatus, Scvx, solve_cvx
 from art_guidance.safety import PassiveSafety
-from art_guidance.data.storage import load_dataset
-from art_guidance.scenarios import (
-    SEED_RULE, SEED_STRIDE, ScenarioSample, sample_scenario, sample_seed,
-)
+from art_guidance.scenarios import SEED_RULE, SEED_STRIDE, sample_scenario, sample_seed
 
-__all__ = ["FIELDS", "MODES", "SEED_RULE", "SEED_STRIDE", "STAGES", "TIMING_FIELDS",
-           "GenerationSpec", "ScenarioSample", "Stage", "generate_chunk",
-           "infeasible_trajectory_fields", "load_dataset", "sample_scenario", "sample_seed",
+__all__ = ["FIELDS", "STAGES", "TIMING_FIELDS", "GenerationSpec", "Stage", "generate_chunk",
+           "infeasible_trajectory_fields",
            "solve_sample", "solve_stages", "stage_fields", "trajectory_fields"]
 
 

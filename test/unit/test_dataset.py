@@ -15,9 +15,8 @@ import pytest
 
 from art_guidance.cli import build_parser, main
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
-from art_guidance.data.stages import (
-    FIELDS, KEPT_INFEASIBLE, SEED_STRIDE, TIMING_FIELDS, sample_scenario, sample_seed,
-)
+from art_guidance.data.stages import FIELDS, KEPT_INFEASIBLE, TIMING_FIELDS
+from art_guidance.scenarios import SEED_STRIDE, sample_scenario, sample_seed
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import ConfigError, DatasetError, InputError
 from art_guidance.data.generate import generate

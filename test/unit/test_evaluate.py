@@ -13,7 +13,8 @@ import pytest
 from art_guidance.art.checkpoint import model_payload, save
 from art_guidance.cli import main
 from art_guidance.config import GuidanceConfig
-from art_guidance.data.stages import GenerationSpec, sample_scenario, sample_seed
+from art_guidance.data.stages import GenerationSpec
+from art_guidance.scenarios import sample_scenario, sample_seed
 from art_guidance.data.storage import DatasetWriter
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import InputError
