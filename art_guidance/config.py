@@ -256,6 +256,12 @@ class PosthocThresholds:
                 & (self.e_c_min <= e_c) & (e_c <= self.e_c_max))
 
 
+# What the post hoc check judges: "warm_start", the rollout's controls corrected onto the
+# terminal condition (`optim.terminal_warm_start`, what SCVx* starts from), or "rollout", the
+# rollout as the model produced it (the paper's check; the rollout misses the target).
+POSTHOC_SUBJECTS = ("warm_start", "rollout")
+
+
 @dataclass(frozen=True)
 class PlanningConfig:
     """Planning choices of the pipeline (`planning.yaml`)."""
@@ -264,8 +270,12 @@ class PlanningConfig:
     posthoc: PosthocThresholds = field(default_factory=PosthocThresholds)
     art_deadline_share: float = 0.6
     also_solve_from_cvx: bool = True
+    posthoc_subject: str = "warm_start"
 
     def __post_init__(self) -> None:
+        if self.posthoc_subject not in POSTHOC_SUBJECTS:
+            raise ConfigError(f"posthoc_subject must be one of {POSTHOC_SUBJECTS}, got "
+                              f"{self.posthoc_subject!r}")
         k = self.samples_per_node
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ConfigError(f"samples_per_node must be an integer >= 1, "

@@ -9,11 +9,12 @@ only proposes.
 Conditioning sweep: one batched rollout per reward-to-go R(t_1) = -s J_CVX for each s of
 `reward_scales` (default `DEFAULT_REWARD_SCALES`; (1.0,) is the paper's single rollout). The
 candidates differ in where and how much they burn, and the one proposed is the best by the
-post hoc criteria as the rollout realised them (E_R against R_des = -J_CVX whatever s was,
-E_C = the realised C(t_1)): inside the acceptance region first, then the smallest E_C, then
-the smallest |E_R|. On 300 held-out scenarios eight scales give a passively safe candidate in
-67 % (one rollout: 38 %) and one inside the region in 38 % (13 %), at about twice the
-rollout time (docs/art_training.md).
+post hoc criteria, judged as the pipeline's check judges them (by default on each candidate's
+terminal warm start, `planning.posthoc`; E_R against R_des = -J_CVX whatever s was): inside
+the acceptance region first, then the smallest E_C, then the smallest |E_R|. On 300 held-out
+scenarios eight scales give a passively safe rollout in 67 % (one rollout: 38 %) and one inside
+the region in 38 % (13 %), at about twice the rollout time; judging the terminal warm starts
+adds one correction and one safety evaluation per candidate (docs/art_training.md).
 
 The model is loaded once (`load`, typically at node start-up) and checked against its
 checksum. The rollout runs torch on `threads` threads (default 1: at batch 1 that is the
@@ -32,11 +33,12 @@ import torch
 
 from art_guidance.art.checkpoint import TrainedArt
 from art_guidance.art.checkpoint import load as load_checkpoint
-from art_guidance.art.rollout import rollout, training_config
-from art_guidance.config import PosthocThresholds, mode_name
+from art_guidance.art.rollout import RolloutResult, rollout, training_config
+from art_guidance.config import PlanningConfig, PosthocThresholds, mode_name
 from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import ModelError
 from art_guidance.optim import ConvexSolution
+from art_guidance.planning.posthoc import judged_trajectory
 from art_guidance.planning.types import PlanRequest, WarmStartProposal
 from art_guidance.safety import PassiveSafety
 
@@ -115,8 +117,9 @@ class ArtWarmStart:
         node_spacing_s: node spacing of the training horizon [s] (None: not recorded).
         reward_scales: the conditioning sweep, R(t_1) = -s J_CVX for each s (one batched
             rollout; the best candidate is proposed).
-        thresholds: the post hoc region the candidates are ranked by (None: the paper's;
-            `GuidancePipeline` sets its own configured region).
+        planning: the planning configuration whose post hoc check ranks the candidates (its
+            region and `posthoc_subject`; None: the packaged defaults; `GuidancePipeline` sets
+            its own).
     """
 
     def __init__(self, art: TrainedArt, load_ms: float = 0.0, threads: int = 1,
@@ -125,7 +128,7 @@ class ArtWarmStart:
         if not scales or not all(np.isfinite(x) and x > 0 for x in scales):
             raise ModelError(f"reward_scales must be positive numbers, got {reward_scales!r}")
         self.reward_scales = scales
-        self.thresholds: PosthocThresholds | None = None
+        self.planning: PlanningConfig | None = None
         self.art = art
         self.sha256 = art.sha256 or ""
         self.path = art.path or ""
@@ -193,11 +196,29 @@ class ArtWarmStart:
                               request.target_rtn, -j_cvx * np.array(self.reward_scales), 0.0)
             finally:
                 torch.set_num_threads(threads)
-        b = best_candidate(res.cost_mps, res.realised_constraint_to_go[:, 0], j_cvx,
-                           self.thresholds or PosthocThresholds())
+        planning = self.planning or PlanningConfig()
+        cost, c_t1 = judged_candidates(res, request, safety, planning.posthoc_subject)
+        b = best_candidate(cost, c_t1, j_cvx, planning.posthoc)
         return WarmStartProposal(res.dv_rtn_mps[b], res.realised_reward_to_go_mps[b],
                                  res.realised_constraint_to_go[b].astype(float), self.sha256,
                                  1e3 * (time.perf_counter() - t0))
+
+
+def judged_candidates(res: RolloutResult, request: PlanRequest, safety: PassiveSafety,
+                      subject: str) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) cost [m/s] and (K,) C(t_1) of each candidate as the post hoc check judges it
+    (`planning.posthoc.judged_trajectory`): the rollout's own (realised in the rollout) or
+    those of its terminal warm start (one correction and one safety evaluation each)."""
+    if subject == "rollout":
+        return res.cost_mps, res.realised_constraint_to_go[:, 0]
+    horizon = safety.horizon
+    roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
+    cost, c_t1 = [], []
+    for dv in res.dv_rtn_mps:
+        dv_w, roe_w = judged_trajectory(horizon, request.roe0_m, roe_f, dv, subject)
+        cost.append(float(np.linalg.norm(dv_w, axis=1).sum()))
+        c_t1.append(float(safety.evaluate(roe_w, dv_w).constraint_to_go[0]))
+    return np.array(cost), np.array(c_t1)
 
 
 def best_candidate(cost_mps: np.ndarray, c_t1: np.ndarray, j_cvx: float,

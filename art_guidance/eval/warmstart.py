@@ -2,8 +2,9 @@
 
 For each scenario (paper section V, chance-constrained or deterministic by the safety model):
 CVX is solved (J_CVX, C_CVX(t_1)); ART rolls out conditioned on R(t_1) = -J_CVX, C(t_1) = 0
-and is checked post hoc (E_R, E_C); SCVx* then runs once from CVX ("PS-CVX") and once from the
-ART rollout ("PS-ART"), both with the same configuration and no deadline. The `auto` plan is
+and is checked post hoc (E_R, E_C; by default those of the terminal warm start SCVx* starts
+from, `planning.posthoc.check_proposal`, with the paper's check of the rollout itself beside
+them); SCVx* then runs once from CVX ("PS-CVX") and once from the ART rollout ("PS-ART"), both with the same configuration and no deadline. The `auto` plan is
 what the pipeline flies: PS-ART if the post hoc check accepts the rollout, else PS-CVX; when
 that run does not converge, the better of the two (`planning.pipeline.better_plan`), as the
 pipeline's retry from the other warm start gives (without a deadline); with
@@ -29,7 +30,7 @@ from art_guidance.config import GuidanceConfig
 from art_guidance.errors import GuidanceError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
 from art_guidance.planning.pipeline import better_plan, second_run
-from art_guidance.planning.posthoc import posthoc_check
+from art_guidance.planning.posthoc import check_proposal, posthoc_check
 from art_guidance.planning.types import PlanRequest, PosthocDecision, WarmStartProposal
 from art_guidance.safety import PassiveSafety
 
@@ -48,7 +49,9 @@ class WarmStartRow:
     """One scenario's numbers (costs [m/s], times [ms], statuses `ScpStatus` values).
 
     `ms_art` is the rollout plus the post hoc check; `ok_*` means feasible (`ScpStatus.feasible`),
-    `st_* == ScpStatus.CONVERGED.value` converged.
+    `st_* == ScpStatus.CONVERGED.value` converged. `e_r`, `e_c`, `accepted` are the post hoc
+    check the pipeline applies (`planning.posthoc.check_proposal`), `*_rollout` the paper's
+    check of the rollout itself (the same when the check's subject is "rollout").
     """
 
     j_cvx: float
@@ -73,9 +76,14 @@ class WarmStartRow:
     it_auto: int
     st_scp_cvx: int
     st_scp_art: int
+    e_r_rollout: float = math.nan
+    e_c_rollout: float = math.nan
+    accepted_rollout: bool = False
 
 
 ROW_FIELDS = tuple(f.name for f in fields(WarmStartRow))
+# fields added later, filled in when an older evaluation directory is read
+_DEFAULTS = {f.name: f.default for f in fields(WarmStartRow)}
 
 
 @dataclass(frozen=True)
@@ -93,6 +101,8 @@ class WarmStartRun:
         c_cvx: C_CVX(t_1) under `safety`.
         ms_cvx: CVX solve time [ms].
         ms_art: rollout plus post hoc check [ms].
+        posthoc_rollout: the paper's check of the rollout itself (= `posthoc` when the
+            configuration's `posthoc_subject` is "rollout").
     """
 
     cvx: ConvexSolution
@@ -105,10 +115,12 @@ class WarmStartRun:
     c_cvx: int
     ms_cvx: float
     ms_art: float
+    posthoc_rollout: PosthocDecision | None = None
 
     def row(self) -> WarmStartRow:
         """The scenario's numbers."""
         a, b, p = self.from_cvx, self.from_art, self.posthoc
+        q = self.posthoc_rollout or p
         return WarmStartRow(
             j_cvx=float(self.cvx.cost_mps), c_cvx=self.c_cvx,
             art_cost=float(np.linalg.norm(self.proposal.dv_rtn_mps, axis=1).sum()),
@@ -118,7 +130,8 @@ class WarmStartRun:
             ms_art=self.ms_art, ms_scp_cvx=a.solve_time_ms, ms_scp_art=b.solve_time_ms,
             ok_scp_cvx=a.feasible, ok_scp_art=b.feasible, j_auto=float(self.auto.cost_mps),
             ok_auto=self.auto.feasible, it_auto=self.auto.iterations,
-            st_scp_cvx=a.status.value, st_scp_art=b.status.value)
+            st_scp_cvx=a.status.value, st_scp_art=b.status.value,
+            e_r_rollout=float(q.e_r), e_c_rollout=float(q.e_c), accepted_rollout=q.accepted)
 
 
 def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
@@ -139,13 +152,15 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
     t0 = time.perf_counter()
     cvx = solve_cvx(horizon, request.roe0_m, roe_f)
     t1 = time.perf_counter()
-    if hasattr(provider, "thresholds"):
-        provider.thresholds = config.planning.posthoc  # rank candidates as the pipeline does
+    if hasattr(provider, "planning"):
+        provider.planning = config.planning  # rank candidates as the pipeline does
     prop = provider.propose(request, safety, cvx)
     art_dv = np.asarray(prop.dv_rtn_mps, float)
     art_roe = horizon.propagate_nonlinear(request.roe0_m, art_dv)
-    ph = posthoc_check(art_dv, art_roe, cvx.cost_mps, safety, config.planning.posthoc)
+    ph = check_proposal(art_dv, request.roe0_m, roe_f, cvx.cost_mps, safety, config.planning)
     t2 = time.perf_counter()
+    raw = ph if config.planning.posthoc_subject == "rollout" else \
+        posthoc_check(art_dv, art_roe, cvx.cost_mps, safety, config.planning.posthoc)
     c_cvx = int(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0])
     scvx = Scvx(safety, request.roe0_m, roe_f, config.scp,
                 samples_per_node=config.planning.samples_per_node)
@@ -156,7 +171,7 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
     again = second_run(first, source, True, config.planning.also_solve_from_cvx)
     auto = second if again is not None and not better_plan(first, second) else first
     return WarmStartRun(cvx, prop, art_roe, ph, from_cvx, from_art, auto, c_cvx,
-                        1e3 * (t1 - t0), 1e3 * (t2 - t1))
+                        1e3 * (t1 - t0), 1e3 * (t2 - t1), raw)
 
 
 def compare(request: PlanRequest, safety: PassiveSafety, provider: object,
@@ -181,7 +196,9 @@ def _solve(scvx: Scvx, warm_dv: np.ndarray) -> ScpResult:
 def columns(rows: Sequence[WarmStartRow] | Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """{field: (M,) array} of rows (a mapping of arrays is passed through, fields only)."""
     if isinstance(rows, Mapping):
-        return {k: np.asarray(rows[k]) for k in ROW_FIELDS}
+        n = len(np.asarray(rows[ROW_FIELDS[0]]))
+        return {k: np.asarray(rows[k]) if k in rows else np.full(n, _DEFAULTS[k])
+                for k in ROW_FIELDS}
     return {k: np.array([getattr(r, k) for r in rows]) for k in ROW_FIELDS}
 
 

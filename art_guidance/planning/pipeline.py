@@ -2,8 +2,9 @@
 
 The convex TPBVP ("CVX") is always solved: it is the fallback and the post hoc reference
 (R_des = -J_CVX). A learned `WarmStartProvider` (ART, `art_guidance.art.provider`) then
-proposes controls; the pipeline validates them, rolls them out through its own dynamics and
-applies the post hoc check (accept when E_R and E_C are inside the configured region); an
+proposes controls; the pipeline validates them and applies the post hoc check
+(`planning.posthoc.check_proposal`: accept when E_R and E_C of the warm start SCVx* would start
+from, or of the rollout itself, are inside the configured region); an
 accepted (or, with warm_start "art", forced) proposal warm-starts SCVx*, otherwise CVX does.
 Every plan says in words which warm start it used and why (`PlanResult.warm_start_reason`).
 """
@@ -19,7 +20,7 @@ from art_guidance.config import GuidanceConfig
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
-from art_guidance.planning.posthoc import posthoc_check
+from art_guidance.planning.posthoc import check_proposal
 from art_guidance.planning.types import (
     PlanRequest, PlanResult, PosthocDecision, ScpAttempt, WarmStart, WarmStartProposal,
     WarmStartProvider,
@@ -39,8 +40,8 @@ class GuidancePipeline:
             deadline_s: wall-clock budget of one SCP solve [s], or None.
         """
         self.config = config or GuidanceConfig.load()
-        if provider is not None and hasattr(provider, "thresholds"):
-            provider.thresholds = self.config.planning.posthoc  # rank candidates by our region
+        if provider is not None and hasattr(provider, "planning"):
+            provider.planning = self.config.planning  # rank candidates by our post hoc check
         self.scenario = self.config.scenario
         self.uncertainty = self.config.uncertainty
         self.scp_config = self.config.scp
@@ -168,8 +169,9 @@ class GuidancePipeline:
         except InputError as exc:  # a broken model output is rejected, never flown
             return _Learned("cvx", f"ART output rejected ({_short(exc)}): CVX warm start",
                             PosthocDecision(float("nan"), float("nan"), False), proposal)
-        roe = horizon.propagate_nonlinear(request.roe0_m, dv)
-        posthoc = posthoc_check(dv, roe, cvx.cost_mps, safety, self.posthoc)
+        roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
+        posthoc = check_proposal(dv, request.roe0_m, roe_f, cvx.cost_mps, safety,
+                                 self.config.planning)
         if posthoc.accepted:
             return _Learned("art", f"ART accepted by the post hoc check ({posthoc.text()})",
                             posthoc, proposal, dv)

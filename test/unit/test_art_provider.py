@@ -19,12 +19,21 @@ from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import CheckpointError
-from art_guidance.optim import ScpStatus
+from art_guidance.optim import ScpStatus, terminal_warm_start
 from art_guidance.planning import (
     GuidancePipeline, PlanRequest, PosthocThresholds, WarmStartProposal,
 )
 
 PAPER = PosthocThresholds()  # -1.5 <= 100 E_R <= 3.5, 0 <= E_C <= 2
+
+
+def _judging(subject: str) -> GuidanceConfig:
+    """The packaged configuration with the post hoc check judging `subject`."""
+    cfg = GuidanceConfig.load()
+    return cfg.replace(planning=dataclasses.replace(cfg.planning, posthoc_subject=subject))
+
+
+RAW = _judging("rollout")  # the paper's check: the rollout itself
 
 
 class Scaled:
@@ -62,23 +71,26 @@ def provider(model_path):
 @pytest.mark.parametrize("factor,inside", [(0.984, False), (0.986, True), (1.034, True),
                                            (1.036, False), (0.5, False)])
 def test_decision_follows_the_thresholds(factor, inside):
-    """E_R just inside / outside [-1.5 %, 3.5 %]; accepted iff E_R and E_C are both inside."""
-    result = GuidancePipeline(provider=Scaled(factor)).plan(_request(4))
+    """E_R just inside / outside [-1.5 %, 3.5 %]; accepted iff E_R and E_C are both inside
+    (the paper's check of the rollout itself)."""
+    result = GuidancePipeline(RAW, provider=Scaled(factor)).plan(_request(4))
     ph = result.posthoc
     assert ph.e_r == pytest.approx(factor - 1.0, abs=1e-9)
     e_c_inside = PAPER.e_c_min <= ph.e_c <= PAPER.e_c_max
     assert ph.accepted == (inside and e_c_inside)
-    assert result.warm_start == ("art" if ph.accepted else "cvx")
+    # an accepted rollout's plan is also solved from CVX and the cheaper one is kept
+    assert result.warm_start == ("art" if ph.accepted else "cvx") or (
+        ph.accepted and "kept the CVX-warm-started plan" in result.warm_start_reason)
     word = "accepted" if ph.accepted else "rejected"
     assert word in result.warm_start_reason and "100 E_R" in result.warm_start_reason
 
 
 def test_constraint_budget_bound_rejects():
     """With E_C's upper bound set below the rollout's C(t1), the same rollout is rejected."""
-    base = GuidancePipeline(provider=Scaled(1.0)).plan(_request(4))
+    base = GuidancePipeline(RAW, provider=Scaled(1.0)).plan(_request(4))
     e_c = base.posthoc.e_c
     assert e_c == int(e_c) and e_c >= 0
-    cfg = GuidanceConfig.load()
+    cfg = RAW
     tight = dataclasses.replace(cfg.planning, posthoc=PosthocThresholds(e_c_max=e_c - 1.0)
                                 if e_c >= 1 else PosthocThresholds(e_c_min=e_c + 1.0,
                                                                    e_c_max=e_c + 2.0))
@@ -88,10 +100,11 @@ def test_constraint_budget_bound_rejects():
 
 
 def test_provider_rollout_is_what_the_pipeline_checks(provider):
-    """The pipeline's E_C (its own propagation and safety evaluation) equals the rollout's own
-    realised C(t1), and R(t_i) is the realised reward-to-go of the proposed controls."""
+    """With the paper's check, the pipeline's E_C (its own propagation and safety evaluation)
+    equals the rollout's own realised C(t1), and R(t_i) is the realised reward-to-go of the
+    proposed controls."""
     req = _request(5, chance=True, warm_start="art")
-    result = GuidancePipeline(provider=provider).plan(req)
+    result = GuidancePipeline(RAW, provider=provider).plan(req)
     prop = result.proposal
     n = result.epochs_s.size
     assert prop.dv_rtn_mps.shape == (n, 3) and prop.model_sha256 == provider.sha256
@@ -101,10 +114,50 @@ def test_provider_rollout_is_what_the_pipeline_checks(provider):
     assert result.posthoc.e_c == prop.constraint_to_go[0]
     assert result.posthoc.e_r == pytest.approx(
         (-norms.sum() + result.cvx.cost_mps) / -result.cvx.cost_mps, rel=1e-9)
-    assert result.warm_start == "art" and "forced" in result.warm_start_reason or \
-        result.posthoc.accepted
+    # forced (the untrained model's rollout is rejected) and flown unless SCVx* from it failed
+    assert "forced" in result.warm_start_reason or result.posthoc.accepted
+    assert result.warm_start == "art" or "retried from CVX" in result.warm_start_reason
     assert result.timings_ms["art"] >= prop.rollout_ms > 0.0
     assert result.scp.feasible
+
+
+@pytest.mark.parametrize("factor", [0.5, 1.0, 1.3])
+def test_default_check_judges_the_terminal_warm_start(factor):
+    """By default the check judges the controls corrected onto the terminal condition, i.e.
+    where SCVx* starts: CVX scaled by 0.5 or 1.3 misses the target, and E_R and E_C are those
+    of the corrected controls, not those of the scaled ones."""
+    req = _request(4)
+    result = GuidancePipeline(provider=Scaled(factor)).plan(req)
+    safety = GuidancePipeline().safety_model(req)
+    h = safety.horizon
+    roe_f = np.linalg.solve(h.psi[-1], req.target_rtn)
+    dv, roe = terminal_warm_start(h, req.roe0_m, roe_f, result.cvx.dv_rtn_mps * factor)
+    assert np.abs(h.final_post_burn_nonlinear(roe, dv) - roe_f).max() < 1e-4
+    cost = np.linalg.norm(dv, axis=1).sum()
+    assert result.posthoc.e_r == pytest.approx(cost / result.cvx.cost_mps - 1.0, rel=1e-9)
+    assert result.posthoc.e_c == safety.evaluate(roe, dv).constraint_to_go[0]
+    raw = GuidancePipeline(RAW, provider=Scaled(factor)).plan(req).posthoc
+    assert raw.e_r == pytest.approx(factor - 1.0, abs=1e-9)
+
+
+def test_provider_ranks_candidates_as_the_check_judges_them(provider):
+    """The proposal among the sweep's candidates is the best by the check's own subject: with
+    the default, by the terminal warm starts' cost and C(t_1)."""
+    from art_guidance.art.provider import best_candidate, judged_candidates
+    from art_guidance.art.rollout import rollout
+
+    req = _request(6, chance=True, warm_start="art")
+    pipe = GuidancePipeline(provider=provider)
+    result = pipe.plan(req)
+    safety = pipe.safety_model(req)
+    j = result.cvx.cost_mps
+    res = rollout(provider.art, safety, np.tile(req.roe0_m, (len(provider.reward_scales), 1)),
+                  req.target_rtn, -j * np.array(provider.reward_scales), 0.0)
+    cost, c_t1 = judged_candidates(res, req, safety, "warm_start")
+    b = best_candidate(cost, c_t1, j, PAPER)
+    np.testing.assert_array_equal(result.proposal.dv_rtn_mps, res.dv_rtn_mps[b])
+    assert result.posthoc.e_c == c_t1[b]
+    assert result.posthoc.e_r == pytest.approx(cost[b] / j - 1.0, rel=1e-9)
 
 
 def test_out_of_domain_horizons_fall_back_to_cvx(provider):

@@ -134,3 +134,39 @@ def test_bad_input_raises(setup):
         solve_cvx(horizon, x0[:5], xf)
     with pytest.raises(InputError):
         solve_cvx(horizon, x0, xf, norm="linf")
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_terminal_warm_start_meets_the_target_and_keeps_burns_sparse(setup, seed):
+    """A warm start that misses the target (a sparse plan with its two largest burns scaled)
+    is corrected onto the deputy-aware terminal condition to TERMINAL_TOL_M, by changes that go
+    to the nodes that burn: the nodes without a burn stay (nearly) without one, and the
+    correction costs less than the unweighted minimum-norm one, which spreads burns
+    everywhere."""
+    from art_guidance.optim.cvx import terminal_maps
+    from art_guidance.optim.scp import TERMINAL_TOL_M, terminal_warm_start
+
+    scenario, horizon, _ = setup
+    x0, xf = _boundary(scenario, horizon, seed)
+    dv = solve_cvx(horizon, x0, xf).dv_rtn_mps.copy()
+    norms = np.linalg.norm(dv, axis=1)
+    big = np.argsort(norms)[-2:]
+    dv[big] *= 1.2  # misses the target by hundreds of metres
+    dv_w, roe_w = terminal_warm_start(horizon, x0, xf, dv)
+    err = horizon.final_post_burn_nonlinear(roe_w, dv_w) - xf
+    assert np.abs(err).max() <= TERMINAL_TOL_M
+    np.testing.assert_allclose(roe_w, horizon.propagate_nonlinear(x0, dv_w), atol=1e-9)
+    idle = norms < 1e-3 * norms.max()
+    assert idle.sum() >= 20  # the CVX plan is sparse
+    change = np.linalg.norm(dv_w - dv, axis=1)
+    assert change[idle].max() < 0.02 * change.max()
+    # the unweighted minimum-norm correction of the same miss (linear model)
+    maps = terminal_maps(horizon)
+    g = np.einsum("kij,kjl->ikl", maps, horizon.b).reshape(6, -1)
+    miss = xf - (maps[0] @ x0 + g @ dv.ravel())
+    dense = dv + (g.T @ np.linalg.solve(g @ g.T, miss)).reshape(-1, 3)
+    assert control_cost(dv_w) < control_cost(dense)
+    # a warm start that meets the target is left as it is, to 0.1 mm/s (the linear model's
+    # step and the deputy-aware model's Gauss-Newton step back nearly cancel)
+    again, _ = terminal_warm_start(horizon, x0, xf, dv_w)
+    np.testing.assert_allclose(again, dv_w, atol=1e-4)

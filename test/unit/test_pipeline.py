@@ -28,12 +28,15 @@ class ScaledCvx:
         return cvx.dv_rtn_mps * self.factor
 
 
-def _config(scenario: ScenarioConfig, posthoc: PosthocThresholds | None = None
-            ) -> GuidanceConfig:
+def _config(scenario: ScenarioConfig, posthoc: PosthocThresholds | None = None,
+            subject: str = "rollout") -> GuidanceConfig:
+    """The packaged configuration on `scenario`; the post hoc check judges the rollout itself
+    (the paper's definitions) unless `subject` says otherwise."""
     cfg = GuidanceConfig.load().replace(scenario=scenario)
-    if posthoc is None:
-        return cfg
-    return cfg.replace(planning=dataclasses.replace(cfg.planning, posthoc=posthoc))
+    planning = dataclasses.replace(cfg.planning, posthoc_subject=subject)
+    if posthoc is not None:
+        planning = dataclasses.replace(planning, posthoc=posthoc)
+    return cfg.replace(planning=planning)
 
 
 @pytest.fixture(scope="module")
