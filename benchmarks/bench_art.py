@@ -11,6 +11,10 @@ threads:
   context at every step; `*_cache_speedup` is their ratio;
 - `*_sweep_ms`: the in-flight provider's conditioning sweep, one batched rollout of the
   default model per reward scale (`DEFAULT_REWARD_SCALES`), with the C update;
+- `*_propose_ms`: the whole proposal of the in-flight provider (`ArtWarmStart.propose`): the
+  sweep plus the post hoc judging of its candidates as the pipeline's check judges them (by
+  default each candidate's terminal warm start: one correction and one safety evaluation), over
+  the first 8 scenarios (median);
 - batch-64 rollout throughput (rollouts/s) of the default model, with and without the C update;
 - training throughput (trajectories/s at the preset's batch, 100-step sequences);
 - the default model's training wall time, read from its checkpoint (ART_BENCH_CHECKPOINT, the
@@ -29,11 +33,13 @@ import torch
 
 from art_guidance.art import ArtModel, TrainedArt, build_safety, load, preset
 from art_guidance.art.model import loss_terms
-from art_guidance.art.provider import DEFAULT_REWARD_SCALES, default_model_path
+from art_guidance.art.provider import DEFAULT_REWARD_SCALES, ArtWarmStart, default_model_path
 from art_guidance.art.normalization import Normalizer
 from art_guidance.art.rollout import rollout
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
+from art_guidance.optim import solve_cvx
+from art_guidance.planning.types import PlanRequest
 
 
 class _RecordedSafety:
@@ -88,6 +94,25 @@ def _scenarios(n: int) -> tuple[np.ndarray, np.ndarray]:
     names = sorted(sc.waypoints_rtn)
     targets = np.array([sc.waypoints_rtn[names[i % len(names)]] for i in range(n)])  # (n, 6)
     return x0, targets
+
+
+def _time_proposals(art: TrainedArt, x0: np.ndarray, targets: np.ndarray,
+                    threads: int) -> float:
+    """Median wall time [ms] of `ArtWarmStart.propose` (sweep and candidate judging) over
+    the scenarios, after one warm-up."""
+    safety = build_safety(art, chance_constrained=True)
+    horizon = safety.horizon
+    provider = ArtWarmStart(art, threads=threads)
+    times = []
+    for k, (x, target) in enumerate(zip(x0, targets)):
+        request = PlanRequest(horizon.chief_oe[0], x, target, chance_constrained=True)
+        cvx = solve_cvx(horizon, x, np.linalg.solve(horizon.psi[-1], target))
+        if k == 0:
+            provider.propose(request, safety, cvx)
+        t = time.perf_counter()
+        provider.propose(request, safety, cvx)
+        times.append(1e3 * (time.perf_counter() - t))
+    return float(np.median(times))
 
 
 def _time_rollouts(art: TrainedArt, safety: _RecordedSafety, x0: np.ndarray,
@@ -160,6 +185,7 @@ def run(repeats: int = 20, checkpoint: str | None = None) -> dict:
             sweep = np.tile(x0[:1], (len(DEFAULT_REWARD_SCALES), 1))
             out[f"{key}_sweep_ms"], out[f"{key}_sweep_c_update_ms"] = _time_rollouts(
                 default, safety, sweep, targets[:1], repeats, True, False)
+            out[f"{key}_propose_ms"] = _time_proposals(default, x0[:8], targets[:8], threads)
             full, c_update = _time_rollouts(default, safety, x0, targets, slow, True, False)
             cached, _ = _time_rollouts(default, safety, x0, targets, slow, True, True)
             out[f"{key}_batch64_rollouts_per_s"] = 64e3 / full

@@ -128,6 +128,14 @@ def _headline(models: Sequence[dict], mode: str) -> list[str]:
     row("with the post hoc check: min / max [mm/s], accepted", PAPER["posthoc"],
         lambda m: _extremes(m["gain_histogram_posthoc"], ("min_mps", "max_mps"))
         + f", {m['accepted']} of {m['n']} ({_pct(m['frac_accepted'])})")
+    if all("posthoc_rollout_worse_by_10mm" in m for m in models):  # since posthoc_subject
+        row("with the paper's check of the same proposals (the rollout itself): min / max "
+            "[mm/s], accepted", "-",
+            lambda m: _extremes(m["gain_histogram_posthoc_rollout"], ("min_mps", "max_mps"))
+            + f", {m['accepted_rollout']} of {m['n']} ({_pct(m['frac_accepted_rollout'])})")
+        row("accepted and more than 10 mm/s dearer than PS-CVX: the check / the paper's check",
+            "-", lambda m: f"{m['posthoc_worse_by_10mm']} / "
+                           f"{m['posthoc_rollout_worse_by_10mm']}")
     row("the plan flown (`auto`, PS-CVX also solved) - PS-CVX: min / max [mm/s], better / "
         "worse by > 1 mm/s", "-",
         lambda m: _extremes(m["auto_minus_scp_cvx_mps"], ("min", "max"))

@@ -4,8 +4,9 @@ For each scenario (paper section V, chance-constrained or deterministic by the s
 CVX is solved (J_CVX, C_CVX(t_1)); ART rolls out conditioned on R(t_1) = -J_CVX, C(t_1) = 0
 and is checked post hoc (E_R, E_C; by default those of the terminal warm start SCVx* starts
 from, `planning.posthoc.check_proposal`, with the paper's check of the rollout itself beside
-them); SCVx* then runs once from CVX ("PS-CVX") and once from the ART rollout ("PS-ART"), both with the same configuration and no deadline. The `auto` plan is
-what the pipeline flies: PS-ART if the post hoc check accepts the rollout, else PS-CVX; when
+them); SCVx* then runs once from CVX ("PS-CVX") and once from the ART rollout ("PS-ART"),
+both with the same configuration and no deadline. The `auto` plan is what the pipeline flies:
+PS-ART if the post hoc check accepts the rollout, else PS-CVX; when
 that run does not converge, the better of the two (`planning.pipeline.better_plan`), as the
 pipeline's retry from the other warm start gives (without a deadline); with
 `also_solve_from_cvx`, an accepted rollout's plan is always compared with PS-CVX.
@@ -37,6 +38,7 @@ from art_guidance.safety import PassiveSafety
 BINS = (0, 10, 20, 30, 40)  # the paper's cumulative C_CVX(t_1) >= value bins
 GAP_TOL_MPS = 1e-6  # J_SCP,CVX - J_CVX below this: no improvement ratio for the scenario [m/s]
 HIST_BINS = 40      # bins of the J_SCP,CVX - J_SCP,ART histograms
+WORSE_MMPS = 10.0   # a flown ART plan dearer than PS-CVX by more than this counts as worse
 # Post hoc map cells: 100 E_R [%] (paper's acceptance region -1.5 .. 3.5 is inside one row of
 # cells) and E_C = C_ART(t_1) [nodes], integer-valued, cells 0, 1, 2-4, 5-10, 11-20, > 20.
 ER_PCT_EDGES = (-math.inf, -50.0, -25.0, -12.5, -7.5, -2.5, 2.5, 7.5, 12.5, 25.0, 50.0, math.inf)
@@ -213,7 +215,8 @@ def gains(data: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         {"gain_mps": J_SCP,CVX - J_SCP,ART (both converged), "gap_mps": J_SCP,CVX - J_CVX (both
         converged), "ratio": gain / gap (gap > GAP_TOL_MPS), "gain_posthoc_mps": the gain of
         the plan flown with the post hoc check (accepted: gain; rejected: 0 if PS-CVX
-        converged), "iterations_saved": it_SCP,CVX - it_SCP,ART (both converged)}.
+        converged), "gain_posthoc_rollout_mps": the same with the paper's check of the rollout
+        itself, "iterations_saved": it_SCP,CVX - it_SCP,ART (both converged)}.
     """
     conv_cvx = data["st_scp_cvx"] == _CONVERGED
     both = conv_cvx & (data["st_scp_art"] == _CONVERGED)
@@ -221,10 +224,12 @@ def gains(data: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     gap = np.where(both, data["j_scp_cvx"] - data["j_cvx"], np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(gap > GAP_TOL_MPS, gain / gap, np.nan)
-    posthoc = np.where(data["accepted"].astype(bool), gain, np.where(conv_cvx, 0.0, np.nan))
+    rejected = np.where(conv_cvx, 0.0, np.nan)
+    posthoc = np.where(data["accepted"].astype(bool), gain, rejected)
+    posthoc_rollout = np.where(data["accepted_rollout"].astype(bool), gain, rejected)
     saved = np.where(both, data["it_scp_cvx"] - data["it_scp_art"], np.nan)
     return {"gain_mps": gain, "gap_mps": gap, "ratio": ratio, "gain_posthoc_mps": posthoc,
-            "iterations_saved": saved}
+            "gain_posthoc_rollout_mps": posthoc_rollout, "iterations_saved": saved}
 
 
 def _bin(data: Mapping[str, np.ndarray], g: Mapping[str, np.ndarray], m: np.ndarray) -> dict:
@@ -314,8 +319,8 @@ def summarize(rows: Sequence[WarmStartRow] | Mapping[str, np.ndarray]) -> dict:
 
     Returns:
         {"n", "bins": {">=b": per-bin metrics for b in BINS}, "gain_histogram",
-        "gain_histogram_posthoc", "posthoc_maps", "auto_minus_scp_cvx_mps", and shares of the
-        post hoc decisions}.
+        "gain_histogram_posthoc", "gain_histogram_posthoc_rollout", "posthoc_maps",
+        "auto_minus_scp_cvx_mps", and shares of the post hoc decisions}.
     """
     data = columns(rows)
     n = int(data["j_cvx"].size)
@@ -326,6 +331,7 @@ def summarize(rows: Sequence[WarmStartRow] | Mapping[str, np.ndarray]) -> dict:
                                   for low in BINS}}
     out["gain_histogram"] = histogram(g["gain_mps"])
     out["gain_histogram_posthoc"] = histogram(g["gain_posthoc_mps"])
+    out["gain_histogram_posthoc_rollout"] = histogram(g["gain_posthoc_rollout_mps"])
     out["posthoc_maps"] = posthoc_maps(data, g)
     both = data["ok_auto"].astype(bool) & data["ok_scp_cvx"].astype(bool)
     d = data["j_auto"][both] - data["j_scp_cvx"][both]
@@ -334,6 +340,12 @@ def summarize(rows: Sequence[WarmStartRow] | Mapping[str, np.ndarray]) -> dict:
         "n_better_by_1mm": int(np.sum(d < -1e-3)), "n_worse_by_1mm": int(np.sum(d > 1e-3))}
     out["accepted"] = int(data["accepted"].sum())
     out["frac_accepted"] = float(np.mean(data["accepted"]))
+    out["accepted_rollout"] = int(data["accepted_rollout"].sum())
+    out["frac_accepted_rollout"] = float(np.mean(data["accepted_rollout"]))
+    worse = g["gain_posthoc_mps"] < -WORSE_MMPS * 1e-3
+    out["posthoc_worse_by_10mm"] = int(np.sum(worse))
+    out["posthoc_rollout_worse_by_10mm"] = int(np.sum(g["gain_posthoc_rollout_mps"]
+                                                      < -WORSE_MMPS * 1e-3))
     out["c_art_zero"] = float(np.mean(data["c_art"] == 0))
     out["e_r_pct_median"] = float(np.median(100 * data["e_r"]))
     out["iterations_auto_mean"] = float(np.mean(data["it_auto"]))

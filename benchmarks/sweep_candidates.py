@@ -1,0 +1,146 @@
+"""Experiment: SCVx* from every candidate of the conditioning sweep, and what picking among
+them is worth (docs/art_training.md, "The post hoc check judges the warm start").
+
+For each scenario of a dataset (every scenario: use a dataset the model was not trained on):
+CVX, the provider's eight candidates (R(t_1) = -s J_CVX, `DEFAULT_REWARD_SCALES`), and per
+candidate the post hoc numbers of the rollout itself and of its terminal warm start
+(`optim.terminal_warm_start`, where SCVx* starts), then SCVx* from it; SCVx* from CVX once.
+The summary compares selection rules by what SCVx* makes of the pick, against SCVx* from CVX:
+the improvement (ratio of sums over both-converged scenarios, all and C_CVX >= 40), and, when
+the rule also decides whether ART is used (the post hoc check), how many scenarios use it and
+how many of those end more than 10 mm/s dearer or cheaper than from CVX (a rejected one flies
+PS-CVX: difference 0).
+
+    python benchmarks/sweep_candidates.py --data DATA --model MODEL --n 400 --out OUT.json
+
+About 0.75 s per scenario on 2 workers (nine SCVx* runs each).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from multiprocessing import Pool
+
+import numpy as np
+from tqdm import tqdm
+
+from art_guidance.art.provider import DEFAULT_REWARD_SCALES
+from art_guidance.art.rollout import rollout
+from art_guidance.config import GuidanceConfig
+from art_guidance.eval.inputs import heldout, load_model, model_info
+from art_guidance.optim import Scvx, solve_cvx, terminal_warm_start
+
+SCALES = np.array(DEFAULT_REWARD_SCALES)
+WORSE_MMPS = 10.0  # a pair counts as worse / better beyond this difference [mm/s]
+
+
+def _scenario(args: tuple) -> dict:
+    """All candidates of one scenario (runs in a worker, 1 thread)."""
+    import torch
+
+    model, roe0, target = args
+    torch.set_num_threads(1)
+    provider, safety = load_model(model_info(model), single_rollout=True)
+    cfg = GuidanceConfig()
+    h = safety.horizon
+    roe_f = np.linalg.solve(h.psi[-1], target)
+    cvx = solve_cvx(h, roe0, roe_f)
+    j = float(cvx.cost_mps)
+    res = rollout(provider.art, safety, np.tile(roe0, (SCALES.size, 1)), target, -j * SCALES,
+                  0.0)
+    scvx = Scvx(safety, roe0, roe_f, cfg.scp, samples_per_node=cfg.planning.samples_per_node)
+    ref = scvx.solve(cvx.dv_rtn_mps)
+    out = {"j_cvx": j, "c_cvx": int(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps)
+                                    .constraint_to_go[0]),
+           "j_scp_cvx": ref.cost_mps, "ok_cvx": ref.status.value == 0}
+    rows = {k: [] for k in ("er_roll", "ec_roll", "er_ws", "ec_ws", "j_scp", "ok")}
+    for b, dv in enumerate(res.dv_rtn_mps):
+        rows["er_roll"].append(float(res.cost_mps[b]) / j - 1.0)
+        rows["ec_roll"].append(int(res.realised_constraint_to_go[b, 0]))
+        dv_w, roe_w = terminal_warm_start(h, roe0, roe_f, dv)
+        rows["er_ws"].append(float(np.linalg.norm(dv_w, axis=1).sum()) / j - 1.0)
+        rows["ec_ws"].append(int(safety.evaluate(roe_w, dv_w).constraint_to_go[0]))
+        r = scvx.solve(dv)
+        rows["j_scp"].append(r.cost_mps)
+        rows["ok"].append(r.status.value == 0)
+    return {**out, **rows}
+
+
+def _pick(er: np.ndarray, ec: np.ndarray, region: object) -> tuple[np.ndarray, np.ndarray]:
+    """The provider's rule on (M, K) post hoc numbers: (M,) pick and whether it is inside."""
+    inside = region.contains(100.0 * er, ec)
+    key = (~inside) * 1e12 + ec * 1e6 + np.abs(er)
+    pick = key.argmin(axis=1)
+    return pick, inside[np.arange(er.shape[0]), pick]
+
+
+def summarize(cols: dict[str, np.ndarray]) -> dict:
+    """The selection rules' outcomes (see the module docstring)."""
+    region = GuidanceConfig().planning.posthoc
+    m = cols["j_cvx"].size
+    ok = cols["ok"] & cols["ok_cvx"][:, None]
+    gain = 1e3 * (cols["j_scp_cvx"][:, None] - cols["j_scp"])  # (M, K) [mm/s]
+    gap = 1e3 * (cols["j_scp_cvx"] - cols["j_cvx"])
+    high = cols["c_cvx"] >= 40
+    rows = np.arange(m)
+
+    def rule(pick: np.ndarray, used: np.ndarray | None = None) -> dict:
+        g, o = gain[rows, pick], ok[rows, pick]
+        out = {"improvement_all": float(g[o].sum() / gap[o].sum()),
+               "improvement_high": float(g[o & high].sum() / gap[o & high].sum()),
+               "not_converged": float(np.mean(~cols["ok"][rows, pick]))}
+        if used is not None:
+            flown = np.where(used & o, g, 0.0)
+            out.update(used=int(used.sum()), worst_mmps=float(flown.min()),
+                       worse=int(np.sum(flown < -WORSE_MMPS)),
+                       better=int(np.sum(flown > WORSE_MMPS)), sum_mmps=float(flown.sum()))
+        return out
+
+    best = np.where(ok, gain, -np.inf).argmax(axis=1)
+    return {
+        "n": m, "n_high": int(high.sum()),
+        "not_converged_cvx": float(np.mean(~cols["ok_cvx"])),
+        "scales": {f"{s:g}": rule(np.full(m, k)) for k, s in enumerate(SCALES)},
+        "check_rollout": rule(*_pick(cols["er_roll"], cols["ec_roll"], region)),
+        "check_warm_start": rule(*_pick(cols["er_ws"], cols["ec_ws"], region)),
+        "oracle_best_candidate": rule(best),
+        "oracle_best_or_cvx": rule(best, gain[rows, best] > 0),
+        "share_any_inside_rollout": float(region.contains(100 * cols["er_roll"],
+                                                          cols["ec_roll"]).any(1).mean()),
+        "share_any_inside_warm_start": float(region.contains(100 * cols["er_ws"],
+                                                             cols["ec_ws"]).any(1).mean()),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the experiment and write its summary (and per-scenario arrays beside it)."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", required=True, help="dataset directory (every scenario used)")
+    ap.add_argument("--model", required=True, help="checkpoint")
+    ap.add_argument("--n", type=int, default=400, help="first N scenarios by sample index")
+    ap.add_argument("--workers", type=int, default=2, help="processes")
+    ap.add_argument("--out", required=True, help="summary JSON (per-scenario rows: .npz)")
+    args = ap.parse_args(argv)
+    os.environ["OMP_NUM_THREADS"] = "1"
+    held = heldout(args.data, "all")
+    tasks = [(args.model, held["roe0_m"][i], held["target_rtn"][i])
+             for i in range(min(args.n, held["index"].size))]
+    t0 = time.perf_counter()
+    with Pool(args.workers) as pool:
+        rows = list(tqdm(pool.imap(_scenario, tasks, chunksize=2), total=len(tasks),
+                         desc="scenarios"))
+    cols = {k: np.array([r[k] for r in rows]) for k in rows[0]}
+    np.savez(os.path.splitext(args.out)[0] + ".npz", **cols)
+    summary = {"data": args.data, "model": os.path.basename(args.model),
+               "wall_s": time.perf_counter() - t0, **summarize(cols)}
+    with open(args.out, "w") as f:
+        json.dump(summary, f, indent=1)
+    json.dump(summary, sys.stdout, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
