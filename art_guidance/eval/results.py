@@ -14,7 +14,7 @@ from art_guidance.config import GuidanceConfig
 from art_guidance.data.storage import SUMMARY, load_dataset, read_manifest
 from art_guidance.errors import DatasetError
 from art_guidance.eval import example as ex_io
-from art_guidance.eval.warmstart import ROW_FIELDS, gains, summarize
+from art_guidance.eval.warmstart import columns, gains, summarize
 from art_guidance.eval.inputs import FORMAT, KIND, ModelInfo, load_model, request_of
 
 
@@ -59,7 +59,7 @@ def example_index(cols: dict[str, np.ndarray], k: int) -> int | None:
     sel = np.flatnonzero(cols["model"] == k) if cols else np.zeros(0, int)
     if not sel.size:
         return None
-    gain = gains({f: cols[f][sel] for f in ROW_FIELDS})["gain_mps"]
+    gain = gains(columns({f: v[sel] for f, v in cols.items()}))["gain_mps"]
     if not np.isfinite(gain).any():
         return None
     return int(cols["index"][sel[int(np.nanargmax(gain))]])

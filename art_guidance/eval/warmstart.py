@@ -84,8 +84,8 @@ class WarmStartRow:
 
 
 ROW_FIELDS = tuple(f.name for f in fields(WarmStartRow))
-# fields added later, filled in when an older evaluation directory is read
-_DEFAULTS = {f.name: f.default for f in fields(WarmStartRow)}
+# fields added later, read from these when an older evaluation directory is read
+_SAME_BEFORE = {"e_r_rollout": "e_r", "e_c_rollout": "e_c", "accepted_rollout": "accepted"}
 
 
 @dataclass(frozen=True)
@@ -198,8 +198,8 @@ def _solve(scvx: Scvx, warm_dv: np.ndarray) -> ScpResult:
 def columns(rows: Sequence[WarmStartRow] | Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """{field: (M,) array} of rows (a mapping of arrays is passed through, fields only)."""
     if isinstance(rows, Mapping):
-        n = len(np.asarray(rows[ROW_FIELDS[0]]))
-        return {k: np.asarray(rows[k]) if k in rows else np.full(n, _DEFAULTS[k])
+        # an evaluation from before `posthoc_subject` checked the rollout itself
+        return {k: np.asarray(rows[k] if k in rows else rows[_SAME_BEFORE[k]])
                 for k in ROW_FIELDS}
     return {k: np.array([getattr(r, k) for r in rows]) for k in ROW_FIELDS}
 

@@ -21,7 +21,7 @@ from art_guidance.errors import InputError
 from art_guidance.eval import inputs as eval_inputs
 from art_guidance.eval import results, runner
 from art_guidance.eval.report import REPORT, high_bin, report_markdown
-from art_guidance.eval.warmstart import ROW_FIELDS, WarmStartRow, summarize
+from art_guidance.eval.warmstart import ROW_FIELDS, WarmStartRow, columns, summarize
 from art_guidance.optim import ScpStatus
 from helpers.art_models import untrained_art
 
@@ -281,6 +281,26 @@ def test_histograms_with_and_without_the_posthoc_check():
     assert maps["improvement_ratio_mean"][5][0] is None  # no data
     assert maps["improvement_ratio_of_sums"][2][1] == pytest.approx(1.0)
     assert maps["improvement_ratio_of_sums"][5][0] is None
+
+
+def test_the_papers_check_beside_the_pipelines():
+    """Flown gains with the pipeline's check (`accepted`) and with the paper's check of the
+    same proposals (`accepted_rollout`): here the paper's check also accepts the row whose
+    PS-ART is 0.2 m/s dearer; the pipeline's does not. An evaluation stored before the
+    check's subject existed reads its one check as both."""
+    rows = _constructed()
+    rows = [replace(r, accepted_rollout=r.accepted) for r in rows]
+    rows[3] = replace(rows[3], accepted=False, accepted_rollout=True)
+    s = summarize(rows)
+    assert s["gain_histogram_posthoc_rollout"]["min_mps"] == pytest.approx(-0.2)
+    assert s["gain_histogram_posthoc"]["min_mps"] == pytest.approx(0.0)
+    assert (s["posthoc_worse_by_10mm"], s["posthoc_rollout_worse_by_10mm"]) == (0, 1)
+    assert s["accepted_rollout"] == s["accepted"] + 1
+    old = {k: np.array([getattr(r, k) for r in _constructed()]) for k in ROW_FIELDS
+           if not k.endswith("_rollout")}
+    cols = columns(old)
+    np.testing.assert_array_equal(cols["accepted_rollout"], cols["accepted"])
+    np.testing.assert_array_equal(cols["e_r_rollout"], cols["e_r"])
 
 
 def test_summary_of_stored_columns_equals_summary_of_rows():
