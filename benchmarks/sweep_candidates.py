@@ -12,8 +12,11 @@ how many of those end more than 10 mm/s dearer or cheaper than from CVX (a rejec
 PS-CVX: difference 0).
 
     python benchmarks/sweep_candidates.py --data DATA --model MODEL --n 400 --out OUT.json
+    python benchmarks/sweep_candidates.py --table    # docs/art_training.md's table of RESULT
 
-About 0.75 s per scenario on 2 workers (nine SCVx* runs each).
+About 1 s per scenario on 2 workers (nine SCVx* runs each). RESULT is the committed summary
+(benchmarks/results/learned_warm_start/sweep_candidates_roe.json); `test_sweep_candidates`
+keeps the documented table equal to its rendering.
 """
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ import os
 import sys
 import time
 from multiprocessing import Pool
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
@@ -34,6 +38,10 @@ from art_guidance.eval.inputs import heldout, load_model, model_info
 from art_guidance.optim import Scvx, solve_cvx, terminal_warm_start
 
 SCALES = np.array(DEFAULT_REWARD_SCALES)
+ROOT = Path(__file__).resolve().parent.parent
+RESULT = ROOT / "benchmarks" / "results" / "learned_warm_start" / "sweep_candidates_roe.json"
+DOC = ROOT / "docs" / "art_training.md"
+BEGIN, END = "<!-- sweep-candidates:begin -->", "<!-- sweep-candidates:end -->"
 WORSE_MMPS = 10.0  # a pair counts as worse / better beyond this difference [mm/s]
 
 
@@ -115,15 +123,49 @@ def summarize(cols: dict[str, np.ndarray]) -> dict:
     }
 
 
+def table(summary: dict) -> str:
+    """The documented markdown table of a summary."""
+    def pct(x: float) -> str:
+        return f"{100 * x:+.1f} %"
+
+    lines = ["| pick | improvement C_CVX >= 40 / all | SCVx* from it not converged | flown: "
+             "used, worst [mm/s], > 10 mm/s dearer / cheaper |", "|---|---|---|---|"]
+    rules = [(f"every scenario's rollout at s = {s}", r) for s, r in summary["scales"].items()]
+    rules += [("the check of the rollout (paper)", summary["check_rollout"]),
+              ("the check of the warm start (default)", summary["check_warm_start"]),
+              ("oracle: the candidate SCVx* makes cheapest", summary["oracle_best_candidate"]),
+              ("oracle, flown only where it beats CVX", summary["oracle_best_or_cvx"])]
+    for name, r in rules:
+        flown = (f"{r['used']}, {r['worst_mmps']:.0f}, {r['worse']} / {r['better']}"
+                 if "used" in r else "-")
+        lines.append(f"| {name} | {pct(r['improvement_high'])} / {pct(r['improvement_all'])} "
+                     f"| {100 * r['not_converged']:.1f} % | {flown} |")
+    lines.append(f"| SCVx* from CVX | - | {100 * summary['not_converged_cvx']:.1f} % | - |")
+    return "\n".join(lines)
+
+
+def in_doc() -> str:
+    """The table between the markers of docs/art_training.md."""
+    text = DOC.read_text()
+    return text[text.index(BEGIN) + len(BEGIN):text.index(END)].strip()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the experiment and write its summary (and per-scenario arrays beside it)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", required=True, help="dataset directory (every scenario used)")
-    ap.add_argument("--model", required=True, help="checkpoint")
+    ap.add_argument("--data", help="dataset directory (every scenario used)")
+    ap.add_argument("--model", help="checkpoint")
     ap.add_argument("--n", type=int, default=400, help="first N scenarios by sample index")
     ap.add_argument("--workers", type=int, default=2, help="processes")
-    ap.add_argument("--out", required=True, help="summary JSON (per-scenario rows: .npz)")
+    ap.add_argument("--out", help="summary JSON (per-scenario rows: .npz)")
+    ap.add_argument("--table", action="store_true",
+                    help="print the documented table of the committed RESULT and exit")
     args = ap.parse_args(argv)
+    if args.table:
+        print(table(json.loads(RESULT.read_text())))
+        return 0
+    if not (args.data and args.model and args.out):
+        ap.error("--data, --model and --out are required (or --table)")
     os.environ["OMP_NUM_THREADS"] = "1"
     held = heldout(args.data, "all")
     tasks = [(args.model, held["roe0_m"][i], held["target_rtn"][i])
