@@ -11,8 +11,11 @@ from art_guidance.planning import GuidancePipeline
 from helpers.shipped import heldout_requests
 
 FLOOR_MPS = 0.010  # the paper's post hoc floor: auto never worse than CVX by more than this
-# measured on these 50 scenarios: chance 8 accepted, total gain 0.765 m/s; deterministic 2, 0.320
-MIN_ACCEPTED = {"chance": 5, "deterministic": 1}
+# measured on these 50 scenarios, with the post hoc check on the terminal warm start: chance 2
+# plans flown from ART, total gain 2.100 m/s (one scenario where SCVx* from CVX does not
+# converge and the retry from ART does); deterministic 3, 0.323 m/s (before the check judged
+# the warm start: chance 8 accepted, 0.765 m/s; deterministic 2, 0.320)
+MIN_ACCEPTED = {"chance": 1, "deterministic": 1}
 MIN_TOTAL_GAIN_MPS = {"chance": 0.3, "deterministic": 0.05}
 
 
@@ -40,11 +43,11 @@ def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(mode):
             assert a.cost_mps <= c.cost_mps + FLOOR_MPS, a.warm_start_reason
     d = np.array([r[0] for r in rows if r[1] and r[2]])
     accepted = np.array([r[3] for r in rows])
-    assert accepted.sum() >= MIN_ACCEPTED[mode]
-    assert -d.sum() >= MIN_TOTAL_GAIN_MPS[mode]
     print(f"\nauto - cvx cost [mm/s] over {d.size} feasible pairs: min {1e3 * d.min():.2f} "
           f"p5 {1e3 * np.percentile(d, 5):.2f} median {1e3 * np.median(d):.2f} "
           f"p95 {1e3 * np.percentile(d, 95):.2f} max {1e3 * d.max():.2f}; total gain "
           f"{-d.sum():.3f} m/s; ART accepted "
           f"{accepted.sum()}/{accepted.size}; iterations auto {np.mean([r[4] for r in rows]):.1f}"
           f" cvx {np.mean([r[5] for r in rows]):.1f}")
+    assert accepted.sum() >= MIN_ACCEPTED[mode]
+    assert -d.sum() >= MIN_TOTAL_GAIN_MPS[mode]
