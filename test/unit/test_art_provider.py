@@ -11,6 +11,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 from helpers.art_models import write_untrained_checkpoint
 
 from art_guidance.art.provider import ArtWarmStart
@@ -151,8 +152,14 @@ def test_provider_ranks_candidates_as_the_check_judges_them(provider):
     result = pipe.plan(req)
     safety = pipe.safety_model(req)
     j = result.cvx.cost_mps
-    res = rollout(provider.art, safety, np.tile(req.roe0_m, (len(provider.reward_scales), 1)),
-                  req.target_rtn, -j * np.array(provider.reward_scales), 0.0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(provider.threads)  # as the provider rolls out (bit-identical)
+    try:
+        res = rollout(provider.art, safety,
+                      np.tile(req.roe0_m, (len(provider.reward_scales), 1)), req.target_rtn,
+                      -j * np.array(provider.reward_scales), 0.0)
+    finally:
+        torch.set_num_threads(threads)
     cost, c_t1 = judged_candidates(res, req, safety, "warm_start")
     b = best_candidate(cost, c_t1, j, PAPER)
     np.testing.assert_array_equal(result.proposal.dv_rtn_mps, res.dv_rtn_mps[b])
