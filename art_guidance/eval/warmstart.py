@@ -342,10 +342,8 @@ def summarize(rows: Sequence[WarmStartRow] | Mapping[str, np.ndarray]) -> dict:
     out["frac_accepted"] = float(np.mean(data["accepted"]))
     out["accepted_rollout"] = int(data["accepted_rollout"].sum())
     out["frac_accepted_rollout"] = float(np.mean(data["accepted_rollout"]))
-    worse = g["gain_posthoc_mps"] < -WORSE_MMPS * 1e-3
-    out["posthoc_worse_by_10mm"] = int(np.sum(worse))
-    out["posthoc_rollout_worse_by_10mm"] = int(np.sum(g["gain_posthoc_rollout_mps"]
-                                                      < -WORSE_MMPS * 1e-3))
+    for check in ("posthoc", "posthoc_rollout"):
+        out[f"{check}_worse_by_10mm"] = int(np.sum(g[f"gain_{check}_mps"] < -WORSE_MMPS * 1e-3))
     out["c_art_zero"] = float(np.mean(data["c_art"] == 0))
     out["e_r_pct_median"] = float(np.median(100 * data["e_r"]))
     out["iterations_auto_mean"] = float(np.mean(data["it_auto"]))

@@ -46,7 +46,6 @@ class GuidancePipeline:
         self.uncertainty = self.config.uncertainty
         self.scp_config = self.config.scp
         self.samples_per_node = self.config.planning.samples_per_node
-        self.posthoc = self.config.planning.posthoc
         self.provider = provider
         self.deadline_s = deadline_s
         self._cache: dict = {}
@@ -102,7 +101,7 @@ class GuidancePipeline:
         roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
         cvx = solve_cvx(horizon, request.roe0_m, roe_f)
         t_cvx = time.perf_counter()
-        learned = self._learned(request, horizon, safety, cvx)
+        learned = self._learned(request, roe_f, safety, cvx)
         t_art = time.perf_counter()
         cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
             else np.zeros((horizon.n_nodes, 3))
@@ -146,7 +145,7 @@ class GuidancePipeline:
             return None
         return max(self.deadline_s - (time.perf_counter() - t_start), 0.0)
 
-    def _learned(self, request: PlanRequest, horizon: Horizon, safety: PassiveSafety,
+    def _learned(self, request: PlanRequest, roe_f: np.ndarray, safety: PassiveSafety,
                  cvx: ConvexSolution) -> "_Learned":
         """Ask the provider for a learned warm start and check it post hoc."""
         if request.warm_start == WarmStart.CVX.value:
@@ -165,11 +164,11 @@ class GuidancePipeline:
         if not isinstance(proposal, WarmStartProposal):
             proposal = WarmStartProposal(proposal, rollout_ms=1e3 * (time.perf_counter() - t0))
         try:
-            dv = as_finite_array("ART warm start", proposal.dv_rtn_mps, (horizon.n_nodes, 3))
+            dv = as_finite_array("ART warm start", proposal.dv_rtn_mps,
+                                 (safety.horizon.n_nodes, 3))
         except InputError as exc:  # a broken model output is rejected, never flown
             return _Learned("cvx", f"ART output rejected ({_short(exc)}): CVX warm start",
                             PosthocDecision(float("nan"), float("nan"), False), proposal)
-        roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
         posthoc = check_proposal(dv, request.roe0_m, roe_f, cvx.cost_mps, safety,
                                  self.config.planning)
         if posthoc.accepted:
