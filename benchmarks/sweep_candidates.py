@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from art_guidance.art.provider import DEFAULT_REWARD_SCALES
+from art_guidance.art.provider import DEFAULT_REWARD_SCALES, best_candidate
 from art_guidance.art.rollout import rollout
 from art_guidance.config import GuidanceConfig
 from art_guidance.eval.inputs import heldout, load_model, model_info
@@ -49,9 +49,9 @@ def _scenario(args: tuple) -> dict:
     """All candidates of one scenario (runs in a worker, 1 thread)."""
     import torch
 
-    model, roe0, target = args
+    info, roe0, target = args
     torch.set_num_threads(1)
-    provider, safety = load_model(model_info(model), single_rollout=True)
+    provider, safety = load_model(info, single_rollout=True)
     cfg = GuidanceConfig()
     h = safety.horizon
     roe_f = np.linalg.solve(h.psi[-1], target)
@@ -77,12 +77,15 @@ def _scenario(args: tuple) -> dict:
     return {**out, **rows}
 
 
-def _pick(er: np.ndarray, ec: np.ndarray, region: object) -> tuple[np.ndarray, np.ndarray]:
-    """The provider's rule on (M, K) post hoc numbers: (M,) pick and whether it is inside."""
-    inside = region.contains(100.0 * er, ec)
-    key = (~inside) * 1e12 + ec * 1e6 + np.abs(er)
-    pick = key.argmin(axis=1)
-    return pick, inside[np.arange(er.shape[0]), pick]
+def _pick(er: np.ndarray, ec: np.ndarray, j_cvx: np.ndarray,
+          region: object) -> tuple[np.ndarray, np.ndarray]:
+    """The provider's rule (`best_candidate`) on (M, K) post hoc numbers: (M,) pick and
+    whether it is inside the region."""
+    cost = (1.0 + er) * j_cvx[:, None]
+    pick = np.array([best_candidate(cost[i], ec[i], j_cvx[i], region)
+                     for i in range(er.shape[0])])
+    rows = np.arange(er.shape[0])
+    return pick, region.contains(100.0 * er[rows, pick], ec[rows, pick])
 
 
 def summarize(cols: dict[str, np.ndarray]) -> dict:
@@ -112,8 +115,8 @@ def summarize(cols: dict[str, np.ndarray]) -> dict:
         "n": m, "n_high": int(high.sum()),
         "not_converged_cvx": float(np.mean(~cols["ok_cvx"])),
         "scales": {f"{s:g}": rule(np.full(m, k)) for k, s in enumerate(SCALES)},
-        "check_rollout": rule(*_pick(cols["er_roll"], cols["ec_roll"], region)),
-        "check_warm_start": rule(*_pick(cols["er_ws"], cols["ec_ws"], region)),
+        "check_rollout": rule(*_pick(cols["er_roll"], cols["ec_roll"], cols["j_cvx"], region)),
+        "check_warm_start": rule(*_pick(cols["er_ws"], cols["ec_ws"], cols["j_cvx"], region)),
         "oracle_best_candidate": rule(best),
         "oracle_best_or_cvx": rule(best, gain[rows, best] > 0),
         "share_any_inside_rollout": float(region.contains(100 * cols["er_roll"],
@@ -168,7 +171,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--data, --model and --out are required (or --table)")
     os.environ["OMP_NUM_THREADS"] = "1"
     held = heldout(args.data, "all")
-    tasks = [(args.model, held["roe0_m"][i], held["target_rtn"][i])
+    info = model_info(args.model)  # loaded and checked once; workers cache the model
+    tasks = [(info, held["roe0_m"][i], held["target_rtn"][i])
              for i in range(min(args.n, held["index"].size))]
     t0 = time.perf_counter()
     with Pool(args.workers) as pool:
