@@ -144,15 +144,19 @@ def test_visualisation_topics_over_dds_and_in_the_bag(ros_env, python_exe, tmp_p
         for conn, _, raw in reader.messages():
             counts[conn.topic] = counts.get(conn.topic, 0) + 1
             last[conn.topic] = reader.deserialize(raw, conn.msgtype)
+    # one plan per answered fix: send_nav resends when the node's answer is late (a loaded
+    # machine), and a resent fix can be planned for too; every plan carries its views
+    n_plans = counts["/guidance/maneuver_plan"]
+    assert 1 <= n_plans <= 2
     for topic in TOPICS:
-        assert counts[f"/{topic}"] == counts["/guidance/maneuver_plan"] == 1
+        assert counts[f"/{topic}"] == n_plans, topic
     recorded = last[f"/{topics.PLAN_MARKERS}"]
     assert len([m for m in recorded.markers if m.ns == "drift"]) == len(plan.epochs_s)
     assert recorded.markers[0].header.frame_id == "chief_rtn"
     # the layout's picture drawn from the bag (`art-guidance bag render`)
     counts = render_bag(bag, tmp_path / "bag.png")
-    assert counts["plans"] == 1 and counts["drift"] == len(plan.epochs_s)
-    assert counts["deputy_fixes"] == 1 and counts["burns"] >= 1
+    assert counts["plans"] == n_plans and counts["drift"] == len(plan.epochs_s)
+    assert counts["deputy_fixes"] == n_plans and counts["burns"] >= 1
     assert (tmp_path / "bag.png").read_bytes()[:4] == b"\x89PNG"
 
 
