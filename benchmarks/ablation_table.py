@@ -46,7 +46,15 @@ ROWS = {
     "fresh8_sweep_roe": "K + conditioning sweep (in flight, ROE), fresh seed 8",
     "fresh7_sweep_rtn": "K RTN + conditioning sweep (in flight), fresh seed 7",
     "fresh8_sweep_rtn": "K RTN + conditioning sweep (in flight), fresh seed 8",
+    "det7_previous_det_roe": "deterministic: previous ROE (no gate, 5 epochs, CPU), fresh seed 7",
+    "det7_previous_det_rtn": "deterministic: previous RTN (no gate, 5 epochs, CPU), fresh seed 7",
+    "det7_gate_det_roe": "deterministic: ROE, burn gate, 7 epochs, CPU (shipped), fresh seed 7",
+    "det7_gate_det_rtn": "deterministic: RTN, burn gate, 7 epochs, CPU (shipped), fresh seed 7",
 }
+
+# the oracle rows (the plans' own controls through the same machinery), from these JSONs
+ORACLES = {"A_small_feat": "oracle: the plans' own controls",
+           "det7_gate_det_roe": "oracle, deterministic: the plans' own controls"}
 
 
 def _row(label: str, report: dict) -> str:
@@ -77,11 +85,15 @@ def render(results: Path = RESULTS) -> str:
         path = results / f"{stem}.json"
         if path.is_file():
             lines.append(_row(label, json.loads(path.read_text())))
-    oracle = json.loads((results / "A_small_feat.json").read_text())["models"][0]["oracle"]
-    lines.append(f"| oracle: the plans' own controls | {oracle['n_scenarios']} test | "
-                 f"{oracle['e_r_pct_median']:.2f} | {oracle['e_r_pct_q90']:.1f} | "
-                 f"{100 * oracle['frac_c_zero']:.1f} | {100 * oracle['frac_posthoc_accepted']:.1f}"
-                 " | - | - | - | - | - | - | - |")
+    for stem, label in ORACLES.items():
+        path = results / f"{stem}.json"
+        if path.is_file():
+            model = json.loads(path.read_text())["models"][0]
+            oracle, held = model["oracle"], "fresh" if model.get("split") == "all" else "test"
+            lines.append(
+                f"| {label} | {oracle['n_scenarios']} {held} | {oracle['e_r_pct_median']:.2f} | "
+                f"{oracle['e_r_pct_q90']:.1f} | {100 * oracle['frac_c_zero']:.1f} | "
+                f"{100 * oracle['frac_posthoc_accepted']:.1f} | - | - | - | - | - | - | - |")
     return "\n".join(lines) + "\n"
 
 

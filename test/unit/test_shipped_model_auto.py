@@ -13,10 +13,11 @@ from helpers.shipped import heldout_requests
 FLOOR_MPS = 0.010  # the paper's post hoc floor: auto never worse than CVX by more than this
 # measured on these 50 scenarios, with the post hoc check on the terminal warm start: chance 2
 # plans flown from ART, total gain 2.100 m/s (one scenario where SCVx* from CVX does not
-# converge and the retry from ART does); deterministic 3, 0.323 m/s (before the check judged
-# the warm start: chance 8 accepted, 0.765 m/s; deterministic 2, 0.320)
-MIN_ACCEPTED = {"chance": 1, "deterministic": 1}
-MIN_TOTAL_GAIN_MPS = {"chance": 0.3, "deterministic": 0.05}
+# converge and the retry from ART does); deterministic (the gated model) 8, 0.496 m/s (the
+# earlier ungated one: 3, 0.323; before the check judged the warm start: chance 8 accepted,
+# 0.765 m/s; deterministic 2, 0.320)
+MIN_ACCEPTED = {"chance": 1, "deterministic": 4}
+MIN_TOTAL_GAIN_MPS = {"chance": 0.3, "deterministic": 0.2}
 
 
 @pytest.mark.slow
