@@ -57,12 +57,24 @@ ORACLES = {"A_small_feat": "oracle: the plans' own controls",
            "det7_gate_det_roe": "oracle, deterministic: the plans' own controls"}
 
 
-def _row(label: str, report: dict) -> str:
-    m = report["models"][0]
+def _held(model: dict, n: int) -> str:
+    """"N fresh" (a dataset no model was trained on, --split all) or "N test"."""
+    return f"{n} {'fresh' if model.get('split') == 'all' else 'test'}"
+
+
+def _models(results: Path, labels: dict[str, str]):
+    """(label, the JSON's model entry) for each stem of `labels` whose JSON exists."""
+    for stem, label in labels.items():
+        path = results / f"{stem}.json"
+        if path.is_file():
+            yield label, json.loads(path.read_text())["models"][0]
+
+
+def _row(label: str, m: dict) -> str:
     t = m.get("training") or {}
     cfg = t.get("config") or {}
     tc = t.get("train_config") or {}
-    held = f"{m['n_scenarios']} {'fresh' if m.get('split') == 'all' else 'test'}"
+    held = _held(m, m["n_scenarios"])
     epochs = f"{t['epoch']:.1f}" if t.get("epoch") is not None else "-"
     val = f"{t['best_val_loss']:.3f}" if t.get("best_val_loss") is not None else "-"
     n_train = t.get("n_train") or "-"
@@ -81,19 +93,14 @@ def render(results: Path = RESULTS) -> str:
             "post hoc [%] | val. loss | train traj. | epochs | M params | normalisation | "
             "gate | precision |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [head]
-    for stem, label in ROWS.items():
-        path = results / f"{stem}.json"
-        if path.is_file():
-            lines.append(_row(label, json.loads(path.read_text())))
-    for stem, label in ORACLES.items():
-        path = results / f"{stem}.json"
-        if path.is_file():
-            model = json.loads(path.read_text())["models"][0]
-            oracle, held = model["oracle"], "fresh" if model.get("split") == "all" else "test"
-            lines.append(
-                f"| {label} | {oracle['n_scenarios']} {held} | {oracle['e_r_pct_median']:.2f} | "
-                f"{oracle['e_r_pct_q90']:.1f} | {100 * oracle['frac_c_zero']:.1f} | "
-                f"{100 * oracle['frac_posthoc_accepted']:.1f} | - | - | - | - | - | - | - |")
+    lines += [_row(label, model) for label, model in _models(results, ROWS)]
+    for label, model in _models(results, ORACLES):
+        oracle = model["oracle"]
+        lines.append(
+            f"| {label} | {_held(model, oracle['n_scenarios'])} | "
+            f"{oracle['e_r_pct_median']:.2f} | {oracle['e_r_pct_q90']:.1f} | "
+            f"{100 * oracle['frac_c_zero']:.1f} | {100 * oracle['frac_posthoc_accepted']:.1f} | "
+            "- | - | - | - | - | - | - |")
     return "\n".join(lines) + "\n"
 
 
