@@ -104,18 +104,37 @@ class Client:
         return self.wait_for(find, timeout_s)
 
     def send_nav(self, rtn: np.ndarray, attempts: int = 5, wait_s: float = 3.0,
-                 **kwargs) -> tuple[int, str | None]:
-        """Publish a nav fix until the node answers it (the first sample after an endpoint
-        match can be lost while discovery completes on the other side); returns (stamp,
-        decision)."""
-        decision = None
-        for _ in range(attempts):
+                 first_wait_s: float = 12.0, **kwargs) -> tuple[int, str | None]:
+        """Publish a nav fix until the node answers it; returns (stamp, decision).
+
+        The first sample after an endpoint match can be lost while discovery completes on the
+        other side, so an unanswered fix is sent again. An answer that is only late (a node
+        still warming up on a loaded machine) must not be taken for a loss, or the node plans
+        twice: the first fix gets `first_wait_s`, each resend `wait_s`, and an answer to any
+        fix sent so far ends the wait (the stamp returned is the answered one).
+        """
+        sent: list[int] = []
+        for attempt in range(attempts):
             stamp = time.time_ns()
+            sent.append(stamp)
             self.nav_pub.publish(nav_msg(stamp, rtn, **kwargs))
-            decision = self.decision_for(stamp, wait_s)
-            if decision is not None:
-                break
-        return stamp, decision
+            answered = self._first_decision(sent, first_wait_s if attempt == 0 else wait_s)
+            if answered is not None:
+                return answered
+        return sent[-1], None
+
+    def _first_decision(self, stamps: list[int], timeout_s: float) -> tuple[int, str] | None:
+        """(stamp, decision) of the first of `stamps` the node has answered, waiting up to
+        `timeout_s`."""
+        wanted = {str(s): s for s in stamps}
+
+        def find(_, diags):
+            for _, values, name in diags:
+                stamp = wanted.get(values.get("nav_stamp_ns", ""))
+                if name == "art_guidance/nav" and stamp is not None:
+                    return stamp, values.get("decision")
+            return None
+        return self.wait_for(find, timeout_s)
 
     def close(self) -> None:
         self.executor.shutdown()

@@ -57,7 +57,7 @@ def test_transitions_gate_planning(ros_env, python_exe, tmp_path):
 
         assert transition(Transition.TRANSITION_DEACTIVATE)
         assert state() == State.PRIMARY_STATE_INACTIVE
-        stamp, decision = client.send_nav(NOMINAL_RTN, attempts=2, wait_s=1.0)
+        stamp, decision = client.send_nav(NOMINAL_RTN, attempts=2, wait_s=1.0, first_wait_s=1.0)
         assert decision is None  # inactive: not subscribed, nothing planned
 
         assert transition(Transition.TRANSITION_ACTIVATE)  # and back
