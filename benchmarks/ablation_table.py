@@ -48,8 +48,16 @@ ROWS = {
     "fresh8_sweep_rtn": "K RTN + conditioning sweep (in flight), fresh seed 8",
     "det7_previous_det_roe": "deterministic: previous ROE (no gate, 5 epochs, CPU), fresh seed 7",
     "det7_previous_det_rtn": "deterministic: previous RTN (no gate, 5 epochs, CPU), fresh seed 7",
-    "det7_gate_det_roe": "deterministic: ROE, burn gate, 7 epochs, CPU (shipped), fresh seed 7",
-    "det7_gate_det_rtn": "deterministic: RTN, burn gate, 7 epochs, CPU (shipped), fresh seed 7",
+    "det7_gate_det_roe": "deterministic: ROE, burn gate, 10 k, 7 epochs, CPU (shipped before)",
+    "det7_gate_det_rtn": "deterministic: RTN, burn gate, 10 k, 7 epochs, CPU (shipped before)",
+    "det7_gpu10k_e18_det_roe": "deterministic: ROE, burn gate, 10 k, 18 epochs, GPU",
+    "det7_gpu10k_e18_det_rtn": "deterministic: RTN, burn gate, 10 k, 18 epochs, GPU",
+    "det7_gpu10k_e30_det_roe": "deterministic: ROE, burn gate, 10 k, 30 epochs, GPU",
+    "det7_gpu10k_e30_det_rtn": "deterministic: RTN, burn gate, 10 k, 30 epochs, GPU",
+    "det7_gpu25k_e18_det_roe": "deterministic: ROE, burn gate, 25 k, 18 epochs, GPU",
+    "det7_gpu25k_e18_det_rtn": "deterministic: RTN, burn gate, 25 k, 18 epochs, GPU",
+    "det7_gpu25k_e30_det_roe": "deterministic: ROE, burn gate, 25 k, 30 epochs, GPU (shipped)",
+    "det7_gpu25k_e30_det_rtn": "deterministic: RTN, burn gate, 25 k, 30 epochs, GPU (shipped)",
 }
 
 # the oracle rows (the plans' own controls through the same machinery), from these JSONs

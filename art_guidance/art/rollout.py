@@ -37,6 +37,9 @@ from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import InputError
 from art_guidance.safety import PassiveSafety
 
+# A burn-gate model coasts at a node where its gate logit is at most this (0: p(burn) <= 0.5).
+GATE_LOGIT_THRESHOLD = 0.0
+
 
 @dataclass(frozen=True)
 class RolloutResult:
@@ -218,7 +221,7 @@ def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: o
                                  norm.normalize("state", state, t), prev[0])  # (B, 3 (+1))
             u = norm.denormalize("control", out[:, :3].astype(float), t)  # (B, 3) [m/s]
             if gate:  # coast where the gate says no burn
-                u[out[:, 3] <= 0.0] = 0.0
+                u[out[:, 3] <= GATE_LOGIT_THRESHOLD] = 0.0
             prev[0] = norm.normalize("control", u, t)  # the applied control, as fed back
             return u
 

@@ -13,15 +13,18 @@ from art_guidance.planning import PlanRequest
 
 def heldout_requests(n: int, name: str = DEFAULT_MODEL) -> list[PlanRequest]:
     """The first n held-out scenarios of the dataset the shipped model `name` was trained on,
-    as requests of its mode."""
+    as requests of its mode (a model trained on several datasets: their test splits in the
+    order models.json lists them under "parts")."""
     data = shipped_models()[name]["dataset"]
     scenario = ScenarioConfig.from_yaml()
     chief = np.array(scenario.chief_oe)
-    base = int(data.get("base_seed", 0))
-    _, test = train_test_split(base, data["n"])
+    parts = data.get("parts") or [{"base_seed": data.get("base_seed", 0), "n": data["n"]}]
     out = []
-    for index in test[:n]:
-        s = sample_scenario(scenario, sample_seed(base, int(index)))
-        out.append(PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
-                               chance_constrained=data["mode"] == "chance"))
+    for part in parts:
+        base = int(part["base_seed"])
+        _, test = train_test_split(base, int(part["n"]))
+        for index in test[:n - len(out)]:
+            s = sample_scenario(scenario, sample_seed(base, int(index)))
+            out.append(PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
+                                   chance_constrained=data["mode"] == "chance"))
     return out
