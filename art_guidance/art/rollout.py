@@ -284,10 +284,11 @@ def _run(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.ndarray, sta
     viol = np.empty((b, n_steps), dtype=int)
     for j, node in enumerate(range(start, n_nodes)):
         u = control(j, node, x, r, c)  # (B, 3) [m/s]
-        v = safety.node_violations(node, x, u)  # (B,) bool
+        z = horizon.post_burn_step(node, x, u)  # (B, 6) post-burn, deputy-aware
+        v = safety.step_violations(node, x, u, z)  # (B,) bool, = node_violations(node, x, u)
         dv[:, j], roe[:, j], rs[:, j], cs[:, j], viol[:, j] = u, x, r, c, v
         r = r + np.sqrt(np.einsum("bi,bi->b", u, u))  # R(t_{i+1}) = R(t_i) + ||u_i||
         c = c - v  # C(t_{i+1}) = C(t_i) - v_i
         if node < n_nodes - 1:
-            x = horizon.step_nonlinear(node, x, u)  # (B, 6)
+            x = horizon.drift_step(node, z)  # (B, 6), = step_nonlinear(node, x, u)
     return RolloutResult(np.arange(start, n_nodes), dv, roe, rs, cs, viol)

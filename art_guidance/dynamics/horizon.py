@@ -160,11 +160,23 @@ class Horizon:
         own controls reproduces the plan's states (inputs are not validated: the caller's
         arrays are finite by construction).
         """
+        return self.drift_step(node, self.post_burn_step(node, roe_m, dv_rtn_mps))
+
+    def post_burn_step(self, node: int, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
+        """Post-burn ROE ``z = x + B_d(x) u`` of a batch at `node`, (B, 6) [m]: the first half
+        of `step_nonlinear` (not validated, as there)."""
         lat, n, a, inc = self._deputy_constants()
+        b = _control_deputy(lat[int(node)], n, a, inc, roe_m)  # (B, 6, 3)
+        return roe_m + (b @ dv_rtn_mps[:, :, None])[:, :, 0]
+
+    def drift_step(self, node: int, z_m: np.ndarray) -> np.ndarray:
+        """Pre-burn ROE at `node + 1` (B, 6) [m] from post-burn ROE `z_m` at `node`: the second
+        half of `step_nonlinear` (STM and second-order along-track drift; not validated)."""
         k = int(node)
-        z = roe_m + (_control_deputy(lat[k], n, a, inc, roe_m) @ dv_rtn_mps[:, :, None])[:, :, 0]
-        x1 = z @ self.stm[k].T  # (B, 6)
-        x1[:, 1] += along_track_curvature_m(a, z[:, 0], self.epochs_s[k + 1] - self.epochs_s[k])
+        x1 = z_m @ self.stm[k].T  # (B, 6)
+        a = self._deputy_constants()[2]
+        x1[:, 1] += along_track_curvature_m(a, z_m[:, 0],
+                                            self.epochs_s[k + 1] - self.epochs_s[k])
         return x1
 
     @functools.cached_property

@@ -353,6 +353,14 @@ class PassiveSafety:
         items = self._node_items(i, roe_m, dv_rtn_mps)
         return self.arcs.minimum(items, sign_only=True).margin < 0.0
 
+    def step_violations(self, i: int, roe_m: np.ndarray, dv_rtn_mps: np.ndarray,
+                        z_m: np.ndarray) -> np.ndarray:
+        """`node_violations` for the rollout's loop, which has the post-burn states already
+        (`Horizon.post_burn_step`, `z_m` (B, 6) [m]); the arrays are not validated (finite by
+        construction there)."""
+        items = self._items_at(int(i), roe_m, dv_rtn_mps, z_m)
+        return self.arcs.minimum(items, sign_only=True).margin < 0.0
+
     # ------------------------------------------------------------------ internals
     def _node_items(self, i: int, roe_m: object, dv_rtn_mps: object) -> ArcItems:
         """Validated drift arcs of B (state, burn) pairs at node i (see `node_margins`)."""
@@ -361,7 +369,10 @@ class PassiveSafety:
         i = int(i)
         x = as_finite_array("roe_m", roe_m, (None, 6))
         u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (x.shape[0], 3))
-        z = self.horizon.post_burn_nonlinear_at(i, x, u)
+        return self._items_at(i, x, u, self.horizon.post_burn_nonlinear_at(i, x, u))
+
+    def _items_at(self, i: int, x: np.ndarray, u: np.ndarray, z: np.ndarray) -> ArcItems:
+        """Drift arcs of B post-burn states `z` at node i (pre-burn `x`, burns `u`)."""
         x_cov = None
         if self.uncertainty is not None:
             x_cov = post_burn_covariance(x, u, self.horizon.b[i], self.horizon.psi[i],
