@@ -272,7 +272,7 @@ def test_unconverged_cvx_scp_is_retried_from_a_rejected_rollout():
 
 def test_best_candidate_ranks_by_the_posthoc_criteria():
     """Inside the region first, then the smallest E_C, then the smallest |E_R|; with none
-    inside, the cheapest."""
+    inside, the cheapest passively safe one, else the cheapest."""
     from art_guidance.art.provider import best_candidate
     from art_guidance.config import PosthocThresholds
 
@@ -280,10 +280,11 @@ def test_best_candidate_ranks_by_the_posthoc_criteria():
     j = 2.0
     # costs: +10 % (E_C 0), +1 % (E_C 2: inside), -0.5 % (E_C 1: inside, smaller E_C)
     assert best_candidate(np.array([2.2, 2.02, 1.99]), np.array([0, 2, 1]), j, t) == 2
-    # none inside: the cheapest, whatever its E_C
+    # none inside and none safe: the cheapest, whatever its E_C
     assert best_candidate(np.array([2.4, 2.3, 2.6]), np.array([5, 3, 3]), j, t) == 1
     assert best_candidate(np.array([2.1, 2.6]), np.array([5, 3]), j, t) == 0
-    assert best_candidate(np.array([1.5, 1.9, 2.2]), np.array([0, 4, 0]), j, t) == 0
+    # none inside: a safe one first, the cheapest of those
+    assert best_candidate(np.array([1.5, 1.9, 2.2, 2.4]), np.array([4, 0, 3, 0]), j, t) == 1
     # a tie keeps the first
     assert best_candidate(np.array([2.0, 2.0]), np.array([0, 0]), j, t) == 0
 
