@@ -212,11 +212,20 @@ def judged_candidates(res: RolloutResult, request: PlanRequest, safety: PassiveS
     those of its terminal warm start (one correction and one safety evaluation each)."""
     if subject == "rollout":
         return res.cost_mps, res.realised_constraint_to_go[:, 0]
+    return judged_controls(safety, request.roe0_m, request.target_rtn, res.dv_rtn_mps, subject)
+
+
+def judged_controls(safety: PassiveSafety, roe0_m: np.ndarray, target_rtn: np.ndarray,
+                    dv_rtn_mps: np.ndarray, subject: str) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) cost [m/s] and (K,) C(t_1) of K candidate controls (K, N, 3) [m/s] from `roe0_m`
+    to `target_rtn`, as the check judges them under `subject` (the trajectory
+    `planning.posthoc.judged_trajectory` gives: one correction and one safety evaluation
+    each)."""
     horizon = safety.horizon
-    roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
+    roe_f = np.linalg.solve(horizon.psi[-1], target_rtn)
     cost, c_t1 = [], []
-    for dv in res.dv_rtn_mps:
-        dv_w, roe_w = judged_trajectory(horizon, request.roe0_m, roe_f, dv, subject)
+    for dv in dv_rtn_mps:
+        dv_w, roe_w = judged_trajectory(horizon, roe0_m, roe_f, dv, subject)
         cost.append(float(np.linalg.norm(dv_w, axis=1).sum()))
         c_t1.append(float(safety.evaluate(roe_w, dv_w).constraint_to_go[0]))
     return np.array(cost), np.array(c_t1)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from art_guidance.art.checkpoint import TrainedArt
-from art_guidance.art.provider import best_candidate
+from art_guidance.art.provider import best_candidate, judged_controls
 from art_guidance.art.rollout import replay, rollout
 from art_guidance.checks import as_finite_array
 from art_guidance.config import PosthocThresholds
@@ -76,7 +76,8 @@ def score_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
                    target_rtn: object, cvx_cost_mps: object, cvx_constraint_to_go0: object,
                    thresholds: PosthocThresholds | None = None,
                    batch_size: int = 64,
-                   reward_scales: tuple[float, ...] = (1.0,)) -> RolloutScores:
+                   reward_scales: tuple[float, ...] = (1.0,),
+                   subject: str = "warm_start") -> RolloutScores:
     """Roll the model out on held-out scenarios and compare with CVX.
 
     Args:
@@ -89,8 +90,12 @@ def score_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
         thresholds: post hoc acceptance region (default: the paper's).
         batch_size: scenarios per batched rollout.
         reward_scales: the conditioning sweep of the in-flight provider (R(t_1) = -s J_CVX per
-            s; the best candidate per scenario by `art.provider.best_candidate`); (1.0,): the
-            model's single rollout.
+            s; the candidate per scenario the provider proposes: `art.provider.best_candidate`
+            on the numbers of `subject`); (1.0,): the model's single rollout. The scores are
+            those of the proposed candidate's rollout itself (the paper's criteria).
+        subject: what the provider ranks the candidates by, as the check judges them
+            ("warm_start": each candidate's terminal warm start, the packaged default;
+            "rollout": the rollout itself).
 
     Returns:
         RolloutScores (call `.summary()` for the aggregate numbers).
@@ -116,7 +121,13 @@ def score_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
                       -np.repeat(j_cvx[sl], k) * np.tile(scales, b), 0.0)
         c_all = res.realised_constraint_to_go[:, 0].reshape(b, k)
         cost_all = res.cost_mps.reshape(b, k)
-        pick = [best_candidate(cost_all[i], c_all[i], j_cvx[sl][i], region) for i in range(b)]
+        if k == 1:
+            pick = [0] * b
+        else:  # as the provider ranks them (`ArtWarmStart.propose`)
+            judged = [(cost_all[i], c_all[i]) if subject == "rollout" else judged_controls(
+                safety, x0[sl][i], target[sl][i], res.dv_rtn_mps[i * k:(i + 1) * k], subject)
+                for i in range(b)]
+            pick = [best_candidate(*judged[i], j_cvx[sl][i], region) for i in range(b)]
         c_art[sl] = c_all[np.arange(b), pick]
         cost[sl] = cost_all[np.arange(b), pick]
     return _judge(c_art, c_cvx, cost, j_cvx, region)

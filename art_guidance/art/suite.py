@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from art_guidance.config import mode_name
+from art_guidance.config import GuidanceConfig, mode_name
 from art_guidance.errors import InputError
 
 
@@ -50,6 +50,7 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
     c_cvx_now = np.array([safety.evaluate(held["cvx_roe_m"][i], held["cvx_dv_rtn_mps"][i])
                           .constraint_to_go[0] for i in range(m)])
     report_oracle = _oracle(safety, held, m, c_cvx_now) if oracle else None
+    subject = GuidanceConfig.load().planning.posthoc_subject  # the sweep ranks as in flight
     t0 = time.perf_counter()
     parts, batch = [], 50
     for s in tqdm(range(0, m, batch), desc=f"rollouts {Path(model_path).name}", unit="batch",
@@ -57,7 +58,8 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
         sl = slice(s, min(s + batch, m))
         parts.append(score_rollouts(art, safety, held["roe0_m"][sl], held["target_rtn"][sl],
                                     held["cvx_cost_mps"][sl], c_cvx_now[sl],
-                                    batch_size=batch, reward_scales=reward_scales))
+                                    batch_size=batch, reward_scales=reward_scales,
+                                    subject=subject))
     wall = time.perf_counter() - t0
     c_art = np.concatenate([p.c_art for p in parts])
     c_cvx = np.concatenate([p.c_cvx for p in parts])

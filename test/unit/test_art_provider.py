@@ -316,3 +316,24 @@ def test_sweep_proposes_the_best_of_its_candidates(model_path):
     assert np.allclose(one.dv_rtn_mps, alone.dv_rtn_mps[0], rtol=0, atol=1e-6)
     with pytest.raises(Exception, match="reward_scales"):
         ArtWarmStart.load(model_path, reward_scales=(0.0,))
+
+
+def test_the_rollouts_suite_scores_what_the_sweep_proposes(model_path):
+    """`evaluate --suite rollouts --sweep` scores the candidate the provider proposes (ranked
+    by the check's subject, the terminal warm start by default), by its rollout's own cost."""
+    from art_guidance.art.scoring import score_rollouts
+    from art_guidance.optim import solve_cvx
+
+    scales = (0.8, 1.0, 1.2)
+    sweep = ArtWarmStart.load(model_path, reward_scales=scales)
+    for seed in (5, 6, 7):
+        req = _request(seed, chance=True)
+        horizon, safety = GuidancePipeline(provider=sweep)._setup(req)
+        cvx = solve_cvx(horizon, req.roe0_m, np.linalg.solve(horizon.psi[-1], req.target_rtn))
+        prop = sweep.propose(req, safety, cvx)
+        scores = score_rollouts(sweep.art, safety, req.roe0_m[None], req.target_rtn[None],
+                                [cvx.cost_mps], [0], reward_scales=scales,
+                                subject=GuidanceConfig().planning.posthoc_subject)
+        assert scores.cost_mps[0] == pytest.approx(
+            np.linalg.norm(prop.dv_rtn_mps, axis=1).sum(), abs=1e-5)
+        assert scores.c_art[0] == prop.constraint_to_go[0]
