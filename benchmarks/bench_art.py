@@ -5,7 +5,7 @@ passive-safety model, for the default (`small`) and the paper-size model on 1 an
 threads:
 - `*_rollout_ms`: median wall time of one 100-step rollout as the planner runs it (KV cache,
   dynamics in the loop, R and C updated every step), and `*_c_update_ms` the part of it spent
-  in the safety module's violation decisions (`node_violations`);
+  in the safety module's violation decisions (`node_violations`, `step_violations`);
 - `*_cached_model_ms` / `*_recompute_model_ms`: the same rollout with the recorded decisions
   replayed, i.e. transformer + dynamics alone, with the KV cache and recomputing the whole
   context at every step; `*_cache_speedup` is their ratio;
@@ -64,11 +64,17 @@ class _RecordedSafety:
             self._tape = []
 
     def node_violations(self, i, roe_m, dv_rtn_mps):
+        return self._decide(self._safety.node_violations, i, roe_m, dv_rtn_mps)
+
+    def step_violations(self, i, roe_m, dv_rtn_mps, z_m):  # the rollout loop's form
+        return self._decide(self._safety.step_violations, i, roe_m, dv_rtn_mps, z_m)
+
+    def _decide(self, decide, *args):
         if self.replay:
             self._next += 1
             return self._tape[self._next - 1]
         t = time.perf_counter()
-        out = self._safety.node_violations(i, roe_m, dv_rtn_mps)
+        out = decide(*args)
         self.seconds += time.perf_counter() - t
         self._tape.append(out)
         return out
