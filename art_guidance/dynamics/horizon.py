@@ -110,8 +110,7 @@ class Horizon:
         """Post-burn ROE of B candidate (state (B, 6) [m], burn (B, 3) [m/s]) pairs at a node."""
         x = as_finite_array("roe_m", roe_m, (None, 6))
         u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (x.shape[0], 3))
-        lat, n, a, inc = self._deputy_constants()
-        return x + (_control_deputy(lat[int(node)], n, a, inc, x) @ u[:, :, None])[:, :, 0]
+        return self.post_burn_step(node, x, u)
 
     def final_post_burn_nonlinear(self, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
         """Post-burn ROE at the last node with the deputy-aware B, (6,) [m]."""

@@ -96,12 +96,8 @@ class Client:
         return self.wait_for(find, timeout_s)
 
     def decision_for(self, stamp_ns: int, timeout_s: float = 15.0) -> str | None:
-        def find(_, diags):
-            for _, values, name in reversed(diags):
-                if name == "art_guidance/nav" and values.get("nav_stamp_ns") == str(stamp_ns):
-                    return values.get("decision")
-            return None
-        return self.wait_for(find, timeout_s)
+        answered = self._first_decision([stamp_ns], timeout_s)
+        return None if answered is None else answered[1]
 
     def send_nav(self, rtn: np.ndarray, attempts: int = 5, wait_s: float = 3.0,
                  first_wait_s: float = 12.0, **kwargs) -> tuple[int, str | None]:
