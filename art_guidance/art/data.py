@@ -104,7 +104,8 @@ def _read_dir(root: str) -> tuple[dict, dict[str, np.ndarray], dict]:
 
 def load_training_data(dirs: list[str], representation: str, val_fraction: float,
                        seed: int, normalization: str = "feature", context: int | None = None,
-                       max_train: int = 0) -> TrainingData:
+                       max_train: int = 0, normalizer: Normalizer | None = None
+                       ) -> TrainingData:
     """Read dataset directories, keep their feasible train-split samples, split, normalise.
 
     Args:
@@ -116,6 +117,8 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
         context: the model's K (time-step indices of the "timestep" scheme; default N).
         max_train: keep at most this many training rows (a seeded subset; 0: all); the
             validation rows do not change with it.
+        normalizer: normalise with these statistics instead of fitting them to the training
+            rows (fine-tuning keeps the initial model's; its scheme must be `normalization`).
 
     Raises:
         InputError: no directory, directories of different modes or configurations, or fewer
@@ -150,7 +153,9 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
     train_rows = np.sort(train_rows)
     n_nodes = int(raw["state"].shape[1])
     k = n_nodes if context is None else int(context)
-    normalizer = Normalizer.fit({m: raw[m][train_rows] for m in MODALITIES}, normalization, k)
+    if normalizer is None:
+        normalizer = Normalizer.fit({m: raw[m][train_rows] for m in MODALITIES}, normalization,
+                                    k)
     t_index = np.arange(n_nodes) + (k - n_nodes)  # (N,) time-step index of each node
     tensors = {m: torch.from_numpy(np.ascontiguousarray(
         normalizer.normalize(m, raw[m], t_index if normalizer.per_step(m) else None),

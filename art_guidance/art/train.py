@@ -40,13 +40,13 @@ from tqdm import tqdm
 
 from art_guidance import __version__
 from art_guidance.art import checkpoint
-from art_guidance.art.config import preset
+from art_guidance.art.config import ArtConfig, preset
 from art_guidance.art.data import (
     epoch_order, load_training_data, make_batch, suffix_starts, valid_mask, validation_starts,
 )
 from art_guidance.art.distributed import DistContext, init_distributed, shutdown_distributed
 from art_guidance.art.model import ArtModel, loss_counts, loss_terms
-from art_guidance.errors import InputError
+from art_guidance.errors import GuidanceError, InputError
 
 STATE_SUFFIX = ".state"
 
@@ -68,6 +68,11 @@ class TrainOptions:
         progress: show a progress bar.
         device: "cpu" or "cuda" (default: CUDA when available).
         command: the command line, stored in the checkpoint.
+        init: a trained checkpoint to start from (fine-tuning): its weights and its
+            normalisation statistics are kept; the preset, representation and model
+            overrides must describe it, and the data must be of its dataset's mode and
+            configuration. Its validation loss on this run's validation split is the best
+            to beat (step 0), so OUT is the initial model if training never improves on it.
     """
 
     data: tuple[str, ...]
@@ -82,6 +87,7 @@ class TrainOptions:
     progress: bool = True
     device: str | None = None
     command: str = ""
+    init: str | None = None
 
 
 @dataclass
@@ -181,10 +187,14 @@ class _Trainer:
             raise InputError("overrides", str(exc), opts.overrides) from exc
         if opts.max_minutes is not None and not opts.max_minutes > 0:
             raise InputError("--max-minutes", "must be > 0", opts.max_minutes)
+        self.init = None if opts.init is None else _initial_model(opts.init, self.cfg)
         self.data = load_training_data(list(opts.data), opts.representation,
                                        self.tcfg.val_fraction, opts.seed,
                                        self.cfg.normalization, self.cfg.context,
-                                       self.tcfg.max_train)
+                                       self.tcfg.max_train,
+                                       None if self.init is None else self.init.normalizer)
+        if self.init is not None:
+            _check_init_data(opts.init, self.init, self.data.provenance)
         self.autocast = (self.tcfg.precision == "bf16" and ctx.device.type == "cuda")
         # (M,) first node inside the loss of each row, on the CPU: the loss counts of a step
         # come from the same mask as its batch without a device round trip
@@ -196,6 +206,8 @@ class _Trainer:
                              f"model's context K = {self.cfg.context}")
         torch.manual_seed(opts.seed)
         self.model = ArtModel(self.cfg).to(ctx.device)
+        if self.init is not None:
+            self.model.load_state_dict(self.init.model.state_dict())
         self.params = list(self.model.parameters())
         self.opt = torch.optim.AdamW(self.params, lr=self.tcfg.lr,
                                      weight_decay=self.tcfg.weight_decay)
@@ -216,6 +228,8 @@ class _Trainer:
         what = {"preset": self.opts.preset, "model": self.cfg.to_dict(),
                 "train": self.tcfg.to_dict(), "seed": self.opts.seed,
                 "manifests": [m["manifest_sha256"] for m in self.data.provenance["manifests"]]}
+        if self.init is not None:
+            what["init_sha256"] = self.init.sha256
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
 
     def _resume(self) -> None:
@@ -224,6 +238,12 @@ class _Trainer:
             if Path(self.opts.out).exists():
                 raise InputError("--out", "exists but has no training state next to it "
                                  f"({path.name}); choose a new path or delete it", self.opts.out)
+            if self.init is not None:  # the initial model is the best so far (step 0)
+                val = self.validation_loss()
+                self.prog.history.append([0, math.nan, val])
+                self.prog.best_val, self.prog.best_step = val, 0
+                self.log(f"initial model {Path(self.opts.init).name} (sha256 "
+                         f"{self.init.sha256[:12]}): validation loss {val:.4g}")
             return
         payload, _ = checkpoint.read_payload(path)
         if payload.get("kind") != "train-state" or payload.get("fingerprint") != self.fingerprint:
@@ -397,7 +417,11 @@ class _Trainer:
             "wall_time_s": p.wall_time_s, "trajectories_per_s": self._rate(),
             "world_size": self.ctx.world_size, "device": str(self.ctx.device),
             "threads": torch.get_num_threads(), "n_parameters": self.model.n_parameters(),
-            "torch_version": str(torch.__version__), "art_guidance_version": __version__}}
+            "torch_version": str(torch.__version__), "art_guidance_version": __version__,
+            "init": None if self.init is None else {
+                "file": Path(self.opts.init).name, "sha256": self.init.sha256,
+                "dataset_manifests": [m.get("manifest_sha256") for m in self.init.meta.get(
+                    "dataset", {}).get("manifests", [])]}}}
 
     def _save(self) -> None:
         if self.ctx.is_main:
@@ -419,6 +443,37 @@ class _Trainer:
                 "wall_time_s": p.wall_time_s,
                 "trajectories_per_s": p.step * self.tcfg.batch_size / max(p.wall_time_s, 1e-9),
                 "n_parameters": self.model.n_parameters()}
+
+
+def _initial_model(path: str, cfg: ArtConfig) -> checkpoint.TrainedArt:
+    """The checkpoint a fine-tuning starts from; its architecture must be `cfg`.
+
+    Raises:
+        InputError: a file that is not a readable model, or one of another architecture.
+    """
+    try:
+        init = checkpoint.load(path)
+    except GuidanceError as exc:
+        raise InputError("--init", str(exc), path) from exc
+    want, have = cfg.to_dict(), init.model.cfg.to_dict()
+    diff = {k: (have.get(k), want.get(k)) for k in sorted(set(want) | set(have))
+            if have.get(k) != want.get(k)}
+    if diff:
+        shown = ", ".join(f"{k}: model {a!r}, options {b!r}" for k, (a, b) in diff.items())
+        raise InputError("--init", f"the model is not what --preset/--repr/--normalization/"
+                         f"--burn-gate describe ({shown}); give the flags it was trained with",
+                         path)
+    return init
+
+
+def _check_init_data(path: str, init: checkpoint.TrainedArt, provenance: dict) -> None:
+    """Raise InputError unless the data is of the initial model's mode and configuration."""
+    data = init.meta.get("dataset", {})
+    mode, config = data.get("mode"), data.get("config_sha256")
+    if (mode, config) != (provenance["mode"], provenance["config_sha256"]):
+        raise InputError("--init", f"the model was trained on {mode} data of config "
+                         f"{str(config)[:12]}, --data is {provenance['mode']} data of config "
+                         f"{provenance['config_sha256'][:12]}", path)
 
 
 def _copy_state(model: ArtModel, state: dict[str, torch.Tensor] | None = None,

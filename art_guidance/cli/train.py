@@ -67,6 +67,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="default: CUDA when available")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads per process (default: torch's choice)")
+    p.add_argument("--init", default=None, metavar="MODEL",
+                   help="fine-tune: start from this trained checkpoint's weights and keep its "
+                   "normalisation (--preset, --repr, --normalization and --burn-gate must "
+                   "describe it; the data must be of its mode and configuration); its "
+                   "validation loss is the best to beat, so OUT is MODEL if no epoch improves")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -100,6 +105,6 @@ def run(args: argparse.Namespace) -> int:
                         model_overrides={k: v for k, v in model_overrides.items()
                                          if v is not None},
                         progress=not args.no_progress, device=args.device,
-                        command=shlex.join(["art-guidance", *sys.argv[1:]]))
+                        command=shlex.join(["art-guidance", *sys.argv[1:]]), init=args.init)
     summary = train(opts)
     return 130 if summary["stop_reason"] == "interrupted" else 0

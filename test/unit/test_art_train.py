@@ -131,6 +131,42 @@ def test_checkpoint_records_provenance_and_reruns_are_safe(dataset, tmp_path):
     assert 0.0 <= report["frac_posthoc_accepted"] <= 1.0
 
 
+def test_fine_tuning_starts_from_the_initial_model(dataset, tmp_path):
+    base = tmp_path / "base.pt"
+    opts = TrainOptions(data=(str(dataset),), out=str(base), preset="tiny", seed=1,
+                        overrides={"max_epochs": 2}, progress=False)
+    train(opts, log=lambda _: None)
+    init = checkpoint.load(base)
+    logs: list[str] = []
+    tuned = tmp_path / "tuned.pt"
+    ft = TrainOptions(**{**opts.__dict__, "out": str(tuned), "init": str(base), "seed": 4,
+                         "overrides": {"max_epochs": 1, "lr": 1e-9, "warmup_steps": 1}})
+    summary = train(ft, log=logs.append)
+    art = checkpoint.load(tuned)
+    # the initial weights and normalisation are kept (a step at lr 1e-9 barely moves them)
+    for name, w in init.model.state_dict().items():
+        assert torch.allclose(art.model.state_dict()[name], w, atol=1e-6), name
+    for m in MODALITIES:
+        assert np.array_equal(art.normalizer.mean[m], init.normalizer.mean[m])
+        assert np.array_equal(art.normalizer.std[m], init.normalizer.std[m])
+    history = art.meta["training"]["history"]
+    assert history[0][0] == 0 and np.isnan(history[0][1]) and "initial model" in logs[0]
+    assert summary["best_val_loss"] <= history[0][2]
+    assert art.meta["training"]["init"]["sha256"] == init.sha256
+    assert art.meta["training"]["init"]["file"] == "base.pt"
+    # a fine-tuning whose flags do not describe the initial model, or of another file: refused
+    with pytest.raises(InputError, match="representation: model 'roe', options 'rtn'"):
+        train(TrainOptions(**{**ft.__dict__, "out": str(tmp_path / "a.pt"),
+                              "representation": "rtn"}), log=lambda _: None)
+    with pytest.raises(InputError, match="burn_gate"):
+        train(TrainOptions(**{**ft.__dict__, "out": str(tmp_path / "b.pt"),
+                              "model_overrides": {"burn_gate": True}}), log=lambda _: None)
+    (tmp_path / "junk.pt").write_bytes(b"not a model")
+    with pytest.raises(InputError, match="--init"):
+        train(TrainOptions(**{**ft.__dict__, "out": str(tmp_path / "c.pt"),
+                              "init": str(tmp_path / "junk.pt")}), log=lambda _: None)
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="art-guidance")
     cli_train.add_parser(parser.add_subparsers(dest="command"))
