@@ -86,9 +86,13 @@ def manifest_digest(root: str) -> str:
 
 
 def trained_manifests(meta: dict) -> tuple[str, ...]:
-    """Manifest sha256 of every dataset a checkpoint's provenance (`meta`) was trained on."""
-    return tuple(m.get("manifest_sha256", "")
-                 for m in (meta or {}).get("dataset", {}).get("manifests", []))
+    """Manifest sha256 of every dataset a checkpoint's provenance (`meta`) was trained on,
+    including those of the model it was fine-tuned from (`train --init`), and of that
+    model's, recorded when it was fine-tuned."""
+    meta = meta or {}
+    own = tuple(m.get("manifest_sha256", "") for m in meta.get("dataset", {}).get("manifests", []))
+    init = (meta.get("training") or {}).get("init") or {}
+    return own + tuple(h for h in init.get("trained_on", []) if h not in own)
 
 
 def _read_dir(root: str) -> tuple[dict, dict[str, np.ndarray], dict]:

@@ -18,7 +18,9 @@ import torch
 
 from art_guidance.art import build_safety, checkpoint
 from art_guidance.art.config import MODALITIES, preset
-from art_guidance.art.data import load_training_data, make_batch
+from art_guidance.art.data import (
+    load_training_data, make_batch, manifest_digest, trained_manifests,
+)
 from art_guidance.art.model import ArtModel, loss_counts, loss_terms
 from art_guidance.art.train import TrainOptions, state_path, train
 from art_guidance.cli import train as cli_train
@@ -154,6 +156,7 @@ def test_fine_tuning_starts_from_the_initial_model(dataset, tmp_path):
     assert summary["best_val_loss"] <= history[0][2]
     assert art.meta["training"]["init"]["sha256"] == init.sha256
     assert art.meta["training"]["init"]["file"] == "base.pt"
+    assert art.meta["training"]["init"]["trained_on"] == list(trained_manifests(init.meta))
     # a fine-tuning whose flags do not describe the initial model, or of another file: refused
     with pytest.raises(InputError, match="representation: model 'roe', options 'rtn'"):
         train(TrainOptions(**{**ft.__dict__, "out": str(tmp_path / "a.pt"),
@@ -161,6 +164,14 @@ def test_fine_tuning_starts_from_the_initial_model(dataset, tmp_path):
     with pytest.raises(InputError, match="burn_gate"):
         train(TrainOptions(**{**ft.__dict__, "out": str(tmp_path / "b.pt"),
                               "model_overrides": {"burn_gate": True}}), log=lambda _: None)
+    # on other data of the same mode: both count as trained on (`--split all` refuses both)
+    other = tmp_path / "det8"
+    generate(other, 8, "deterministic", base_seed=6, workers=1, shard_size=8, progress=False,
+             log=lambda _: None)
+    train(TrainOptions(**{**ft.__dict__, "out": str(tmp_path / "o.pt"), "data": (str(other),)}),
+          log=lambda _: None)
+    lineage = trained_manifests(checkpoint.load(tmp_path / "o.pt").meta)
+    assert lineage == (manifest_digest(other), *trained_manifests(init.meta))
     (tmp_path / "junk.pt").write_bytes(b"not a model")
     with pytest.raises(InputError, match="--init"):
         train(TrainOptions(**{**ft.__dict__, "out": str(tmp_path / "c.pt"),
