@@ -298,6 +298,12 @@ class PlanningConfig:
                              "planning")
 
 
+# Planning fields that the dataset generator does not use (the post hoc check and the
+# in-flight choices between warm starts); `samples_per_node` shapes SCVx* and does matter.
+FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
+                        "posthoc_subject")
+
+
 @dataclass(frozen=True)
 class GuidanceConfig:
     """Every configuration a plan depends on, as one bundle (the YAML files of a config dir).
@@ -341,6 +347,15 @@ class GuidanceConfig:
     def sha256(self) -> str:
         """Fingerprint of the bundle (canonical JSON)."""
         return hashlib.sha256(json.dumps(self.to_json(), sort_keys=True).encode()).hexdigest()
+
+    def data_json(self) -> dict:
+        """The part of the bundle that determines generated trajectories: all of it but the
+        planning choices only flight uses (`FLIGHT_ONLY_PLANNING`), so that two bundles that
+        differ in those alone describe the same data."""
+        out = self.to_json()
+        out["planning"] = {k: v for k, v in out["planning"].items()
+                           if k not in FLIGHT_ONLY_PLANNING}
+        return out
 
     def replace(self, **changes: Any) -> "GuidanceConfig":
         """A copy with some parts replaced."""

@@ -47,7 +47,8 @@ from art_guidance.art.data import (
 )
 from art_guidance.art.distributed import DistContext, init_distributed, shutdown_distributed
 from art_guidance.art.model import ArtModel, loss_counts, loss_terms
-from art_guidance.errors import GuidanceError, InputError
+from art_guidance.config import GuidanceConfig
+from art_guidance.errors import ConfigError, GuidanceError, InputError
 
 STATE_SUFFIX = ".state"
 
@@ -467,13 +468,26 @@ def _initial_model(path: str, cfg: ArtConfig) -> checkpoint.TrainedArt:
 
 
 def _check_init_data(path: str, init: checkpoint.TrainedArt, provenance: dict) -> None:
-    """Raise InputError unless the data is of the initial model's mode and configuration."""
+    """Raise InputError unless the data is of the initial model's mode and describes the same
+    problem (`GuidanceConfig.data_json`: scenario, uncertainty, SCVx* and its samples per node;
+    planning choices only flight uses may differ, e.g. a bundle written before one existed)."""
     data = init.meta.get("dataset", {})
-    mode, config = data.get("mode"), data.get("config_sha256")
-    if (mode, config) != (provenance["mode"], provenance["config_sha256"]):
-        raise InputError("--init", f"the model was trained on {mode} data of config "
-                         f"{str(config)[:12]}, --data is {provenance['mode']} data of config "
-                         f"{provenance['config_sha256'][:12]}", path)
+    if data.get("mode") != provenance["mode"]:
+        raise InputError("--init", f"the model was trained on {data.get('mode')} data, --data "
+                         f"is {provenance['mode']} data", path)
+    if data.get("config_sha256") == provenance["config_sha256"]:
+        return
+    try:
+        have = GuidanceConfig.from_json(data["guidance_config"]).data_json()
+    except (KeyError, TypeError, ConfigError) as exc:
+        raise InputError("--init", f"the model does not record a usable configuration of its "
+                         f"data ({exc})", path) from exc
+    want = GuidanceConfig.from_json(provenance["guidance_config"]).data_json()
+    diff = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
+    if diff:
+        raise InputError("--init", f"the model's data and --data differ in configuration "
+                         f"({', '.join(diff)}: config {str(data.get('config_sha256'))[:12]} "
+                         f"against {provenance['config_sha256'][:12]})", path)
 
 
 def _copy_state(model: ArtModel, state: dict[str, torch.Tensor] | None = None,

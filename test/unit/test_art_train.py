@@ -22,7 +22,7 @@ from art_guidance.art.data import (
     load_training_data, make_batch, manifest_digest, trained_manifests,
 )
 from art_guidance.art.model import ArtModel, loss_counts, loss_terms
-from art_guidance.art.train import TrainOptions, state_path, train
+from art_guidance.art.train import TrainOptions, _check_init_data, state_path, train
 from art_guidance.cli import train as cli_train
 from art_guidance.data.generate import generate
 from art_guidance.data.storage import load_dataset
@@ -172,6 +172,17 @@ def test_fine_tuning_starts_from_the_initial_model(dataset, tmp_path):
           log=lambda _: None)
     lineage = trained_manifests(checkpoint.load(tmp_path / "o.pt").meta)
     assert lineage == (manifest_digest(other), *trained_manifests(init.meta))
+    # data of the same problem is accepted whatever the flight-only planning choices; another
+    # problem or mode is refused, naming the difference
+    prov = dict(init.meta["dataset"], config_sha256="other")
+    bundle = prov["guidance_config"]
+    flight = dict(bundle, planning=dict(bundle["planning"], posthoc_subject="rollout"))
+    _check_init_data("base.pt", init, dict(prov, guidance_config=flight))
+    safety = dict(bundle, scenario=dict(bundle["scenario"], n_safety=7))
+    with pytest.raises(InputError, match=r"differ in configuration \(scenario"):
+        _check_init_data("base.pt", init, dict(prov, guidance_config=safety))
+    with pytest.raises(InputError, match="trained on deterministic data, --data is chance"):
+        _check_init_data("base.pt", init, dict(prov, mode="chance"))
     (tmp_path / "junk.pt").write_bytes(b"not a model")
     with pytest.raises(InputError, match="--init"):
         train(TrainOptions(**{**ft.__dict__, "out": str(tmp_path / "c.pt"),
