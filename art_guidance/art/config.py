@@ -12,6 +12,7 @@ probabilities, ReLU; 0.35 M parameters). Measured there with other jobs running:
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -140,6 +141,10 @@ class TrainConfig:
             train rows; 0: all): learning curves over the dataset size.
         precision: "fp32", or "bf16" autocast of the forward pass on CUDA (weights, optimiser
             and loss reduction stay fp32; ignored on CPU).
+        dagger_max_cost_ratio: skip DAgger rows whose expert costs more from the takeover
+            node on than this many times the scenario's J_CVX (-R(t_k) / J_CVX; 0: keep all):
+            the late takeovers of a rollout that drifted off need recovery burns far outside
+            the plans' range, whose squared errors would dominate the loss.
     """
 
     batch_size: int = 32
@@ -157,10 +162,16 @@ class TrainConfig:
     gate_weight: float = 0.1
     max_train: int = 0
     precision: str = "fp32"
+    dagger_max_cost_ratio: float = 0.0
 
     def __post_init__(self) -> None:
         if self.precision not in ("fp32", "bf16"):
             raise ConfigError(f"train.precision must be fp32 or bf16, got {self.precision!r}")
+        ratio = self.dagger_max_cost_ratio
+        if isinstance(ratio, bool) or not isinstance(ratio, (int, float)) \
+                or not (ratio >= 0 and math.isfinite(ratio)):
+            raise ConfigError(f"train.dagger_max_cost_ratio must be a finite number >= 0 (0: "
+                              f"keep every DAgger row), got {ratio!r}")
         if not (self.burn_threshold_mps > 0 and self.gate_weight >= 0):
             raise ConfigError("train needs burn_threshold_mps > 0 and gate_weight >= 0")
         if isinstance(self.max_train, bool) or not isinstance(self.max_train, int) \

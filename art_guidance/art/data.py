@@ -95,21 +95,31 @@ def trained_manifests(meta: dict) -> tuple[str, ...]:
     return own + tuple(h for h in init.get("trained_on", []) if h not in own)
 
 
-def _read_dir(root: str) -> tuple[dict, dict[str, np.ndarray], dict]:
+def _read_dir(root: str, dagger_max_cost_ratio: float = 0.0
+              ) -> tuple[dict, dict[str, np.ndarray], dict]:
     header, _, _ = read_manifest(root)
     digest = manifest_digest(root)
     data = load_dataset(root)
     keep = ~data["is_test"] & data["feasible"]
+    train_from = _train_from(data)
+    dropped = 0
+    if dagger_max_cost_ratio > 0 and (train_from > 0).any():
+        rows = np.arange(train_from.size)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = -data["reward_to_go_mps"][rows, train_from] / data["cvx_cost_mps"]
+        over = keep & (train_from > 0) & ~(ratio <= dagger_max_cost_ratio)
+        dropped, keep = int(over.sum()), keep & ~over
     info = {"dir": str(root), "manifest_sha256": digest, "n": int(header["n"]),
             "train_feasible": int(keep.sum()), "test_skipped": int(data["is_test"].sum()),
-            "dagger_rows": int((_train_from(data) > 0)[keep].sum())}
+            "dagger_rows": int((train_from > 0)[keep].sum()),
+            "dagger_rows_over_cost_ratio": dropped}
     return header, {k: v[keep] for k, v in data.items()}, info
 
 
 def load_training_data(dirs: list[str], representation: str, val_fraction: float,
                        seed: int, normalization: str = "feature", context: int | None = None,
-                       max_train: int = 0, normalizer: Normalizer | None = None
-                       ) -> TrainingData:
+                       max_train: int = 0, normalizer: Normalizer | None = None,
+                       dagger_max_cost_ratio: float = 0.0) -> TrainingData:
     """Read dataset directories, keep their feasible train-split samples, split, normalise.
 
     Args:
@@ -133,7 +143,7 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
         raise InputError("--data", "at least one dataset directory is required")
     parts, train_from, infos, first = [], [], [], None
     for root in dirs:
-        header, data, info = _read_dir(root)
+        header, data, info = _read_dir(root, dagger_max_cost_ratio)
         if first is None:
             first = header
         elif (header["mode"], header["config_sha256"]) != (first["mode"],
@@ -172,7 +182,8 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
                   "manifests": infos, "n_nodes": int(raw["state"].shape[1]),
                   "n_train": int(train_rows.size), "n_val": int(val_rows.size),
                   "representation": representation, "normalization": normalization,
-                  "max_train": int(max_train)}
+                  "max_train": int(max_train),
+                  "dagger_max_cost_ratio": float(dagger_max_cost_ratio)}
     return TrainingData(tensors, train_rows.astype(np.int64), val_rows.astype(np.int64),
                         normalizer, int(raw["state"].shape[1]), provenance)
 

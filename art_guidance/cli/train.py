@@ -61,6 +61,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="weight of the gate's cross-entropy in the loss (default 0.1)")
     p.add_argument("--max-train", type=int, default=None,
                    help="use at most this many training trajectories (learning curves)")
+    p.add_argument("--dagger-max-cost-ratio", type=float, default=None,
+                   help="skip DAgger rows whose expert costs more from its takeover node on "
+                   "than this many times the scenario's J_CVX (default 0: keep all; the late "
+                   "takeovers of a drifted rollout need recovery burns far outside the plans')")
     p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
                    help="bf16: autocast the forward pass on CUDA (default fp32)")
     p.add_argument("--device", choices=("cpu", "cuda"), default=None,
@@ -96,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--max-steps", "must be >= 1", args.max_steps)
     overrides = {k: getattr(args, k) for k in (
         "max_epochs", "batch_size", "lr", "eval_every", "patience", "min_lr_ratio",
-        "warmup_steps", "burn_threshold_mps", "gate_weight", "max_train", "precision")}
+        "warmup_steps", "burn_threshold_mps", "gate_weight", "max_train", "precision",
+        "dagger_max_cost_ratio")}
     model_overrides = {"normalization": args.normalization, "burn_gate": args.burn_gate}
     opts = TrainOptions(data=tuple(args.data), out=args.out, preset=args.preset,
                         representation=args.representation, seed=args.seed,

@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from art_guidance.art import build_safety, checkpoint
+from art_guidance.art.config import TrainConfig
 from art_guidance.art.dagger import (
     DAGGER_STREAM, FIELDS, dagger, dagger_node, expert_from, scenario_pool,
 )
@@ -28,7 +29,7 @@ from art_guidance.data.generate import generate
 from art_guidance.data.stages import GenerationSpec
 from art_guidance.data.stages import FIELDS as GENERATE_FIELDS
 from art_guidance.data.storage import MANIFEST, load_dataset, read_manifest
-from art_guidance.errors import GuidanceError, InputError
+from art_guidance.errors import ConfigError, GuidanceError, InputError
 from art_guidance.optim import FEASIBLE_STATUSES
 
 torch.set_num_threads(1)
@@ -286,6 +287,20 @@ def test_training_on_src_and_dagger_data(src, dag_dir, dag, tmp_path):
                                  progress=False), log=_quiet)
     assert summary["step"] == 3 and np.isfinite(summary["best_val_loss"])
     assert len(checkpoint.load(out).meta["dataset"]["manifests"]) == 2
+    # the cost-ratio filter: DAgger rows whose expert suffix costs more than r J_CVX are out
+    rows = np.arange(N_DAG)
+    ratio = -dag["reward_to_go_mps"][rows, dag["train_from"]] / dag["cvx_cost_mps"]
+    r = float(np.median(ratio[dag["feasible"]]))
+    cut = load_training_data([str(src), str(dag_dir)], "roe", 0.1, seed=0,
+                             dagger_max_cost_ratio=r)
+    kept = dag["feasible"] & (ratio <= r)
+    assert np.array_equal(cut.tensors["train_from"].numpy()[n_src:], dag["train_from"][kept])
+    info = cut.provenance["manifests"][1]
+    assert info["dagger_rows"] == kept.sum() < dag["feasible"].sum()
+    assert info["dagger_rows_over_cost_ratio"] == dag["feasible"].sum() - kept.sum()
+    assert cut.provenance["dagger_max_cost_ratio"] == r
+    with pytest.raises(ConfigError, match="dagger_max_cost_ratio"):
+        TrainConfig(dagger_max_cost_ratio=-1.0)
 
 
 def test_cli(src, model, dag_dir, capsys):
