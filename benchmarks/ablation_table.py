@@ -42,8 +42,11 @@ ROWS = {
     "fresh7_K_small_gate_rtn": "K RTN (shipped RTN), fresh seed 7",
     "fresh7_C_small_gate": "C, fresh seed 7",
     "fresh7_N_dagger_gate_roe": "N, fresh seed 7",
+    "fresh7_O_dagger_ft_roe": "O K fine-tuned on 2.7 k fresh + 2.7 k DAgger rows of K (cost "
+                              "ratio <= 1.5), fresh seed 7",
     "fresh7_sweep_roe": "K + conditioning sweep (in flight, ROE), fresh seed 7",
     "fresh8_sweep_roe": "K + conditioning sweep (in flight, ROE), fresh seed 8",
+    "fresh7_O_dagger_ft_sweep_roe": "O + conditioning sweep (in flight), fresh seed 7",
     "fresh7_sweep_rtn": "K RTN + conditioning sweep (in flight), fresh seed 7",
     "fresh8_sweep_rtn": "K RTN + conditioning sweep (in flight), fresh seed 8",
     "det7_previous_det_roe": "deterministic: previous ROE (no gate, 5 epochs, CPU), fresh seed 7",
