@@ -26,6 +26,7 @@ OPENBLAS_NUM_THREADS=1 for the numbers the planner sees with one core per proces
 from __future__ import annotations
 
 import os
+from pathlib import Path
 import time
 
 import numpy as np
@@ -162,6 +163,16 @@ def _train_rate(name: str, steps: int) -> float:
     return batch / float(np.median(times[1:]))
 
 
+def _shown(path: str) -> str:
+    """A checkpoint path as recorded: relative to the working directory when inside it (no
+    machine paths in committed results), else its file name."""
+    p = Path(path).resolve()
+    try:
+        return str(p.relative_to(Path.cwd()))
+    except ValueError:
+        return p.name
+
+
 def run(repeats: int = 20, checkpoint: str | None = None) -> dict:
     """Time ART rollouts and training; returns medians [ms], speed-ups and rates."""
     checkpoint = checkpoint or os.environ.get("ART_BENCH_CHECKPOINT")
@@ -171,7 +182,7 @@ def run(repeats: int = 20, checkpoint: str | None = None) -> dict:
     models = {"default": default, "paper": _random_art("paper")}
     safety = _RecordedSafety(build_safety(default, chance_constrained=True))
     x0, targets = _scenarios(64)
-    out: dict = {"checkpoint": checkpoint or "random weights",
+    out: dict = {"checkpoint": _shown(checkpoint) if checkpoint else "random weights",
                  "default_n_parameters": default.model.n_parameters(),
                  "paper_n_parameters": models["paper"].model.n_parameters()}
     threads_before = torch.get_num_threads()

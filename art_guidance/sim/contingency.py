@@ -242,7 +242,7 @@ def run(out: str | Path, spec: ContingencySpec | None = None, *, workers: int = 
             writer, spec.n_flights, contingency_chunk, spec, commit, shard_size=1,
             workers=workers, engine=engine, ray_address=ray_address, unit="flight",
             desc="contingency", progress=progress, log=log, where=out, noun="flights")
-    this = {"command": list(sys.argv), "engine": engine, "workers": workers,
+    this = {"command": ["art-guidance", *sys.argv[1:]], "engine": engine, "workers": workers,
             "flights": int(writer.done_indices.size) - done0, "wall_s": wall, "status": status,
             "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     runs = _previous_runs(out) + ([this] if this["flights"] else [])

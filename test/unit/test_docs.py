@@ -141,3 +141,18 @@ def test_every_example_runs_without_a_usage_error(tmp_path, ros_env):
            if code == 2 and "usage:" in err]
     assert bad == []
     assert len(outcomes) == len(commands) >= 30
+
+
+_MACHINE_PATH = re.compile(r"(?<![\w.])/(?:work|home|root|tmp|Users|mnt|opt)/[\w.-]")
+
+
+def test_committed_results_and_docs_hold_no_machine_paths():
+    """Results, model provenance and docs name paths relative to the checkout (a recorded
+    /work/... or /tmp/... says nothing on another machine and leaks the one it ran on)."""
+    roots = [ROOT / "benchmarks" / "results", ROOT / "docs", ROOT / "art_guidance" / "models",
+             ROOT / "config"]
+    files = [ROOT / "README.md"] + [p for r in roots for p in sorted(r.rglob("*"))
+                                    if p.suffix in (".json", ".md", ".yaml", ".txt")]
+    found = [f"{p.relative_to(ROOT)}: {m.group(0)}" for p in files
+             for m in _MACHINE_PATH.finditer(p.read_text(errors="replace"))]
+    assert not found, found[:10]
