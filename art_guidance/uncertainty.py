@@ -63,7 +63,12 @@ def nav_covariance(roe_m: object, psi: object, cfg: UncertaintyConfig) -> np.nda
     """
     x = as_finite_array("roe_m", roe_m, (None, 6))
     p = as_finite_array("psi", psi, (x.shape[0], 6, 6))
-    rho_m = nav_range_m(x, p)  # (N,)
+    return _nav_covariance(x, p, cfg)
+
+
+def _nav_covariance(x: np.ndarray, psi: np.ndarray, cfg: UncertaintyConfig) -> np.ndarray:
+    """`nav_covariance` of arrays already checked."""
+    rho_m = nav_range_m(x, psi)  # (N,)
     std_m = nav_std_scale(rho_m, cfg) * rho_m[:, None]  # (N, 6)
     out = np.zeros((x.shape[0], 6, 6))
     idx = np.arange(6)
@@ -96,7 +101,11 @@ def gates_covariance(dv_rtn_mps: object, cfg: UncertaintyConfig) -> np.ndarray:
     Raises:
         InputError: on NaN/inf or a shape other than (N, 3).
     """
-    dv = as_finite_array("dv_rtn_mps", dv_rtn_mps, (None, 3))
+    return _gates_covariance(as_finite_array("dv_rtn_mps", dv_rtn_mps, (None, 3)), cfg)
+
+
+def _gates_covariance(dv: np.ndarray, cfg: UncertaintyConfig) -> np.ndarray:
+    """`gates_covariance` of an array already checked."""
     n = dv.shape[0]
     eye = np.eye(3)
     dv2 = np.einsum("ki,ki->k", dv, dv)  # (N,)
@@ -157,9 +166,17 @@ def post_burn_covariance(roe_m: object, dv_rtn_mps: object, b: object, psi: obje
     m = x.shape[0]
     u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (m, 3))
     b = np.broadcast_to(np.asarray(b, float), (m, 6, 3))
-    psi = np.broadcast_to(np.asarray(psi, float), (m, 6, 6))
-    act = b @ gates_covariance(u, cfg) @ np.swapaxes(b, -1, -2)  # (M, 6, 6)
-    out = nav_covariance(x, psi, cfg) + act + process_noise(cfg)
+    psi = as_finite_array("psi", np.broadcast_to(np.asarray(psi, float), (m, 6, 6)), (m, 6, 6))
+    return post_burn_covariance_checked(x, u, b, psi, cfg)
+
+
+def post_burn_covariance_checked(x: np.ndarray, u: np.ndarray, b: np.ndarray, psi: np.ndarray,
+                                 cfg: UncertaintyConfig) -> np.ndarray:
+    """`post_burn_covariance` of finite float arrays already of shapes (M, 6), (M, 3),
+    (M, 6, 3) and (M, 6, 6) (broadcast views will do): the same numbers without the checks,
+    for the rollout loop, which calls it at every step."""
+    act = b @ _gates_covariance(u, cfg) @ np.swapaxes(b, -1, -2)  # (M, 6, 6)
+    out = _nav_covariance(x, psi, cfg) + act + process_noise(cfg)
     return 0.5 * (out + np.swapaxes(out, -1, -2))
 
 

@@ -49,7 +49,7 @@ from art_guidance.dynamics import (
 )
 from art_guidance.errors import InputError
 from art_guidance.uncertainty import (
-    post_burn_covariance, propagate_covariance, state_covariance_history,
+    post_burn_covariance_checked, propagate_covariance, state_covariance_history,
 )
 
 ROW_DIP = 2.5e-3        # largest dip of the margin between linearisation rows around t* [-]
@@ -375,8 +375,10 @@ class PassiveSafety:
         """Drift arcs of B post-burn states `z` at node i (pre-burn `x`, burns `u`)."""
         x_cov = None
         if self.uncertainty is not None:
-            x_cov = post_burn_covariance(x, u, self.horizon.b[i], self.horizon.psi[i],
-                                         self.uncertainty)
+            m = x.shape[0]
+            x_cov = post_burn_covariance_checked(
+                x, u, np.broadcast_to(self.horizon.b[i], (m, 6, 3)),
+                np.broadcast_to(self.horizon.psi[i], (m, 6, 6)), self.uncertainty)
         return self.arcs.items(np.full(x.shape[0], i), z, x_cov, self.q_sigma)
 
     def _check(self, roe_m: object, dv_rtn_mps: object) -> tuple[np.ndarray, np.ndarray]:

@@ -10,6 +10,8 @@ from art_guidance.errors import InputError
 from art_guidance.uncertainty import (
     gates_covariance,
     nav_covariance,
+    post_burn_covariance,
+    post_burn_covariance_checked,
     process_noise,
     propagate_covariance,
     state_covariance_history,
@@ -169,6 +171,13 @@ def test_state_covariance_history(horizon: Horizon) -> None:
     np.testing.assert_allclose(hist, parts, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(state_covariance_history(roe, dv, horizon, None),
                                   np.zeros((n, 6, 6)))
+    # the rollout loop's unchecked form gives the same numbers, bit for bit, at one node
+    i, m = 40, 9
+    x, u = roe[:m], dv[:m]
+    b_i, psi_i = horizon.b[i], horizon.psi[i]
+    fast = post_burn_covariance_checked(x, u, np.broadcast_to(b_i, (m, 6, 3)),
+                                        np.broadcast_to(psi_i, (m, 6, 6)), CFG)
+    np.testing.assert_array_equal(fast, post_burn_covariance(x, u, b_i, psi_i, CFG))
 
 
 # ---------------------------------------------------------------------------- bad input
