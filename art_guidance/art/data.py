@@ -31,6 +31,7 @@ import torch
 from art_guidance.art.config import MODALITIES
 from art_guidance.art.normalization import Normalizer
 from art_guidance.config import GuidanceConfig
+from art_guidance.scenarios import SEED_STRIDE
 from art_guidance.data.storage import MANIFEST, load_dataset, read_manifest
 from art_guidance.errors import InputError
 
@@ -95,6 +96,24 @@ def trained_manifests(meta: dict) -> tuple[str, ...]:
     return own + tuple(h for h in init.get("trained_on", []) if h not in own)
 
 
+def seed_bases(scenario_seeds: np.ndarray) -> list[int]:
+    """The dataset seeds S whose scenarios `scenario_seeds` are (scenario seed S * SEED_STRIDE
+    + i, `scenarios.SEED_RULE`): two datasets of one mode share scenarios exactly when they
+    share one, whatever their manifests."""
+    return sorted({int(s) // SEED_STRIDE for s in np.asarray(scenario_seeds).ravel()})
+
+
+def trained_seed_bases(meta: dict) -> tuple[int, ...]:
+    """The dataset seeds of every scenario a checkpoint was trained on (its manifests', and
+    those of the model it was fine-tuned from), where its provenance records them (models
+    trained before it did record none)."""
+    meta = meta or {}
+    own = {int(b) for m in meta.get("dataset", {}).get("manifests", [])
+           for b in m.get("scenario_seed_bases", [])}
+    init = (meta.get("training") or {}).get("init") or {}
+    return tuple(sorted(own | {int(b) for b in init.get("seed_bases", [])}))
+
+
 def _read_dir(root: str, dagger_max_cost_ratio: float = 0.0
               ) -> tuple[dict, dict[str, np.ndarray], dict]:
     header, _, _ = read_manifest(root)
@@ -112,7 +131,8 @@ def _read_dir(root: str, dagger_max_cost_ratio: float = 0.0
     info = {"dir": str(root), "manifest_sha256": digest, "n": int(header["n"]),
             "train_feasible": int(keep.sum()), "test_skipped": int(data["is_test"].sum()),
             "dagger_rows": int((train_from > 0)[keep].sum()),
-            "dagger_rows_over_cost_ratio": dropped}
+            "dagger_rows_over_cost_ratio": dropped,
+            "scenario_seed_bases": seed_bases(data["seed"][keep]) if "seed" in data else []}
     return header, {k: v[keep] for k, v in data.items()}, info
 
 

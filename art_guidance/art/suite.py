@@ -21,10 +21,14 @@ def distribution(values: np.ndarray) -> dict:
 
 
 def _trained_on(art: object, data_dir: str) -> bool:
-    """Whether the model's training data includes the dataset directory `data_dir`."""
-    from art_guidance.art.data import manifest_digest, trained_manifests
+    """Whether the model's training data includes the dataset directory `data_dir`, or other
+    scenarios of its seed."""
+    from art_guidance.art.data import trained_manifests, trained_seed_bases
+    from art_guidance.eval.inputs import ModelInfo, dataset_info
 
-    return manifest_digest(data_dir) in trained_manifests(art.meta)
+    model = ModelInfo("", "", "", "", trained_on=trained_manifests(art.meta),
+                      trained_seed_bases=trained_seed_bases(art.meta))
+    return model.saw(dataset_info(data_dir))
 
 
 def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
@@ -40,7 +44,8 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
     art = load(model_path)
     if split == "all" and data_dir is not None and _trained_on(art, data_dir):
         raise InputError("--split", f"all scenarios of {data_dir} are not held out from "
-                         f"{Path(model_path).name}: it was trained on that dataset")
+                         f"{Path(model_path).name}: it was trained on that dataset or on "
+                         "scenarios of its seed")
     held = heldout_scenarios(data, ("cvx_roe_m", "cvx_dv_rtn_mps", "dv_rtn_mps", "feasible",
                                     "cost_mps", "constraint_to_go"), split)
     m = held["index"].size if n is None else min(n, held["index"].size)

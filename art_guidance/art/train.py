@@ -42,8 +42,8 @@ from art_guidance import __version__
 from art_guidance.art import checkpoint
 from art_guidance.art.config import ArtConfig, preset
 from art_guidance.art.data import (
-    epoch_order, load_training_data, make_batch, suffix_starts, trained_manifests, valid_mask,
-    validation_starts,
+    epoch_order, load_training_data, make_batch, suffix_starts, trained_manifests,
+    trained_seed_bases, valid_mask, validation_starts,
 )
 from art_guidance.art.distributed import DistContext, init_distributed, shutdown_distributed
 from art_guidance.art.model import ArtModel, loss_counts, loss_terms
@@ -423,7 +423,8 @@ class _Trainer:
             "torch_version": str(torch.__version__), "art_guidance_version": __version__,
             "init": None if self.init is None else {
                 "file": Path(self.opts.init).name, "sha256": self.init.sha256,
-                "trained_on": list(trained_manifests(self.init.meta))}}}
+                "trained_on": list(trained_manifests(self.init.meta)),
+                "seed_bases": list(trained_seed_bases(self.init.meta))}}}
 
     def _save(self) -> None:
         if self.ctx.is_main:

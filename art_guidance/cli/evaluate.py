@@ -170,6 +170,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", choices=("test", "all"), default="test",
                    help="the datasets' test split (default), or all their scenarios (datasets "
                    "generated with a seed the models never saw; refused for a dataset a model "
-                   "was trained on)")
+                   "was trained on, or one of a seed whose scenarios it was trained on where "
+                   "its provenance records the seeds)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -30,6 +30,8 @@ class ModelInfo:
         train_n: trajectories it was trained on (train + validation share; 0: not recorded).
         n_parameters: its parameter count.
         trained_on: manifest sha256 of each dataset it was trained on.
+        trained_seed_bases: the dataset seeds of its training scenarios, where recorded
+            (`art.data.trained_seed_bases`).
     """
 
     path: str
@@ -39,6 +41,12 @@ class ModelInfo:
     train_n: int = 0
     n_parameters: int = 0
     trained_on: tuple[str, ...] = ()
+    trained_seed_bases: tuple[int, ...] = ()
+
+    def saw(self, dataset: "DatasetInfo") -> bool:
+        """Whether it was trained on `dataset` or on other scenarios of the same seed."""
+        return dataset.sha256 in self.trained_on or (
+            dataset.base_seed is not None and dataset.base_seed in self.trained_seed_bases)
 
     @property
     def label(self) -> str:
@@ -54,6 +62,7 @@ class DatasetInfo:
     sha256: str  # of its manifest (which holds every shard's sha256)
     mode: str
     n_samples: int
+    base_seed: int | None = None  # its dataset seed S (None: a DAgger directory)
 
 
 def dataset_info(path: str | Path) -> DatasetInfo:
@@ -67,7 +76,9 @@ def dataset_info(path: str | Path) -> DatasetInfo:
     if header.get("mode") == KIND:
         raise InputError("--data", "is an evaluation output directory, not a dataset", str(path))
     digest = sha256_bytes((Path(path) / MANIFEST).read_bytes()[:valid])
-    return DatasetInfo(str(path), digest, str(header["mode"]), int(header["n"]))
+    seed = None if "dagger" in header or header.get("base_seed") is None \
+        else int(header["base_seed"])
+    return DatasetInfo(str(path), digest, str(header["mode"]), int(header["n"]), seed)
 
 
 def model_info(path: str | Path) -> ModelInfo:
@@ -77,7 +88,7 @@ def model_info(path: str | Path) -> ModelInfo:
         CheckpointError: missing, corrupt or incompatible file.
     """
     from art_guidance.art.checkpoint import load
-    from art_guidance.art.data import trained_manifests
+    from art_guidance.art.data import trained_manifests, trained_seed_bases
     from art_guidance.art.rollout import build_safety
 
     art = load(path)
@@ -85,7 +96,8 @@ def model_info(path: str | Path) -> ModelInfo:
     data = (art.meta or {}).get("dataset", {})
     train_n = int(data.get("n_train", 0)) + int(data.get("n_val", 0))
     return ModelInfo(str(path), str(art.sha256), mode, art.config.representation, train_n,
-                     art.model.n_parameters(), trained_manifests(art.meta))
+                     art.model.n_parameters(), trained_manifests(art.meta),
+                     trained_seed_bases(art.meta))
 
 
 def heldout(path: str | Path, split: str = "test") -> dict[str, np.ndarray]:

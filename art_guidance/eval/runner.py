@@ -140,10 +140,10 @@ def build_spec(models: Sequence[ModelInfo], datasets: Sequence[DatasetInfo], n: 
     pairs = _pairs(models, datasets)
     if split == "all":
         for k, js in enumerate(pairs):
-            seen = [datasets[j].path for j in js if datasets[j].sha256 in models[k].trained_on]
+            seen = [datasets[j].path for j in js if models[k].saw(datasets[j])]
             if seen:
-                raise InputError("--split", f"{models[k].path} was trained on {seen[0]}: its "
-                                 "scenarios are not all held out", split)
+                raise InputError("--split", f"{models[k].path} was trained on {seen[0]} or on "
+                                 "scenarios of its seed: they are not all held out", split)
     held = {j: heldout(datasets[j].path, split)
             for j in sorted({j for p in pairs for j in p})}
     parts: dict[str, list] = {k: [] for k in ("model", "dataset", "sample", "roe0", "target")}

@@ -26,6 +26,7 @@ from art_guidance.art.train import TrainOptions, _check_init_data, state_path, t
 from art_guidance.cli import train as cli_train
 from art_guidance.data.generate import generate
 from art_guidance.data.storage import load_dataset
+from art_guidance.eval.inputs import dataset_info, model_info
 from art_guidance.errors import ConfigError, GuidanceError, InputError
 
 torch.set_num_threads(1)
@@ -133,7 +134,7 @@ def test_checkpoint_records_provenance_and_reruns_are_safe(dataset, tmp_path):
     assert 0.0 <= report["frac_posthoc_accepted"] <= 1.0
 
 
-def test_fine_tuning_starts_from_the_initial_model(dataset, tmp_path):
+def test_fine_tuning_starts_from_the_initial_model(dataset, tmp_path, capsys):
     base = tmp_path / "base.pt"
     opts = TrainOptions(data=(str(dataset),), out=str(base), preset="tiny", seed=1,
                         overrides={"max_epochs": 2}, progress=False)
@@ -172,6 +173,22 @@ def test_fine_tuning_starts_from_the_initial_model(dataset, tmp_path):
           log=lambda _: None)
     lineage = trained_manifests(checkpoint.load(tmp_path / "o.pt").meta)
     assert lineage == (manifest_digest(other), *trained_manifests(init.meta))
+    # held out means other scenario seeds, not only another manifest: a dataset generated with
+    # a seed the model was trained on is refused by `--split all`, whatever its size
+    same_seed = tmp_path / "det5b"
+    generate(same_seed, 4, "deterministic", base_seed=5, workers=1, shard_size=4,
+             progress=False, log=lambda _: None)
+    base_info, o_info = model_info(base), model_info(tmp_path / "o.pt")
+    assert base_info.trained_seed_bases == (5,) and o_info.trained_seed_bases == (5, 6)
+    assert base_info.saw(dataset_info(same_seed)) and not base_info.saw(dataset_info(other))
+    assert o_info.saw(dataset_info(dataset)) and o_info.saw(dataset_info(other))
+    from art_guidance.cli import main as cli_main
+
+    for suite in ("rollouts", "warmstart"):
+        assert cli_main(["evaluate", "--suite", suite, "--data", str(same_seed), "--model",
+                         str(base), "--split", "all", "--workers", "1", "--no-progress",
+                         "--out", str(tmp_path / f"ev_{suite}")]) == 2
+        assert "scenarios of its seed" in capsys.readouterr().err
     # data of the same problem is accepted whatever the flight-only planning choices; another
     # problem or mode is refused, naming the difference
     prov = dict(init.meta["dataset"], config_sha256="other")
