@@ -90,10 +90,8 @@ def trained_manifests(meta: dict) -> tuple[str, ...]:
     """Manifest sha256 of every dataset a checkpoint's provenance (`meta`) was trained on,
     including those of the model it was fine-tuned from (`train --init`), and of that
     model's, recorded when it was fine-tuned."""
-    meta = meta or {}
-    own = tuple(m.get("manifest_sha256", "") for m in meta.get("dataset", {}).get("manifests", []))
-    init = (meta.get("training") or {}).get("init") or {}
-    return own + tuple(h for h in init.get("trained_on", []) if h not in own)
+    own = tuple(m.get("manifest_sha256", "") for m in _manifests(meta))
+    return own + tuple(h for h in _init(meta).get("trained_on", []) if h not in own)
 
 
 def seed_bases(scenario_seeds: np.ndarray) -> list[int]:
@@ -107,11 +105,18 @@ def trained_seed_bases(meta: dict) -> tuple[int, ...]:
     """The dataset seeds of every scenario a checkpoint was trained on (its manifests', and
     those of the model it was fine-tuned from), where its provenance records them (models
     trained before it did record none)."""
-    meta = meta or {}
-    own = {int(b) for m in meta.get("dataset", {}).get("manifests", [])
-           for b in m.get("scenario_seed_bases", [])}
-    init = (meta.get("training") or {}).get("init") or {}
-    return tuple(sorted(own | {int(b) for b in init.get("seed_bases", [])}))
+    own = {int(b) for m in _manifests(meta) for b in m.get("scenario_seed_bases", [])}
+    return tuple(sorted(own | {int(b) for b in _init(meta).get("seed_bases", [])}))
+
+
+def _manifests(meta: dict | None) -> list[dict]:
+    """The training datasets' entries of a checkpoint's provenance."""
+    return (meta or {}).get("dataset", {}).get("manifests", [])
+
+
+def _init(meta: dict | None) -> dict:
+    """What a checkpoint's provenance records of the model it was fine-tuned from ({}: none)."""
+    return ((meta or {}).get("training") or {}).get("init") or {}
 
 
 def _read_dir(root: str, dagger_max_cost_ratio: float = 0.0

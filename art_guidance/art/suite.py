@@ -24,11 +24,10 @@ def _trained_on(art: object, data_dir: str) -> bool:
     """Whether the model's training data includes the dataset directory `data_dir`, or other
     scenarios of its seed."""
     from art_guidance.art.data import trained_manifests, trained_seed_bases
-    from art_guidance.eval.inputs import ModelInfo, dataset_info
+    from art_guidance.eval.inputs import dataset_info, seen
 
-    model = ModelInfo("", "", "", "", trained_on=trained_manifests(art.meta),
-                      trained_seed_bases=trained_seed_bases(art.meta))
-    return model.saw(dataset_info(data_dir))
+    return seen(trained_manifests(art.meta), trained_seed_bases(art.meta),
+                dataset_info(data_dir))
 
 
 def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,

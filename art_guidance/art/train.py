@@ -47,6 +47,7 @@ from art_guidance.art.data import (
 )
 from art_guidance.art.distributed import DistContext, init_distributed, shutdown_distributed
 from art_guidance.art.model import ArtModel, loss_counts, loss_terms
+from art_guidance.art.rollout import training_config
 from art_guidance.config import GuidanceConfig
 from art_guidance.errors import ConfigError, GuidanceError, InputError
 
@@ -480,10 +481,13 @@ def _check_init_data(path: str, init: checkpoint.TrainedArt, provenance: dict) -
     if data.get("config_sha256") == provenance["config_sha256"]:
         return
     try:
-        have = GuidanceConfig.from_json(data["guidance_config"]).data_json()
-    except (KeyError, TypeError, ConfigError) as exc:
-        raise InputError("--init", f"the model does not record a usable configuration of its "
-                         f"data ({exc})", path) from exc
+        config = training_config(init)
+    except ConfigError as exc:
+        raise InputError("--init", f"the model's record of its data's configuration is "
+                         f"unusable ({exc})", path) from exc
+    if config is None:
+        raise InputError("--init", "the model records no configuration of its data", path)
+    have = config.data_json()
     want = GuidanceConfig.from_json(provenance["guidance_config"]).data_json()
     diff = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
     if diff:

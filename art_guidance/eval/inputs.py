@@ -45,8 +45,7 @@ class ModelInfo:
 
     def saw(self, dataset: "DatasetInfo") -> bool:
         """Whether it was trained on `dataset` or on other scenarios of the same seed."""
-        return dataset.sha256 in self.trained_on or (
-            dataset.base_seed is not None and dataset.base_seed in self.trained_seed_bases)
+        return seen(self.trained_on, self.trained_seed_bases, dataset)
 
     @property
     def label(self) -> str:
@@ -63,6 +62,14 @@ class DatasetInfo:
     mode: str
     n_samples: int
     base_seed: int | None = None  # its dataset seed S (None: a DAgger directory)
+
+
+def seen(trained_on: tuple[str, ...], trained_seed_bases: tuple[int, ...],
+         dataset: DatasetInfo) -> bool:
+    """Whether a model trained on the datasets of manifests `trained_on` and scenario seeds
+    `trained_seed_bases` saw `dataset` or other scenarios of its seed."""
+    return dataset.sha256 in trained_on or (
+        dataset.base_seed is not None and dataset.base_seed in trained_seed_bases)
 
 
 def dataset_info(path: str | Path) -> DatasetInfo:
