@@ -271,6 +271,7 @@ class PlanningConfig:
     art_deadline_share: float = 0.6
     also_solve_from_cvx: bool = True
     posthoc_subject: str = "warm_start"
+    art_min_gain_mps: float = 0.001
 
     def __post_init__(self) -> None:
         if self.posthoc_subject not in POSTHOC_SUBJECTS:
@@ -283,6 +284,11 @@ class PlanningConfig:
         if not isinstance(self.also_solve_from_cvx, bool):
             raise ConfigError(f"also_solve_from_cvx must be true or false, got "
                               f"{self.also_solve_from_cvx!r}")
+        gain = self.art_min_gain_mps
+        if isinstance(gain, bool) or not isinstance(gain, (int, float)) \
+                or not 0.0 <= gain < float("inf"):
+            raise ConfigError(f"art_min_gain_mps must be a finite number >= 0 [m/s], "
+                              f"got {gain!r}")
         share = self.art_deadline_share
         if isinstance(share, bool) or not isinstance(share, (int, float)) \
                 or not 0.0 < share < 1.0:
@@ -301,7 +307,7 @@ class PlanningConfig:
 # Planning fields that the dataset generator does not use (the post hoc check and the
 # in-flight choices between warm starts); `samples_per_node` shapes SCVx* and does matter.
 FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
-                        "posthoc_subject")
+                        "posthoc_subject", "art_min_gain_mps")
 
 
 @dataclass(frozen=True)

@@ -43,8 +43,22 @@ def fly(seed: int, errors: bool, pipeline: GuidancePipeline, warm_start: str = "
     summary["art_checked"] = len(posthoc)
     summary["art_accepted"] = sum(bool(p.accepted) for p in posthoc)
     summary["art_kept"] = sum(r.warm_start == "art" for _, r in guidance.results)
+    # both plans solved: the CVX-warm-started plan's cost minus the ART-warm-started one's
+    summary["art_gain_mps"] = [_art_gain(r) for _, r in guidance.results
+                               if r.discarded is not None and r.discarded.status.feasible
+                               and r.scp.feasible]
+    summary["art_kept_gain_mps"] = [_art_gain(r) for _, r in guidance.results
+                                    if r.warm_start == "art" and r.discarded is not None
+                                    and r.discarded.status.feasible and r.scp.feasible]
     summary["plans"] = len(guidance.results)
     return summary
+
+
+def _art_gain(result) -> float:
+    """CVX-warm-started plan cost minus ART-warm-started plan cost [m/s] of a replan where
+    SCVx* ran from both (positive: ART's plan is cheaper)."""
+    kept, lost = float(result.cost_mps), float(result.discarded.cost_mps)
+    return lost - kept if result.warm_start == "art" else kept - lost
 
 
 def _dist(x: np.ndarray) -> dict:
@@ -52,11 +66,12 @@ def _dist(x: np.ndarray) -> dict:
             "p90": float(np.percentile(x, 90)), "max": float(x.max())}
 
 
-def run(repeats: int = 30, warm_starts: bool = True) -> dict:
-    """Seeds 0..repeats-1 with and without errors; miss and delta-v distributions; with
-    `warm_starts`, ART in the loop against CVX only (errors on, paired per seed)."""
+def run(repeats: int = 30, warm_starts: bool = True, first_seed: int = 0) -> dict:
+    """Seeds first_seed..first_seed+repeats-1 with and without errors; miss and delta-v
+    distributions; with `warm_starts`, ART in the loop against CVX only (errors on, paired per
+    seed)."""
     pipeline = GuidancePipeline()
-    seeds = list(range(max(int(repeats), 1)))
+    seeds = list(range(int(first_seed), int(first_seed) + max(int(repeats), 1)))
     out: dict = {"seeds": seeds}
     t0 = time.perf_counter()
     runs_cvx = []
@@ -99,8 +114,15 @@ def _accepted_share(runs: list[dict]) -> dict:
     """How often the post hoc check accepted ART, and how often the plan kept came from it."""
     checked = sum(r["art_checked"] for r in runs)
     plans = sum(r["plans"] for r in runs)
+    gain = np.array([g for r in runs for g in r["art_gain_mps"]])
+    kept = np.array([g for r in runs for g in r["art_kept_gain_mps"]])
     return {"checked": checked, "accepted": sum(r["art_accepted"] for r in runs),
-            "plans": plans, "kept_from_art": sum(r["art_kept"] for r in runs)}
+            "plans": plans, "kept_from_art": sum(r["art_kept"] for r in runs),
+            "solved_from_both": int(gain.size),
+            "art_cheaper_by_over_1mm_s": int((gain > 1e-3).sum()),
+            "gap_mps": _dist(gain) if gain.size else None,
+            "gap_abs_median_mps": float(np.median(np.abs(gain))) if gain.size else None,
+            "kept_from_art_gap_mps": _dist(kept) if kept.size else None}
 
 
 if __name__ == "__main__":

@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
 
 _PASSED = {"out": "--out", "workers": "--workers", "engine": "--engine",
            "ray_address": "--ray-address", "seeds": "--seeds",
-           "missed_per_seed": "--missed-per-seed"}
+           "missed_per_seed": "--missed-per-seed", "first_seed": "--first-seed"}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -67,6 +67,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="local process pool (default) or Ray")
     p.add_argument("--ray-address", default=None, help="Ray cluster address (--engine ray)")
     p.add_argument("--seeds", type=int, default=None, help="seeds per configuration")
+    p.add_argument("--first-seed", type=int, default=None,
+                   help="first seed of a seed range (closed_loop: seeds FIRST..FIRST+repeats-1)")
     p.add_argument("--missed-per-seed", type=int, default=None,
                    help="missed-burn flights per configuration and seed")
     p.set_defaults(func=run)

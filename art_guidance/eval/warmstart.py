@@ -7,9 +7,10 @@ from, `planning.posthoc.check_proposal`, with the paper's check of the rollout i
 them); SCVx* then runs once from CVX ("PS-CVX") and once from the ART rollout ("PS-ART"),
 both with the same configuration and no deadline. The `auto` plan is what the pipeline flies:
 PS-ART if the post hoc check accepts the rollout, else PS-CVX; when
-that run does not converge, the better of the two (`planning.pipeline.better_plan`), as the
-pipeline's retry from the other warm start gives (without a deadline); with
-`also_solve_from_cvx`, an accepted rollout's plan is always compared with PS-CVX.
+that run does not converge, the better of the two (`planning.pipeline.keep_first_plan`, with
+`art_min_gain_mps`), as the pipeline's retry from the other warm start gives (without a
+deadline); with `also_solve_from_cvx`, an accepted rollout's plan is always compared with
+PS-CVX.
 
 `summarize` turns rows into the paper's numbers: per cumulative bin of C_CVX(t_1) (">= value",
 BINS) the absolute suboptimality J_SCP - J_CVX, the improvement ratio
@@ -30,7 +31,7 @@ import numpy as np
 from art_guidance.config import GuidanceConfig
 from art_guidance.errors import GuidanceError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
-from art_guidance.planning.pipeline import better_plan, second_run
+from art_guidance.planning.pipeline import keep_first_plan, second_run
 from art_guidance.planning.posthoc import check_proposal, posthoc_check
 from art_guidance.planning.types import PlanRequest, PosthocDecision, WarmStartProposal
 from art_guidance.safety import PassiveSafety
@@ -171,7 +172,8 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
     source = "art" if ph.accepted else "cvx"
     first, second = (from_art, from_cvx) if ph.accepted else (from_cvx, from_art)
     again = second_run(first, source, True, config.planning.also_solve_from_cvx)
-    auto = second if again is not None and not better_plan(first, second) else first
+    auto = second if again is not None and not keep_first_plan(
+        first, second, source, config.planning.art_min_gain_mps) else first
     return WarmStartRun(cvx, prop, art_roe, ph, from_cvx, from_art, auto, c_cvx,
                         1e3 * (t1 - t0), 1e3 * (t2 - t1), raw)
 

@@ -121,13 +121,20 @@ class GuidancePipeline:
         if second is not None:
             alt_source, why = second
             alt = scvx.solve(warm[alt_source], deadline_s=self._time_left(t_art))
-            keep_first = better_plan(res, alt)
+            keep_first = keep_first_plan(res, alt, source,
+                                         self.config.planning.art_min_gain_mps)
             kept, lost = (res, alt) if keep_first else (alt, res)
             discarded = ScpAttempt(alt_source if keep_first else source, lost.status,
                                    lost.cost_mps, lost.iterations, lost.solve_time_ms)
             source = source if keep_first else alt_source
             reason += (f"; {why} ({alt.status.name}, {alt.cost_mps:.4f} m/s): kept the "
                        f"{source.upper()}-warm-started plan")
+            art_plan, cvx_plan = (kept, lost) if source == "art" else (lost, kept)
+            if source == "cvx" and art_plan.feasible and cvx_plan.feasible \
+                    and art_plan.cost_mps < cvx_plan.cost_mps:
+                reason += (f" (the ART-warm-started one is only "
+                           f"{1e3 * (cvx_plan.cost_mps - art_plan.cost_mps):.2f} mm/s cheaper, "
+                           f"not more than art_min_gain_mps)")
             res = kept
         t_end = time.perf_counter()
         margin = float(safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
@@ -218,6 +225,23 @@ def better_plan(a: ScpResult, b: ScpResult) -> bool:
     if a.feasible:
         return a.cost_mps <= b.cost_mps
     return a.max_violation <= b.max_violation
+
+
+def keep_first_plan(first: ScpResult, second: ScpResult, source: str,
+                    min_gain_mps: float) -> bool:
+    """Whether the plan of the first SCVx* run (warm-started from `source`, "cvx" or "art") is
+    kept over the second's (from the other warm start): the better plan (`better_plan`),
+    except that when both are feasible the ART-warm-started plan must be cheaper than the
+    CVX-warm-started one by more than `min_gain_mps` [m/s] (`planning.yaml`
+    `art_min_gain_mps`). In replanning the two converge to plans of nearly the same cost that
+    time their burns differently, and switching between them costs more under the errors
+    than the difference saves."""
+    art, cvx = (first, second) if source == "art" else (second, first)
+    if art.feasible and cvx.feasible:
+        keep_cvx = not art.cost_mps < cvx.cost_mps - min_gain_mps
+    else:
+        keep_cvx = better_plan(cvx, art)
+    return keep_cvx == (source == "cvx")
 
 
 def _short(exc: Exception) -> str:

@@ -31,7 +31,10 @@ def test_bundle_round_trips_and_fingerprints():
 @pytest.mark.parametrize("bad", [{"samples_per_node": 0}, {"samples_per_node": True},
                                  {"posthoc": {"e_c_min": 3.0, "e_c_max": 2.0}},
                                  {"posthoc": {"e_r_pct_max": float("nan")}},
-                                 {"posthoc": {"bogus": 1.0}}])
+                                 {"posthoc": {"bogus": 1.0}}, {"art_min_gain_mps": -0.001},
+                                 {"art_min_gain_mps": True}, {"art_min_gain_mps": float("nan")},
+                                 {"art_min_gain_mps": float("inf")},
+                                 {"art_min_gain_mps": "1 mm/s"}])
 def test_bad_planning_config_is_refused(bad):
     with pytest.raises(ConfigError):
         PlanningConfig(**bad)

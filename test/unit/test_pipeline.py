@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import types
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from art_guidance.optim import ScpStatus
 from art_guidance.planning import (
     GuidancePipeline, PlanRequest, PosthocThresholds, posthoc_check,
 )
+from art_guidance.planning.pipeline import keep_first_plan
 
 
 class ScaledCvx:
@@ -116,3 +118,25 @@ def test_posthoc_check_on_an_unsafe_rollout(request_0):
     assert decision.e_r == pytest.approx(-1.0) and not decision.accepted
     with pytest.raises(ConfigError, match="min <= max"):
         PosthocThresholds(e_r_pct_min=5.0, e_r_pct_max=1.0)
+
+
+def _run(feasible: bool, cost_mps: float, violation: float = 0.0):
+    return types.SimpleNamespace(feasible=feasible, cost_mps=cost_mps, max_violation=violation)
+
+
+@pytest.mark.parametrize("source", ["art", "cvx"])
+def test_art_plan_is_flown_only_when_cheaper_by_the_margin(source):
+    """`art_min_gain_mps`: both plans feasible, the ART-warm-started one is kept only when it is
+    cheaper than the CVX-warm-started one by more than the margin, whichever ran first; an
+    infeasible plan never beats a feasible one, and 0 keeps the cheaper (ties: CVX)."""
+    def kept(art, cvx, margin):
+        first, second = (art, cvx) if source == "art" else (cvx, art)
+        return source if keep_first_plan(first, second, source, margin) else \
+            ("cvx" if source == "art" else "art")
+    assert kept(_run(True, 1.000), _run(True, 1.0005), 0.001) == "cvx"
+    assert kept(_run(True, 1.000), _run(True, 1.0015), 0.001) == "art"
+    assert kept(_run(True, 1.000), _run(True, 1.0005), 0.0) == "art"
+    assert kept(_run(True, 1.000), _run(True, 1.000), 0.0) == "cvx"
+    assert kept(_run(True, 1.2), _run(False, 1.0, 0.5), 0.001) == "art"
+    assert kept(_run(False, 0.9, 0.5), _run(True, 1.0), 0.001) == "cvx"
+    assert kept(_run(False, 0.9, 0.1), _run(False, 1.0, 0.5), 0.001) == "art"
