@@ -272,6 +272,7 @@ class PlanningConfig:
     also_solve_from_cvx: bool = True
     posthoc_subject: str = "warm_start"
     art_min_gain_mps: float = 0.001
+    skip_art_when_cvx_safe: bool = True
 
     def __post_init__(self) -> None:
         if self.posthoc_subject not in POSTHOC_SUBJECTS:
@@ -284,6 +285,9 @@ class PlanningConfig:
         if not isinstance(self.also_solve_from_cvx, bool):
             raise ConfigError(f"also_solve_from_cvx must be true or false, got "
                               f"{self.also_solve_from_cvx!r}")
+        if not isinstance(self.skip_art_when_cvx_safe, bool):
+            raise ConfigError(f"skip_art_when_cvx_safe must be true or false, got "
+                              f"{self.skip_art_when_cvx_safe!r}")
         gain = self.art_min_gain_mps
         if isinstance(gain, bool) or not isinstance(gain, (int, float)) \
                 or not 0.0 <= gain < float("inf"):
@@ -307,7 +311,7 @@ class PlanningConfig:
 # Planning fields that the dataset generator does not use (the post hoc check and the
 # in-flight choices between warm starts); `samples_per_node` shapes SCVx* and does matter.
 FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
-                        "posthoc_subject", "art_min_gain_mps")
+                        "posthoc_subject", "art_min_gain_mps", "skip_art_when_cvx_safe")
 
 
 @dataclass(frozen=True)

@@ -43,6 +43,9 @@ def fly(seed: int, errors: bool, pipeline: GuidancePipeline, warm_start: str = "
     summary["art_checked"] = len(posthoc)
     summary["art_accepted"] = sum(bool(p.accepted) for p in posthoc)
     summary["art_kept"] = sum(r.warm_start == "art" for _, r in guidance.results)
+    summary["plan_ms"] = [float(r.timings_ms["total"]) for _, r in guidance.results]
+    summary["art_skipped_cvx_safe"] = sum("CVX is passively safe" in r.warm_start_reason
+                                          for _, r in guidance.results)
     # both plans solved: the CVX-warm-started plan's cost minus the ART-warm-started one's
     summary["art_gain_mps"] = [_art_gain(r) for _, r in guidance.results
                                if r.discarded is not None and r.discarded.status.feasible
@@ -101,13 +104,19 @@ def compare_warm_starts(seeds: list[int], runs_cvx: list[dict]) -> dict:
     miss_a = np.array([r["miss_m"] for r in runs_art])
     d_dv, d_miss = dv_a - dv_c, miss_a - miss_c
     sem = float(d_dv.std(ddof=1) / np.sqrt(d_dv.size)) if d_dv.size > 1 else float("nan")
-    return {"cvx": {"total_dv_mps": _dist(dv_c), "miss_m": _dist(miss_c)},
+    return {"cvx": {"total_dv_mps": _dist(dv_c), "miss_m": _dist(miss_c),
+                    "plan_ms": _latency(runs_cvx)},
             "auto": {"total_dv_mps": _dist(dv_a), "miss_m": _dist(miss_a),
-                     "art": _accepted_share(runs_art)},
+                     "art": _accepted_share(runs_art), "plan_ms": _latency(runs_art)},
             "paired_dv_mps": {**_dist(d_dv), "sem": sem},
             "paired_miss_m": _dist(d_miss),
             "per_seed_dv_mps": [[round(float(c), 4), round(float(a), 4)]
                                 for c, a in zip(dv_c, dv_a)]}
+
+
+def _latency(runs: list[dict]) -> dict:
+    """Per-replan planning time [ms] (`PlanResult.timings_ms["total"]`: CVX, ART, SCVx*)."""
+    return _dist(np.array([t for r in runs for t in r["plan_ms"]]))
 
 
 def _accepted_share(runs: list[dict]) -> dict:
@@ -118,6 +127,7 @@ def _accepted_share(runs: list[dict]) -> dict:
     kept = np.array([g for r in runs for g in r["art_kept_gain_mps"]])
     return {"checked": checked, "accepted": sum(r["art_accepted"] for r in runs),
             "plans": plans, "kept_from_art": sum(r["art_kept"] for r in runs),
+            "not_run_cvx_safe": sum(r["art_skipped_cvx_safe"] for r in runs),
             "solved_from_both": int(gain.size),
             "art_cheaper_by_over_1mm_s": int((gain > 1e-3).sum()),
             "gap_mps": _dist(gain) if gain.size else None,

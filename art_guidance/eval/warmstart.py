@@ -174,6 +174,8 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
     again = second_run(first, source, True, config.planning.also_solve_from_cvx)
     auto = second if again is not None and not keep_first_plan(
         first, second, source, config.planning.art_min_gain_mps) else first
+    if config.planning.skip_art_when_cvx_safe and c_cvx == 0:
+        auto = from_cvx  # the pipeline does not run ART then (`skip_art_when_cvx_safe`)
     return WarmStartRun(cvx, prop, art_roe, ph, from_cvx, from_art, auto, c_cvx,
                         1e3 * (t1 - t0), 1e3 * (t2 - t1), raw)
 

@@ -34,7 +34,8 @@ def test_bundle_round_trips_and_fingerprints():
                                  {"posthoc": {"bogus": 1.0}}, {"art_min_gain_mps": -0.001},
                                  {"art_min_gain_mps": True}, {"art_min_gain_mps": float("nan")},
                                  {"art_min_gain_mps": float("inf")},
-                                 {"art_min_gain_mps": "1 mm/s"}])
+                                 {"art_min_gain_mps": "1 mm/s"},
+                                 {"skip_art_when_cvx_safe": 1}])
 def test_bad_planning_config_is_refused(bad):
     with pytest.raises(ConfigError):
         PlanningConfig(**bad)

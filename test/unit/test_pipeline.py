@@ -140,3 +140,26 @@ def test_art_plan_is_flown_only_when_cheaper_by_the_margin(source):
     assert kept(_run(True, 1.2), _run(False, 1.0, 0.5), 0.001) == "art"
     assert kept(_run(False, 0.9, 0.5), _run(True, 1.0), 0.001) == "cvx"
     assert kept(_run(False, 0.9, 0.1), _run(False, 1.0, 0.5), 0.001) == "art"
+
+
+@pytest.mark.parametrize("skip", [True, False])
+def test_art_is_not_run_when_cvx_is_already_passively_safe(request_0, skip):
+    """`skip_art_when_cvx_safe`: with zones too small to matter (1 m) the CVX plan is passively
+    safe, SCVx* from it is the plan, and `auto` does not roll ART out (the decision says why);
+    `art` still does, and switched off `auto` runs it as before."""
+    scenario, req = request_0
+    tiny = dataclasses.replace(scenario, ae_semi_axes_m=(1.0, 1.0, 1.0),
+                               koz_semi_axes_m=(1.0, 1.0, 1.0))
+    cfg = _config(tiny)
+    cfg = cfg.replace(planning=dataclasses.replace(cfg.planning, skip_art_when_cvx_safe=skip))
+    provider = ScaledCvx(1.0)
+    result = GuidancePipeline(cfg, provider=provider).plan(req)
+    assert result.scp.feasible and result.warm_start == "cvx"
+    if skip:
+        assert provider.calls == 0 and result.posthoc is None
+        assert "CVX is passively safe" in result.warm_start_reason, result.warm_start_reason
+    else:
+        assert provider.calls == 1 and result.posthoc is not None
+    forced = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start="art")
+    assert GuidancePipeline(cfg, provider=provider).plan(forced).warm_start == "art"
+    assert provider.calls == (1 if skip else 2)
