@@ -314,6 +314,11 @@ FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
                         "posthoc_subject", "art_min_gain_mps", "skip_art_when_cvx_safe")
 
 
+# What the pipeline did before these planning fields existed: fly the cheaper plan whatever
+# the gap, and run ART even when the CVX plan is passively safe.
+_BEFORE = {"art_min_gain_mps": 0.0, "skip_art_when_cvx_safe": False}
+
+
 @dataclass(frozen=True)
 class GuidanceConfig:
     """Every configuration a plan depends on, as one bundle (the YAML files of a config dir).
@@ -346,11 +351,14 @@ class GuidanceConfig:
 
     @classmethod
     def from_json(cls, data: Mapping) -> "GuidanceConfig":
-        """Rebuild a bundle from `to_json` output (validated again)."""
+        """Rebuild a bundle from `to_json` output (validated again). A recorded planning
+        section from before a flight choice existed gets the behaviour it was recorded with
+        (`_BEFORE`), so that an older log replays as it was flown."""
         try:
+            planning = {**_BEFORE, **data["planning"]}
             return cls(ScenarioConfig(**data["scenario"]),
                        UncertaintyConfig(**data["uncertainty"]), ScpConfig(**data["scp"]),
-                       _from_mapping(PlanningConfig, data["planning"], "planning"))
+                       _from_mapping(PlanningConfig, planning, "planning"))
         except (KeyError, TypeError) as exc:
             raise ConfigError(f"recorded configuration is malformed: {exc!r}") from exc
 

@@ -68,3 +68,16 @@ def test_simulator_cli_defaults_match_its_parameters():
     assert args.max_steps == PARAMETERS["max_steps"]
     assert args.miss_tolerance == PARAMETERS["miss_tolerance_m"]
     assert args.png == PARAMETERS["png_path"] and args.summary_json == PARAMETERS["summary_path"]
+
+
+def test_a_recorded_configuration_from_before_the_flight_rules_keeps_its_behaviour():
+    """A log recorded before `art_min_gain_mps` and `skip_art_when_cvx_safe` existed replays
+    with the behaviour it was flown with (no margin, ART always run)."""
+    cfg = GuidanceConfig.load()
+    old = cfg.to_json()
+    for key in ("art_min_gain_mps", "skip_art_when_cvx_safe"):
+        del old["planning"][key]
+    before = GuidanceConfig.from_json(old)
+    assert before.planning.art_min_gain_mps == 0.0
+    assert before.planning.skip_art_when_cvx_safe is False
+    assert GuidanceConfig.from_json(cfg.to_json()) == cfg
