@@ -168,15 +168,18 @@ def test_provider_ranks_candidates_as_the_check_judges_them(provider):
 
 
 def test_out_of_domain_horizons_fall_back_to_cvx(provider):
+    # the provider's domain check is under test: ART runs even where CVX is already safe
+    cfg = GuidanceConfig.load()
+    cfg = cfg.replace(planning=dataclasses.replace(cfg.planning, skip_art_when_cvx_safe=False))
     too_long = _request(5, n_nodes=120, n_orbits=1.29 * 119 / 99)
-    result = GuidancePipeline(provider=provider).plan(too_long)
+    result = GuidancePipeline(cfg, provider=provider).plan(too_long)
     assert result.warm_start == "cvx" and result.posthoc is None
     assert "longer than the model's context" in result.warm_start_reason
     wrong_spacing = _request(5, n_nodes=50, n_orbits=1.29)
-    result = GuidancePipeline(provider=provider).plan(wrong_spacing)
+    result = GuidancePipeline(cfg, provider=provider).plan(wrong_spacing)
     assert result.warm_start == "cvx" and "node spacing" in result.warm_start_reason
     replan = _request(5, n_nodes=40, n_orbits=1.29 * 39 / 99, koz_switch_node=10)
-    result = GuidancePipeline(provider=provider).plan(replan)  # the tail of a training horizon
+    result = GuidancePipeline(cfg, provider=provider).plan(replan)  # a training tail
     assert result.proposal is not None and result.proposal.dv_rtn_mps.shape == (40, 3)
 
 

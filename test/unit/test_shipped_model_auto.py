@@ -14,7 +14,9 @@ FLOOR_MPS = 0.010  # the paper's post hoc floor: auto never worse than CVX by mo
 # measured on these 50 scenarios, with the post hoc check on the terminal warm start: chance 2
 # plans flown from ART, total gain 2.100 m/s (one scenario where SCVx* from CVX does not
 # converge and the retry from ART does); deterministic (the model trained at GPU scale, on the
-# test split of its own 25,000-trajectory dataset) 16 accepted, 0.168 m/s. Earlier
+# test split of its own 25,000-trajectory dataset) 16 accepted, 0.168 m/s. Now counted as
+# proposals the check accepts (with `art_min_gain_mps` an accepted plan within 1 mm/s of
+# CVX's is not flown): chance 4 accepted, 2.100 m/s; deterministic 15, 0.185 m/s. Earlier
 # deterministic models were measured on the test split of their own (other) dataset: the
 # CPU-trained gated one 8, 0.496 m/s, the ungated one 3, 0.323. On the same 1,000 fresh
 # scenarios (docs/results.md) the current model's `auto` is cheaper on 109 against 48.
@@ -40,7 +42,8 @@ def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(mode):
     for req in heldout_requests(50, DEFAULT_MODELS[mode]):
         a, c = auto.plan(req), cvx_only.plan(req)
         rows.append((a.cost_mps - c.cost_mps, a.scp.feasible, c.scp.feasible,
-                     a.warm_start == "art", a.scp.iterations, c.scp.iterations))
+                     a.posthoc is not None and bool(a.posthoc.accepted), a.scp.iterations,
+                     c.scp.iterations))
         if c.scp.feasible:
             assert a.scp.feasible, a.warm_start_reason
             assert a.cost_mps <= c.cost_mps + FLOOR_MPS, a.warm_start_reason
