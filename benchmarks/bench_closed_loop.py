@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from art_guidance.planning import GuidancePipeline
+from art_guidance.planning.pipeline import CVX_SAFE_REASON
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
 from art_guidance.sim.inprocess import InProcessGuidance
 
@@ -44,15 +45,13 @@ def fly(seed: int, errors: bool, pipeline: GuidancePipeline, warm_start: str = "
     summary["art_accepted"] = sum(bool(p.accepted) for p in posthoc)
     summary["art_kept"] = sum(r.warm_start == "art" for _, r in guidance.results)
     summary["plan_ms"] = [float(r.timings_ms["total"]) for _, r in guidance.results]
-    summary["art_skipped_cvx_safe"] = sum("CVX is passively safe" in r.warm_start_reason
+    summary["art_skipped_cvx_safe"] = sum(r.warm_start_reason == CVX_SAFE_REASON
                                           for _, r in guidance.results)
     # both plans solved: the CVX-warm-started plan's cost minus the ART-warm-started one's
-    summary["art_gain_mps"] = [_art_gain(r) for _, r in guidance.results
-                               if r.discarded is not None and r.discarded.status.feasible
-                               and r.scp.feasible]
-    summary["art_kept_gain_mps"] = [_art_gain(r) for _, r in guidance.results
-                                    if r.warm_start == "art" and r.discarded is not None
-                                    and r.discarded.status.feasible and r.scp.feasible]
+    both = [r for _, r in guidance.results
+            if r.discarded is not None and r.discarded.status.feasible and r.scp.feasible]
+    summary["art_gain_mps"] = [_art_gain(r) for r in both]
+    summary["art_kept_gain_mps"] = [_art_gain(r) for r in both if r.warm_start == "art"]
     summary["plans"] = len(guidance.results)
     return summary
 

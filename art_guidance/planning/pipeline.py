@@ -165,8 +165,7 @@ class GuidancePipeline:
                             "check, CVX warm start")
         if request.warm_start == WarmStart.AUTO.value \
                 and self.config.planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety):
-            return _Learned("cvx", "CVX is passively safe (C_CVX(t_1) = 0), so SCVx* from it "
-                            "is the plan: ART not run, CVX warm start")
+            return _Learned("cvx", CVX_SAFE_REASON)
         t0 = time.perf_counter()
         try:
             proposal = self.provider.propose(request, safety, cvx)
@@ -201,6 +200,11 @@ class _Learned:
     posthoc: PosthocDecision | None = None
     proposal: WarmStartProposal | None = None
     dv: np.ndarray | None = None
+
+
+# The decision's reason when `skip_art_when_cvx_safe` left ART out.
+CVX_SAFE_REASON = ("CVX is passively safe (C_CVX(t_1) = 0), so SCVx* from it is the plan: ART "
+                   "not run, CVX warm start")
 
 
 def cvx_is_safe(cvx: ConvexSolution, safety: PassiveSafety) -> bool:
