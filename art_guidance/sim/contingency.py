@@ -38,6 +38,7 @@ from art_guidance import __version__
 from art_guidance.config import MODES, GuidanceConfig
 from art_guidance.data.storage import DatasetWriter, load_dataset, read_manifest, sha256_bytes
 from art_guidance.errors import InputError
+from art_guidance.planning.replan import ReplanSettings
 from art_guidance.files import write_json_atomic
 from art_guidance.jobs import check_run_options, run_missing
 from art_guidance.sim.faults import ZONES, Fault
@@ -192,7 +193,8 @@ def header(spec: ContingencySpec, config: GuidanceConfig) -> dict:
     models = {mode: pinned_sha256(default_model_path(mode))
               for mode in MODES}
     identity = {"format": FORMAT, "spec": asdict(spec), "models": models,
-                "guidance_config_sha256": config.sha256()}
+                "guidance_config_sha256": config.sha256(),
+                "replan": asdict(ReplanSettings())}  # the policy the flights replan with
     return {"mode": KIND, "base_seed": spec.base_seed, "n": spec.n_flights,
             "seed_rule": "row i: configs[i // n_seeds], seed base_seed + i % n_seeds",
             "config_sha256": sha256_bytes(json.dumps(identity, sort_keys=True).encode()),
@@ -302,8 +304,9 @@ def summarize_directory(out: str | Path, this: dict | None = None,
     done = int(rows["index"].size) if rows else 0
     wall = float(rows["wall_s"].sum()) if rows else 0.0
     losses = sum(p["losses"]["n"] for p in per)
-    return {"kind": KIND, "spec": head["contingency"]["spec"], "models": head["contingency"][
-            "models"], "flights_done": done, "flights": spec.n_flights,
+    identity = head["contingency"]
+    return {"kind": KIND, "spec": identity["spec"], "models": identity["models"],
+            "replan": identity.get("replan"), "flights_done": done, "flights": spec.n_flights,
             "complete": done == spec.n_flights, "design_rate_per_node": DESIGN_RATE,
             "confidence": CONFIDENCE, "cpu_s": wall,
             "losses_per_cpu_s": losses / wall if wall > 0 else None,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -198,6 +199,24 @@ def test_monte_carlo_runs_resumes_and_summarises(tmp_path):
     with pytest.raises(InputError, match="--out"):
         run_mc(out, ContingencySpec(configs=((True, "cvx"),), n_seeds=2), workers=1,
                progress=False, log=lambda _: None)
+
+
+def test_monte_carlo_identity_records_the_replan_policy(monkeypatch):
+    """A Monte Carlo directory is tied to the replan policy its flights fly (the node's
+    parameters, e.g. min_remaining_nodes from guidance_node.yaml): a resume under another
+    policy is refused like one with other options, and the summary says which it was."""
+    from art_guidance.config import GuidanceConfig
+    from art_guidance.planning.replan import ReplanSettings
+    from art_guidance.sim import contingency
+
+    spec, config = ContingencySpec(), GuidanceConfig.load()
+    head = contingency.header(spec, config)
+    assert head["contingency"]["replan"] == asdict(ReplanSettings())
+    monkeypatch.setattr(contingency, "ReplanSettings",
+                        lambda: ReplanSettings(min_remaining_nodes=2))
+    other = contingency.header(spec, config)
+    assert other["contingency"]["replan"]["min_remaining_nodes"] == 2
+    assert other["config_sha256"] != head["config_sha256"]
 
 
 def test_documented_tables_are_the_committed_results():
