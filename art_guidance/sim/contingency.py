@@ -38,7 +38,6 @@ from art_guidance import __version__
 from art_guidance.config import MODES, GuidanceConfig
 from art_guidance.data.storage import DatasetWriter, load_dataset, read_manifest, sha256_bytes
 from art_guidance.errors import InputError
-from art_guidance.planning.replan import ReplanSettings
 from art_guidance.files import write_json_atomic
 from art_guidance.jobs import check_run_options, run_missing
 from art_guidance.sim.faults import ZONES, Fault
@@ -189,12 +188,13 @@ def _flight_row(spec: ContingencySpec, index: int) -> dict[str, np.ndarray]:
 def header(spec: ContingencySpec, config: GuidanceConfig) -> dict:
     """The output directory's manifest header; a resume with other options is refused."""
     from art_guidance.art.provider import default_model_path, pinned_sha256
+    from art_guidance.sim.inprocess import default_settings
 
     models = {mode: pinned_sha256(default_model_path(mode))
               for mode in MODES}
     identity = {"format": FORMAT, "spec": asdict(spec), "models": models,
                 "guidance_config_sha256": config.sha256(),
-                "replan": asdict(ReplanSettings())}  # the policy the flights replan with
+                "replan": asdict(default_settings(config.scenario))}  # what `fly` replans by
     return {"mode": KIND, "base_seed": spec.base_seed, "n": spec.n_flights,
             "seed_rule": "row i: configs[i // n_seeds], seed base_seed + i % n_seeds",
             "config_sha256": sha256_bytes(json.dumps(identity, sort_keys=True).encode()),

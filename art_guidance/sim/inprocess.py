@@ -12,6 +12,7 @@ import time
 import numpy as np
 
 from art_guidance.checks import as_finite_array, check_psd
+from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import check_oe
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
@@ -20,6 +21,13 @@ from art_guidance.planning.replan import Decision, ReplanSettings
 from art_guidance.sim.link import LinkPlan
 
 _EMPTY = np.zeros(0)
+
+
+def default_settings(scenario: ScenarioConfig) -> ReplanSettings:
+    """The replan policy `InProcessGuidance` flies by default: the node's defaults with the
+    stamp-order check (simulated stamps are not wall-clock time) and the scenario's switch
+    node."""
+    return ReplanSettings(stamp_check="order", ae_to_koz_node=scenario.ae_to_koz_node)
 
 
 class InProcessGuidance:
@@ -38,8 +46,7 @@ class InProcessGuidance:
         self.pipeline = pipeline
         self.epoch0_ns = int(epoch0_ns)
         self.core: GuidanceCore | None = None
-        self._settings = settings or ReplanSettings(
-            stamp_check="order", ae_to_koz_node=pipeline.scenario.ae_to_koz_node)
+        self._settings = settings or default_settings(pipeline.scenario)
         self.results: list[tuple[str, PlanResult]] = []
         self._decisions: dict[int, dict[str, str]] = {}
         self._plans: list[LinkPlan] = []

@@ -207,13 +207,15 @@ def test_monte_carlo_identity_records_the_replan_policy(monkeypatch):
     policy is refused like one with other options, and the summary says which it was."""
     from art_guidance.config import GuidanceConfig
     from art_guidance.planning.replan import ReplanSettings
-    from art_guidance.sim import contingency
+    from art_guidance.sim import contingency, inprocess
 
     spec, config = ContingencySpec(), GuidanceConfig.load()
     head = contingency.header(spec, config)
-    assert head["contingency"]["replan"] == asdict(ReplanSettings())
-    monkeypatch.setattr(contingency, "ReplanSettings",
-                        lambda: ReplanSettings(min_remaining_nodes=2))
+    flown = InProcessGuidance(GuidancePipeline(config), 0)._settings  # what `fly` replans by
+    assert head["contingency"]["replan"] == asdict(flown)
+    assert head["contingency"]["replan"]["stamp_check"] == "order"
+    monkeypatch.setattr(inprocess, "default_settings",
+                        lambda scenario: ReplanSettings(min_remaining_nodes=2))
     other = contingency.header(spec, config)
     assert other["contingency"]["replan"]["min_remaining_nodes"] == 2
     assert other["config_sha256"] != head["config_sha256"]
