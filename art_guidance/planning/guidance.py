@@ -27,7 +27,8 @@ from typing import Any
 
 from art_guidance.planning.pipeline import GuidancePipeline
 from art_guidance.planning.replan import (
-    Action, Decision, ReplanPolicy, ReplanSettings, request_for, unusable_text,
+    Action, Decision, ReplanPolicy, ReplanSettings, ReplanWindow, check_target, request_for,
+    unusable_text,
 )
 from art_guidance.planning.types import NavState, PlanRequest, PlanResult, Target
 
@@ -106,6 +107,9 @@ class GuidanceCore:
         """
         with self._lock:
             self.policy.check_stamp(nav.stamp_ns, now_ns)
+            # validated as a fresh plan's request before anything is stored: a fix the
+            # planner would refuse never becomes the newest state or the stamp floor
+            request_for(nav, self.target, ReplanWindow(None, self.target.n_orbits, None))
             self._latest = (nav, payload)
             self.policy.accept(nav)
             decision, deviation = self.policy.decide(nav, self._busy or self._job is not None)
@@ -115,12 +119,24 @@ class GuidanceCore:
 
     def on_target(self, target: Target, payload: Any = None) -> None:
         """A new target: restart the horizon and the stamp sequence, replan from the newest
-        fix (if any)."""
+        fix (if any).
+
+        Raises:
+            InputError: the target makes no valid request (checked with the newest fix, or
+                a reference one); nothing changes.
+        """
         with self._lock:
+            fresh = ReplanWindow(None, target.n_orbits, None)  # the horizon restarts
+            job = None
+            if self._latest is not None:
+                nav, nav_payload = self._latest
+                job = Job(nav, request_for(nav, target, fresh), "request", nav_payload, payload)
+            else:
+                check_target(target)
             self.target, self._target_payload = target, payload
             self.policy.reset()
-            if self._latest is not None:
-                self._submit(self._job_for(*self._latest, "request"))
+            if job is not None:
+                self._submit(job)
 
     def update_settings(self, settings: ReplanSettings) -> None:
         """New policy settings (the AE -> KOZ switch node of the plans in force stays)."""

@@ -211,6 +211,18 @@ def request_for(nav: NavState, target: Target, window: ReplanWindow) -> PlanRequ
                        n_orbits=window.n_orbits, koz_switch_node=window.koz_switch_node)
 
 
+def check_target(target: Target) -> None:
+    """Validate a target as a fresh plan's request would (with the scenario's chief and start).
+
+    Raises:
+        InputError: naming the offending field.
+    """
+    sc = ScenarioConfig()
+    PlanRequest(np.asarray(sc.chief_oe, float), np.zeros(6), target.target_rtn,
+                chance_constrained=target.chance_constrained, warm_start=target.warm_start,
+                n_orbits=target.n_orbits)
+
+
 def deviation_sigma(active: ActivePlan, nav: NavState) -> float:
     """Largest per-axis |nav - predicted| in navigation sigmas (prediction at the fix's epoch)."""
     res = active.result

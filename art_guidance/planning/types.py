@@ -30,6 +30,7 @@ class WarmStart(str, enum.Enum):
 
 
 WARM_STARTS = tuple(w.value for w in WarmStart)
+N_ORBITS_RANGE = (0.01, 20.0)  # a plan's horizon [orbits], inclusive
 
 
 @dataclass(frozen=True)
@@ -65,8 +66,9 @@ class PlanRequest:
             raise InputError("warm_start", f"must be one of {WARM_STARTS}", self.warm_start)
         if self.n_nodes is not None and not 3 <= int(self.n_nodes) <= 1000:
             raise InputError("n_nodes", "must be in [3, 1000]", self.n_nodes)
-        if self.n_orbits is not None and not 0.01 <= float(self.n_orbits) <= 20:
-            raise InputError("n_orbits", "must be in [0.01, 20] orbits", self.n_orbits)
+        lo, hi = N_ORBITS_RANGE
+        if self.n_orbits is not None and not lo <= float(self.n_orbits) <= hi:
+            raise InputError("n_orbits", f"must be in [{lo:g}, {hi:g}] orbits", self.n_orbits)
         if self.koz_switch_node is not None and int(self.koz_switch_node) < 0:
             raise InputError("koz_switch_node", "must be >= 0", self.koz_switch_node)
 

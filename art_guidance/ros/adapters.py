@@ -16,6 +16,7 @@ from art_guidance.dynamics import check_oe, psi_matrix
 from art_guidance.errors import InputError
 from art_guidance.optim import ScpStatus
 from art_guidance.planning import WARM_STARTS, NavState, PlanResult, Target
+from art_guidance.planning.types import N_ORBITS_RANGE
 from art_guidance.sim.link import LinkPlan
 
 FRAMES = {RelativeNavState.REPRESENTATION_ROE: ("chief_roe", ""),
@@ -57,15 +58,26 @@ def nav_from_msg(msg: RelativeNavState) -> NavState:
     cov = check_psd("covariance", as_finite_array(
         "covariance", np.asarray(msg.covariance, float), (36,)).reshape(6, 6))
     psi = psi_matrix(chief)
+    # every bound is written "not (x <= limit)" and checked before any product: a finite
+    # but huge input (1e308) overflows to inf/NaN there, and NaN compares False
     if msg.representation == RelativeNavState.REPRESENTATION_RTN:
-        if np.linalg.norm(mean[3:]) > MAX_SPEED_MPS:
+        if not np.max(np.abs(mean[:3])) <= MAX_RANGE_M:
+            raise InputError("mean", f"relative range above {MAX_RANGE_M:.0f} m", mean.tolist())
+        if not np.max(np.abs(mean[3:])) <= MAX_SPEED_MPS:
             raise InputError("mean", f"relative speed above {MAX_SPEED_MPS} m/s", mean.tolist())
         psi_inv = np.linalg.inv(psi)
         roe, cov = psi_inv @ mean, psi_inv @ cov @ psi_inv.T
     else:
+        if not np.max(np.abs(mean)) <= 10.0 * MAX_RANGE_M:
+            raise InputError("mean", f"relative range above {MAX_RANGE_M:.0f} m", mean.tolist())
         roe = mean
-    if np.linalg.norm((psi @ roe)[:3]) > MAX_RANGE_M:
+    with np.errstate(over="ignore", invalid="ignore"):
+        rtn_m = (psi @ roe)[:3]
+        range_m = float(np.linalg.norm(rtn_m)) if np.all(np.isfinite(rtn_m)) else math.inf
+    if not range_m <= MAX_RANGE_M:
         raise InputError("mean", f"relative range above {MAX_RANGE_M:.0f} m", mean.tolist())
+    if not (np.all(np.isfinite(roe)) and np.all(np.isfinite(cov))):
+        raise InputError("covariance", "not finite once converted to ROE (values too large)")
     return NavState(stamp_to_ns(msg.header.stamp), chief, roe, 0.5 * (cov + cov.T))
 
 
@@ -84,8 +96,10 @@ def target_from_msg(msg: ReplanRequest, waypoints: dict) -> Target:
         raise InputError("warm_start", f"must be one of {REQUEST_WARM_STARTS}",
                          msg.warm_start)
     horizon = float(msg.horizon_orbits)
-    if not np.isfinite(horizon) or horizon > 20:
-        raise InputError("horizon_orbits", "must be finite and <= 20", horizon)
+    lo, hi = N_ORBITS_RANGE
+    if not (horizon <= 0 or lo <= horizon <= hi):  # NaN fails both
+        raise InputError("horizon_orbits", f"must be in [{lo:g}, {hi:g}] orbits, or <= 0 "
+                         "for the scenario's", horizon)
     return Target(msg.waypoint, target, bool(msg.chance_constrained),
                   msg.warm_start or "auto", horizon if horizon > 0 else None)
 

@@ -243,11 +243,14 @@ class GuidanceNodeBase:
     def _on_request(self, msg: ReplanRequest) -> None:
         try:
             target = target_from_msg(msg, self.scenario.waypoints_rtn)
-        except GuidanceError as exc:
-            self.get_logger().warning(f"replan request rejected: {exc}")
-            self._publish_diag("art_guidance/replan_request", WARN, str(exc), {})
+            self.core.on_target(target, msg)  # restarts the horizon, replans the newest fix
+        except Exception as exc:  # never die on a message; a refused target changes nothing
+            reason = (str(exc) if isinstance(exc, GuidanceError)
+                      else f"unexpected {type(exc).__name__}: {exc}")
+            self.get_logger().warning(f"replan request rejected: {reason}")
+            self._publish_diag("art_guidance/replan_request", WARN, reason,
+                               {"reason": reason})
             return
-        self.core.on_target(target, msg)  # restarts the horizon, replans from the newest fix
         self._publish_diag("art_guidance/replan_request", OK, f"target {target.waypoint}",
                            {"waypoint": target.waypoint})
 

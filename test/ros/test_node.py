@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
-from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState  # noqa: E402
+from art_guidance_msgs.msg import (  # noqa: E402
+    ManeuverPlan, RelativeNavState, ReplanRequest,
+)
 from helpers.ros_client import Client, nav_msg  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
@@ -125,6 +127,32 @@ def test_bad_messages_are_rejected_and_node_keeps_serving(client, node_proc):
     good = time.time_ns()
     client.nav_pub.publish(nav_msg(good, NOMINAL_RTN + [50.0, 0, 0, 0, 0, 0]))
     assert client.decision_for(good) in ("replanning", "on_plan")
+    assert node_proc.poll() is None
+
+
+def test_fuzzed_fatal_sequences_are_refused_and_change_nothing(client, node_proc):
+    """Two sequences fuzzing found fatal: a request with a horizon below 0.01 orbits, and an
+    RTN fix with a finite but huge radial component followed by a valid request."""
+    def request_diag(since: float):
+        return client.wait_for(lambda _, diags: next(
+            (v for t, v, n in diags if n == "art_guidance/replan_request" and t >= since),
+            None), 10.0)
+
+    since = time.monotonic()
+    client.req_pub.publish(ReplanRequest(waypoint="plus_vbar", chance_constrained=True,
+                                         horizon_orbits=0.005))
+    diag = request_diag(since)
+    assert diag is not None and "horizon_orbits" in diag.get("reason", ""), diag
+    huge = time.time_ns()
+    client.nav_pub.publish(nav_msg(huge, [1e308, 0, 0, 0, 0, 0]))
+    assert client.decision_for(huge) == "rejected"
+    since = time.monotonic()
+    client.req_pub.publish(ReplanRequest(waypoint="plus_vbar", chance_constrained=True))
+    diag = request_diag(since)
+    assert diag is not None and diag.get("waypoint") == "plus_vbar", diag
+    stamp, decision = client.send_nav(NOMINAL_RTN)
+    assert decision == "replanning"
+    assert client.plan_for(stamp, timeout_s=30.0) is not None
     assert node_proc.poll() is None
 
 

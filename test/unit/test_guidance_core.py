@@ -10,7 +10,7 @@ import pytest
 
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.errors import GuidanceError
+from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, NavState, Target
 from art_guidance.planning.guidance import GuidanceCore
 from art_guidance.planning.replan import Action, Decision, ReplanSettings
@@ -74,3 +74,26 @@ def test_a_waiting_worker_is_woken_by_a_fix_and_released_by_stop(pipeline):
     core.start()
     core.on_nav(_nav(2), 0)
     assert core.take_job(wait=False) is not None
+
+
+def test_a_refused_target_or_fix_changes_nothing(pipeline):
+    """Two message sequences that once stopped the node: a horizon below the planner's range,
+    and a fix the planner refuses, must be refused before anything is stored."""
+    core = GuidanceCore(pipeline, ReplanSettings(stamp_check="order"), _target())
+    short = Target("plus_vbar", _target().target_rtn, True, "cvx", 0.005)
+    with pytest.raises(InputError, match="n_orbits"):
+        core.on_target(short, "short")  # no fix yet: checked against the scenario's start
+    assert core.target.n_orbits is None and not core.job_queued()
+    core.on_nav(_nav(1), 0, "good")
+    core.take_job(wait=False)
+    core.job_done()
+    with pytest.raises(InputError, match="n_orbits"):
+        core.on_target(short, "short")  # with a fix: the job is built before anything changes
+    assert core.target.n_orbits is None and not core.job_queued()
+    poisoned = NavState(T0 + 2 * 10**9, CHIEF, np.array([np.inf, 0, 0, 0, 0, 0]), np.eye(6))
+    with pytest.raises(InputError, match="roe0_m"):
+        core.on_nav(poisoned, 0)
+    assert core.policy.stamp_floor_ns == T0 + 10**9  # not the poisoned fix's stamp
+    core.on_target(_target("minus_rbar"), "request")  # replans from the last good fix
+    job = core.take_job(wait=False)
+    assert job.nav.stamp_ns == T0 + 10**9 and job.nav_payload == "good"
