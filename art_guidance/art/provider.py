@@ -219,16 +219,18 @@ def judged_controls(safety: PassiveSafety, roe0_m: np.ndarray, target_rtn: np.nd
                     dv_rtn_mps: np.ndarray, subject: str) -> tuple[np.ndarray, np.ndarray]:
     """(K,) cost [m/s] and (K,) C(t_1) of K candidate controls (K, N, 3) [m/s] from `roe0_m`
     to `target_rtn`, as the check judges them under `subject` (the trajectory
-    `planning.posthoc.judged_trajectory` gives: one correction and one safety evaluation
-    each)."""
+    `planning.posthoc.judged_trajectory` gives: one correction each, then one sign-only
+    safety search over the arcs of all K (`PassiveSafety.evaluate_batch`): C(t_1) is the
+    check's except where a node's minimum is within the certification tolerance of zero)."""
     horizon = safety.horizon
     roe_f = np.linalg.solve(horizon.psi[-1], target_rtn)
-    cost, c_t1 = [], []
-    for dv in dv_rtn_mps:
-        dv_w, roe_w = judged_trajectory(horizon, roe0_m, roe_f, dv, subject)
-        cost.append(float(np.linalg.norm(dv_w, axis=1).sum()))
-        c_t1.append(float(safety.evaluate(roe_w, dv_w).constraint_to_go[0]))
-    return np.array(cost), np.array(c_t1)
+    judged = [judged_trajectory(horizon, roe0_m, roe_f, dv, subject) for dv in dv_rtn_mps]
+    dv_w = np.stack([dv for dv, _ in judged])  # (K, N, 3) [m/s]
+    roe_w = np.stack([roe for _, roe in judged])  # (K, N, 6) [m]
+    cost = np.linalg.norm(dv_w, axis=2).sum(axis=1)
+    # the candidates' C(t_1) counts signs only: one sign-only search over all K N arcs
+    c_t1 = safety.evaluate_batch(roe_w, dv_w, sign_only=True).constraint_to_go[:, 0]
+    return cost, c_t1.astype(float)
 
 
 def best_candidate(cost_mps: np.ndarray, c_t1: np.ndarray, j_cvx: float,

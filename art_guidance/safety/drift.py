@@ -211,8 +211,8 @@ class DriftArcs:
     def items(self, node: np.ndarray, z_m: np.ndarray, x_cov: np.ndarray | None,
               q: float) -> ArcItems:
         """Arcs of post-burn states `z_m` (M, 6) [m] from nodes `node` (M,), covariance or None."""
-        maps = _take(self.maps, node)  # (M, 18, 18)
         m = node.size
+        maps = _take(self.maps, node)  # (M, 18, 18), a view when every arc is of one node
         g = maps.reshape(m, N_TERMS, 3, 6)
         coef = g @ z_m[:, None, :, None]  # (M, 18, 3, 1)
         coef = coef[..., 0]
@@ -230,7 +230,8 @@ class DriftArcs:
         """Margins and slopes of arcs `sel` (M',) at offsets `tau_s` (M', K) [s] (`grid`: the
         drift samples, whose bases and maps are precomputed)."""
         if grid:
-            b0, b1, mt, dmt = (_take(g, _take(it.node, sel)) for g in self._grid)
+            node = _take(it.node, sel)
+            b0, b1, mt, dmt = (_take(g, node) for g in self._grid)
         else:
             b0, b1 = self.basis(it.node[sel], tau_s)
             mt = dmt = None
@@ -316,6 +317,28 @@ class DriftArcs:
         return ArcMinimum(np.minimum(floor, best), c_tau[first], c_m[first], c_item[row],
                           c_tau[row], c_m[row], levels)
 
+    def violated(self, it: ArcItems) -> np.ndarray:
+        """(M,) bool: whether the minimum margin of each arc is below zero.
+
+        The same decision as ``minimum(it, sign_only=True).margin < 0`` (its oracle, tested):
+        the arcs a drift sample already shows inside are decided by the samples, the search
+        runs over the others' intervals only, and neither t* nor the candidates are kept (the
+        rollout's C update needs the sign alone, at every step).
+        """
+        m_items = it.node.size
+        grid = self.points(it, np.arange(m_items),
+                           np.broadcast_to(self.tau_s, (m_items, self.n_samples)), grid=True)
+        best = grid.m.min(axis=1)
+        undecided = np.flatnonzero(best >= 0.0)
+        if self.n_samples == 1 or undecided.size == 0:
+            return best < 0.0
+        floor = best.copy()
+        lo, hi = _intervals(grid.take(undecided))
+        item = np.repeat(undecided, self.n_samples - 1)
+        self._search(it, item, lo, hi, np.zeros(item.size, bool), best, floor, [],
+                     sign_only=True)
+        return np.minimum(floor, best) < 0.0
+
     def _search(self, it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints,
                 refined: np.ndarray, best: np.ndarray, floor: np.ndarray, cands: list,
                 sign_only: bool = False) -> int:
@@ -395,10 +418,17 @@ class DriftArcs:
 
 
 def _take(arr: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``arr[idx]``, without the copy when idx is 0 .. len(arr) - 1 (every node, in order)."""
-    n = arr.shape[0]
-    if idx.size == n and idx[0] == 0 and idx[-1] == n - 1 and np.all(np.diff(idx) == 1):
+    """``arr[idx]`` (read-only use), without a copy when idx is 0 .. len(arr) - 1 (every node,
+    in order) or one index repeated (the rollout: all arcs start at one node; a broadcast
+    view then)."""
+    n, m = arr.shape[0], idx.size
+    if m == 0:
+        return arr[idx]
+    first, last = idx[0], idx[-1]
+    if m == n and first == 0 and last == n - 1 and np.all(np.diff(idx) == 1):
         return arr
+    if first == last and m > 1 and not np.any(idx != first):
+        return np.broadcast_to(arr[first], (m,) + arr.shape[1:])
     return arr[idx]
 
 

@@ -316,6 +316,47 @@ class PassiveSafety:
         return SafetyEvaluation(margin=margin, margin_m=margin * self._min_axis_m,
                                 violation=violation, constraint_to_go=ctg, t_star_s=res.tau_s)
 
+    def evaluate_batch(self, roe_m: object, dv_rtn_mps: object,
+                       sign_only: bool = False) -> SafetyEvaluation:
+        """`evaluate` of K trajectories at once: one search over all K N drift arcs.
+
+        The arcs are independent, so every field equals `evaluate` of each trajectory (its
+        K = 1 oracle, tested); only the cap on intervals split per level of degenerate arcs
+        (`drift.MAX_OPEN` per arc on average) is shared by the batch.
+
+        Args:
+            roe_m: (K, N, 6) pre-burn a-scaled ROE [m].
+            dv_rtn_mps: (K, N, 3) impulsive delta-v in RTN [m/s].
+            sign_only: decide only the sign of every minimum (`node_violations`' search):
+                `violation` and `constraint_to_go` are then those of `evaluate` except for
+                minima within the certification tolerance of zero, and the margins and t*
+                carry no more than that sign.
+
+        Returns:
+            SafetyEvaluation whose fields are (K, N).
+        """
+        n = self.n_nodes
+        x = as_finite_array("roe_m", roe_m, (None, n, 6))
+        k = x.shape[0]
+        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (k, n, 3))
+        z = np.stack([self.horizon.post_burn_nonlinear(x[j], u[j]) for j in range(k)])
+        flat_x, flat_u = x.reshape(k * n, 6), u.reshape(k * n, 3)
+        x_cov = None
+        if self.uncertainty is not None:
+            x_cov = post_burn_covariance_checked(
+                flat_x, flat_u, np.broadcast_to(self.horizon.b, (k, n, 6, 3)).reshape(-1, 6, 3),
+                np.broadcast_to(self.horizon.psi, (k, n, 6, 6)).reshape(-1, 6, 6),
+                self.uncertainty)
+        node = np.tile(np.arange(n), k)
+        res = self.arcs.minimum(self.arcs.items(node, z.reshape(k * n, 6), x_cov, self.q_sigma),
+                                sign_only=sign_only)
+        margin = res.margin.reshape(k, n)
+        violation = (margin < 0.0).astype(int)
+        ctg = np.cumsum(violation[:, ::-1], axis=1)[:, ::-1].copy()
+        return SafetyEvaluation(margin=margin, margin_m=margin * self._min_axis_m,
+                                violation=violation, constraint_to_go=ctg,
+                                t_star_s=res.tau_s.reshape(k, n))
+
     def node_margins(self, i: int, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
         """Margins of B candidate (state, burn) pairs at one node, as `evaluate(...).margin[i]`.
 
@@ -358,8 +399,7 @@ class PassiveSafety:
         """`node_violations` for the rollout's loop, which has the post-burn states already
         (`Horizon.post_burn_step`, `z_m` (B, 6) [m]); the arrays are not validated (finite by
         construction there)."""
-        items = self._items_at(int(i), roe_m, dv_rtn_mps, z_m)
-        return self.arcs.minimum(items, sign_only=True).margin < 0.0
+        return self.arcs.violated(self._items_at(int(i), roe_m, dv_rtn_mps, z_m))
 
     # ------------------------------------------------------------------ internals
     def _node_items(self, i: int, roe_m: object, dv_rtn_mps: object) -> ArcItems:

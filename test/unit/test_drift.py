@@ -258,6 +258,56 @@ def test_node_violations_decide_the_sign_of_node_margins(models: dict, approach:
         ps.node_violations(N, np.ones((1, 6)), np.zeros((1, 3)))
 
 
+@pytest.mark.parametrize("kind", ["det", "cc"])
+def test_violated_is_the_sign_only_minimum(models: dict, plans: list, kind: str) -> None:
+    """The rollout's fast C update (`DriftArcs.violated`, through `step_violations`) makes the
+    decision of its oracle, the sign-only certified minimum, on every arc: candidates around a
+    converged plan at nodes with fly-bys, near misses and clear arcs, and whole plans."""
+    ps = models[kind]
+    rng = np.random.default_rng(11)
+    roe_m, dv = plans[1]
+    decided = {True: 0, False: 0}
+    for i in (0, 20, 55, 60, 78, 99):
+        xs = roe_m[i] + rng.normal(0.0, 30.0, (64, 6))
+        us = dv[i] + rng.normal(0.0, 0.1, (64, 3))
+        z = ps.horizon.post_burn_step(i, xs, us)
+        fast = ps.step_violations(i, xs, us, z)
+        oracle = ps.arcs.minimum(ps._items_at(i, xs, us, z), sign_only=True).margin < 0.0
+        np.testing.assert_array_equal(fast, oracle)
+        np.testing.assert_array_equal(fast, ps.node_violations(i, xs, us))
+        for v in (True, False):
+            decided[v] += int(np.sum(fast == v))
+    assert decided[True] > 20 and decided[False] > 20, decided
+    for roe_m, dv in plans:
+        items = ps.arcs.items(np.arange(N), ps.post_burn(roe_m, dv),
+                              None if kind == "det" else ps.covariance(roe_m, dv), ps.q_sigma)
+        np.testing.assert_array_equal(ps.arcs.violated(items),
+                                      ps.arcs.minimum(items, sign_only=True).margin < 0.0)
+
+
+@pytest.mark.parametrize("kind", ["det", "cc"])
+def test_evaluate_batch_equals_evaluate(models: dict, approach: tuple, plans: list,
+                                        kind: str) -> None:
+    """`evaluate_batch` of K trajectories is `evaluate` of each (its K = 1 oracle), and its
+    sign-only count of violations is the certified one outside the tolerance of zero."""
+    ps = models[kind]
+    trajs = [approach, *plans]
+    roe = np.stack([t[0] for t in trajs])
+    dv = np.stack([t[1] for t in trajs])
+    batch = ps.evaluate_batch(roe, dv)
+    signs = ps.evaluate_batch(roe, dv, sign_only=True)
+    assert batch.margin.shape == (len(trajs), N)
+    for k, (roe_m, dv_k) in enumerate(trajs):
+        one = ps.evaluate(roe_m, dv_k)
+        for field in ("margin", "margin_m", "violation", "constraint_to_go", "t_star_s"):
+            np.testing.assert_allclose(getattr(batch, field)[k], getattr(one, field),
+                                       rtol=0, atol=1e-12, err_msg=field)
+        clear = np.abs(one.margin) > 2.0 * (CERT_TOL + CERT_TOL_REL * np.abs(one.margin))
+        np.testing.assert_array_equal(signs.violation[k][clear], one.violation[clear])
+    with pytest.raises(InputError):
+        ps.evaluate_batch(roe[:, :-1], dv)
+
+
 def test_node_margins_bad_inputs(models: dict) -> None:
     ps = models["cc"]
     for node in (-1, N, 2.5, True):
