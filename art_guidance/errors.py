@@ -36,6 +36,10 @@ class SolverError(GuidanceError, RuntimeError):
     """A numerical solver failed in a way the caller cannot recover from."""
 
 
+class DeadlineError(GuidanceError, TimeoutError):
+    """A planning deadline passed before a step that would have run past it."""
+
+
 class ModelError(GuidanceError, RuntimeError):
     """A model checkpoint is missing, corrupt or incompatible."""
 

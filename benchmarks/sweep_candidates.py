@@ -12,7 +12,14 @@ how many of those end more than 10 mm/s dearer or cheaper than from CVX (a rejec
 PS-CVX: difference 0).
 
     python benchmarks/sweep_candidates.py --data DATA --model MODEL --n 400 --out OUT.json
+    python benchmarks/sweep_candidates.py --seeds 50000:400 --model MODEL --out OUT.json
     python benchmarks/sweep_candidates.py --table    # docs/art_training.md's table of RESULT
+
+`--seeds FIRST:COUNT` draws the scenarios with `scenarios.sample_scenario` (seeds no dataset of
+a shipped model used) instead of reading a dataset. The summary's "subsets" apply the
+provider's rule (the check of the warm start) to the candidates of smaller sweeps
+(`SUBSETS`), which is what a sweep of that size would propose: the rollouts of a batch are
+independent, so the candidates of a sub-sweep are those of the full one.
 
 About 1 s per scenario on 2 workers (nine SCVx* runs each). RESULT is the committed summary
 (benchmarks/results/learned_warm_start/sweep_candidates_roe.json); `test_sweep_candidates`
@@ -43,6 +50,10 @@ RESULT = ROOT / "benchmarks" / "results" / "learned_warm_start" / "sweep_candida
 DOC = ROOT / "docs" / "art_training.md"
 BEGIN, END = "<!-- sweep-candidates:begin -->", "<!-- sweep-candidates:end -->"
 WORSE_MMPS = 10.0  # a pair counts as worse / better beyond this difference [mm/s]
+# smaller conditioning sweeps, as scales of DEFAULT_REWARD_SCALES (what each sweep size buys)
+SUBSETS = {"1 (s = 1)": (1.0,), "2 (s = 0.9, 1.1)": (0.9, 1.1),
+           "4 (s = 0.85, 0.95, 1.05, 1.2)": (0.85, 0.95, 1.05, 1.2),
+           "8 (default)": tuple(DEFAULT_REWARD_SCALES)}
 
 
 def _scenario(args: tuple) -> dict:
@@ -88,6 +99,19 @@ def _pick(er: np.ndarray, ec: np.ndarray, j_cvx: np.ndarray,
     return pick, region.contains(100.0 * er[rows, pick], ec[rows, pick])
 
 
+def _subset_indices() -> dict[str, np.ndarray]:
+    """Column indices of every `SUBSETS` sweep among the full sweep's candidates."""
+    return {name: np.array([int(np.flatnonzero(np.isclose(SCALES, s))[0]) for s in scales])
+            for name, scales in SUBSETS.items()}
+
+
+def _subset_pick(cols: dict[str, np.ndarray], idx: np.ndarray,
+                 region: object) -> tuple[np.ndarray, np.ndarray]:
+    """`_pick` (check of the warm start) among the candidates `idx` only, as full indices."""
+    pick, inside = _pick(cols["er_ws"][:, idx], cols["ec_ws"][:, idx], cols["j_cvx"], region)
+    return idx[pick], inside
+
+
 def summarize(cols: dict[str, np.ndarray]) -> dict:
     """The selection rules' outcomes (see the module docstring)."""
     region = GuidanceConfig().planning.posthoc
@@ -117,6 +141,8 @@ def summarize(cols: dict[str, np.ndarray]) -> dict:
         "scales": {f"{s:g}": rule(np.full(m, k)) for k, s in enumerate(SCALES)},
         "check_rollout": rule(*_pick(cols["er_roll"], cols["ec_roll"], cols["j_cvx"], region)),
         "check_warm_start": rule(*_pick(cols["er_ws"], cols["ec_ws"], cols["j_cvx"], region)),
+        "subsets": {name: rule(*_subset_pick(cols, idx, region))
+                    for name, idx in _subset_indices().items()},
         "oracle_best_candidate": rule(best),
         "oracle_best_or_cvx": rule(best, gain[rows, best] > 0),
         "share_any_inside_rollout": float(region.contains(100 * cols["er_roll"],
@@ -147,6 +173,26 @@ def table(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def _scenarios(args: argparse.Namespace) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(roe0_m, target_rtn) of the experiment's scenarios: a dataset's first --n, or --seeds."""
+    if args.data:
+        held = heldout(args.data, "all")
+        return [(held["roe0_m"][i], held["target_rtn"][i])
+                for i in range(min(args.n, held["index"].size))]
+    from art_guidance.config import ScenarioConfig
+    from art_guidance.dynamics import roe_from_rtn_linear
+    from art_guidance.scenarios import sample_scenario
+
+    first, count = (int(x) for x in args.seeds.split(":"))
+    sc = ScenarioConfig()
+    chief = np.array(sc.chief_oe)
+    out = []
+    for seed in range(first, first + count):
+        sample = sample_scenario(sc, seed)
+        out.append((roe_from_rtn_linear(chief, sample.rtn0), sample.target_rtn))
+    return out
+
+
 def in_doc() -> str:
     """The table between the markers of docs/art_training.md."""
     text = DOC.read_text()
@@ -157,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the experiment and write its summary (and per-scenario arrays beside it)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", help="dataset directory (every scenario used)")
+    ap.add_argument("--seeds", help="FIRST:COUNT scenario seeds drawn instead of a dataset")
     ap.add_argument("--model", help="checkpoint")
     ap.add_argument("--n", type=int, default=400, help="first N scenarios by sample index")
     ap.add_argument("--workers", type=int, default=2, help="processes")
@@ -167,20 +214,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.table:
         print(table(json.loads(RESULT.read_text())))
         return 0
-    if not (args.data and args.model and args.out):
-        ap.error("--data, --model and --out are required (or --table)")
+    if not ((args.data or args.seeds) and args.model and args.out):
+        ap.error("--data or --seeds, --model and --out are required (or --table)")
     os.environ["OMP_NUM_THREADS"] = "1"
-    held = heldout(args.data, "all")
     info = model_info(args.model)  # loaded and checked once; workers cache the model
-    tasks = [(info, held["roe0_m"][i], held["target_rtn"][i])
-             for i in range(min(args.n, held["index"].size))]
+    tasks = [(info, roe0, target) for roe0, target in _scenarios(args)]
     t0 = time.perf_counter()
     with Pool(args.workers) as pool:
         rows = list(tqdm(pool.imap(_scenario, tasks, chunksize=2), total=len(tasks),
                          desc="scenarios"))
     cols = {k: np.array([r[k] for r in rows]) for k in rows[0]}
     np.savez(os.path.splitext(args.out)[0] + ".npz", **cols)
-    summary = {"data": args.data, "model": os.path.basename(args.model),
+    summary = {"data": args.data or f"seeds {args.seeds}",
+               "model": os.path.basename(args.model),
                "wall_s": time.perf_counter() - t0, **summarize(cols)}
     with open(args.out, "w") as f:
         json.dump(summary, f, indent=1)

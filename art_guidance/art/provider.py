@@ -177,13 +177,18 @@ class ArtWarmStart:
                 raise ModelError(f"node spacing {spacing:.1f} s differs from the training "
                                  f"horizon's {self.node_spacing_s:.1f} s")
 
-    def propose(self, request: PlanRequest, safety: PassiveSafety,
-                cvx: ConvexSolution) -> WarmStartProposal:
+    def propose(self, request: PlanRequest, safety: PassiveSafety, cvx: ConvexSolution,
+                deadline: float | None = None) -> WarmStartProposal:
         """Roll the model out for `request` over `safety.horizon`.
+
+        Args:
+            deadline: a `time.perf_counter()` instant after which the rollout stops (None:
+                none): the plan's deadline.
 
         Raises:
             ModelError: the horizon is outside the model's domain.
             InputError: non-finite conditioning (e.g. a non-finite J_CVX).
+            DeadlineError: the deadline passed during the rollout.
         """
         self.check_domain(safety)
         t0 = time.perf_counter()
@@ -194,7 +199,8 @@ class ArtWarmStart:
             torch.set_num_threads(self.threads)
             try:
                 res = rollout(self.art, safety, np.tile(request.roe0_m, (k, 1)),
-                              request.target_rtn, -j_cvx * np.array(self.reward_scales), 0.0)
+                              request.target_rtn, -j_cvx * np.array(self.reward_scales), 0.0,
+                              deadline=deadline)
             finally:
                 torch.set_num_threads(threads)
         planning = self.planning or PlanningConfig()

@@ -24,6 +24,7 @@ module's forward pass (the reference the KV cache is tested against).
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,7 +35,7 @@ from art_guidance.art.config import FEATURES, SLOTS, TOKENS_PER_STEP
 from art_guidance.checks import as_finite_array
 from art_guidance.config import GuidanceConfig
 from art_guidance.dynamics import Horizon, time_grid_s
-from art_guidance.errors import InputError
+from art_guidance.errors import DeadlineError, InputError
 from art_guidance.safety import PassiveSafety
 
 # A burn-gate model coasts at a node where its gate logit is at most this (0: p(burn) <= 0.5).
@@ -179,7 +180,7 @@ def _batch(field: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
 
 def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: object,
             reward_mps: object, constraint: object = 0.0, start_node: int = 0,
-            use_cache: bool = True) -> RolloutResult:
+            use_cache: bool = True, deadline: float | None = None) -> RolloutResult:
     """Roll the model out over nodes start_node .. N - 1 of `safety.horizon` for a batch.
 
     Args:
@@ -192,12 +193,15 @@ def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: o
         constraint: (B,) or scalar C at `start_node` (0 asks for a passively safe plan).
         start_node: first node to plan (a replan over the remaining horizon).
         use_cache: KV-cached incremental decoding (default) or recompute the whole context.
+        deadline: a `time.perf_counter()` instant after which no further step is started
+            (None: no limit).
 
     Returns:
         RolloutResult over the T = N - start_node planned nodes.
 
     Raises:
         InputError: bad shapes or values, or more steps than the model's context K.
+        DeadlineError: the deadline passed before the last step.
     """
     horizon = safety.horizon
     x, target, r, c, start = _inputs(horizon, roe_m, target_rtn, reward_mps, constraint,
@@ -225,7 +229,7 @@ def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: o
             prev[0] = norm.normalize("control", u, t)  # the applied control, as fed back
             return u
 
-        return _run(safety, x, r, c, start, control)
+        return _run(safety, x, r, c, start, control, deadline)
 
 
 def replay(safety: PassiveSafety, roe_m: object, dv_rtn_mps: object, reward_mps: object,
@@ -271,10 +275,11 @@ def _inputs(horizon: Horizon, roe_m: object, target_rtn: object, reward_mps: obj
 
 
 def _run(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.ndarray, start: int,
-         control) -> RolloutResult:
+         control, deadline: float | None = None) -> RolloutResult:
     """The rollout loop: control, violation, R/C update, deputy-aware propagation.
 
-    `control(j, node, x, r, c)` returns the (B, 3) burn [m/s] of step j at `node`.
+    `control(j, node, x, r, c)` returns the (B, 3) burn [m/s] of step j at `node`; a step is
+    not started after `deadline` (a `time.perf_counter()` instant; DeadlineError).
     """
     horizon = safety.horizon
     n_nodes = horizon.n_nodes
@@ -283,6 +288,9 @@ def _run(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.ndarray, sta
     rs, cs = np.empty((b, n_steps)), np.empty((b, n_steps))
     viol = np.empty((b, n_steps), dtype=int)
     for j, node in enumerate(range(start, n_nodes)):
+        if deadline is not None and time.perf_counter() > deadline:
+            raise DeadlineError(f"rollout stopped at step {j} of {n_steps}: the deadline "
+                                "passed")
         u = control(j, node, x, r, c)  # (B, 3) [m/s]
         z = horizon.post_burn_step(node, x, u)  # (B, 6) post-burn, deputy-aware
         v = safety.step_violations(node, x, u, z)  # (B,) bool, = node_violations(node, x, u)

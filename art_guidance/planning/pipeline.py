@@ -37,7 +37,8 @@ class GuidancePipeline:
         """Args:
             config: the configuration bundle (default: the packaged YAML files).
             provider: a learned warm-start provider, or None (CVX only).
-            deadline_s: wall-clock budget of one SCP solve [s], or None.
+            deadline_s: wall-clock budget of one whole plan [s] (CVX, the learned proposal
+                and every SCVx* run, counted from the call of `plan`), or None.
         """
         self.config = config or GuidanceConfig.load()
         if provider is not None and hasattr(provider, "planning"):
@@ -92,16 +93,23 @@ class GuidancePipeline:
         When the first SCVx* run (from the chosen warm start) does not converge and the other
         warm start exists (CVX always; ART when the model proposed valid controls, even if the
         post hoc check rejected them), SCVx* is retried from the other one in the time left and
-        the better feasible plan (then the lower cost) is kept. With a deadline, the first run
-        may use `art_deadline_share` of it when such a retry is possible.
+        the better feasible plan (then the lower cost) is kept.
+
+        With a deadline (`deadline_s`) the whole plan is bounded: the learned proposal is not
+        started once it has passed and stops at the first rollout step after it (the plan is
+        then warm-started from CVX), each SCVx* run gets what is left of it (the first run
+        `art_deadline_share` of that when a retry is possible) and returns its best feasible
+        iterate on expiry (status TIMEOUT). It is overrun by at most one SCVx* iteration, one
+        rollout step and the final safety evaluation.
         """
         t0 = time.perf_counter()
+        deadline = None if self.deadline_s is None else t0 + self.deadline_s
         horizon, safety = self._setup(request)
         t_setup = time.perf_counter()
         roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
         cvx = solve_cvx(horizon, request.roe0_m, roe_f)
         t_cvx = time.perf_counter()
-        learned = self._learned(request, roe_f, safety, cvx)
+        learned = self._learned(request, roe_f, safety, cvx, deadline)
         t_art = time.perf_counter()
         cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
             else np.zeros((horizon.n_nodes, 3))
@@ -110,17 +118,17 @@ class GuidancePipeline:
         source, reason, discarded = learned.source, learned.reason, None
         warm = {"cvx": cvx_dv, "art": learned.dv}
         other = "cvx" if source == "art" else "art"
-        budget = self.deadline_s
+        budget = self._time_left(t0)
         if warm[other] is not None and budget is not None:
             budget *= self.config.planning.art_deadline_share  # leave time for the retry
         res = scvx.solve(warm[source], deadline_s=budget)
         second = second_run(res, source, warm[other] is not None,
                             request.warm_start == WarmStart.AUTO.value
                             and self.config.planning.also_solve_from_cvx
-                            and self._time_left(t_art) != 0.0)
+                            and self._time_left(t0) != 0.0)
         if second is not None:
             alt_source, why = second
-            alt = scvx.solve(warm[alt_source], deadline_s=self._time_left(t_art))
+            alt = scvx.solve(warm[alt_source], deadline_s=self._time_left(t0))
             keep_first = keep_first_plan(res, alt, source,
                                          self.config.planning.art_min_gain_mps)
             kept, lost = (res, alt) if keep_first else (alt, res)
@@ -147,14 +155,16 @@ class GuidancePipeline:
                           discarded)
 
     def _time_left(self, t_start: float) -> float | None:
-        """What is left of the SCP deadline since `t_start` [s] (None: no deadline)."""
+        """What is left of the plan's deadline, started at `t_start` [s] (None: no
+        deadline)."""
         if self.deadline_s is None:
             return None
         return max(self.deadline_s - (time.perf_counter() - t_start), 0.0)
 
     def _learned(self, request: PlanRequest, roe_f: np.ndarray, safety: PassiveSafety,
-                 cvx: ConvexSolution) -> "_Learned":
-        """Ask the provider for a learned warm start and check it post hoc."""
+                 cvx: ConvexSolution, deadline: float | None = None) -> "_Learned":
+        """Ask the provider for a learned warm start and check it post hoc (`deadline`: the
+        plan's, a `time.perf_counter()` instant, or None)."""
         if request.warm_start == WarmStart.CVX.value:
             return _Learned("cvx", "CVX warm start requested")
         if self.provider is None:
@@ -167,8 +177,11 @@ class GuidancePipeline:
                 and self.config.planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety):
             return _Learned("cvx", CVX_SAFE_REASON)
         t0 = time.perf_counter()
+        if deadline is not None and t0 >= deadline:
+            return _Learned("cvx", f"{DEADLINE_REASON} before ART: CVX warm start")
+        kwargs = {"deadline": deadline} if _takes_deadline(self.provider) else {}
         try:
-            proposal = self.provider.propose(request, safety, cvx)
+            proposal = self.provider.propose(request, safety, cvx, **kwargs)
         except Exception as exc:  # a model never takes the plan down
             return _Learned("cvx", f"ART not run ({_short(exc)}): CVX warm start")
         if not isinstance(proposal, WarmStartProposal):
@@ -200,6 +213,23 @@ class _Learned:
     posthoc: PosthocDecision | None = None
     proposal: WarmStartProposal | None = None
     dv: np.ndarray | None = None
+
+
+DEADLINE_REASON = "the plan's deadline (solve_deadline_s) passed"
+
+
+def _takes_deadline(provider: object) -> bool:
+    """Whether a provider's `propose` takes the plan's deadline (`ArtWarmStart` does; the
+    `WarmStartProvider` protocol does not require it)."""
+    import inspect
+
+    propose = getattr(provider, "propose", None)
+    if propose is None:
+        return False
+    try:
+        return "deadline" in inspect.signature(propose).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 # The decision's reason when `skip_art_when_cvx_safe` left ART out.

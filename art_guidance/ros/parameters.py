@@ -102,9 +102,10 @@ SPECS: dict[str, ParamSpec] = {
                                "float", minimum=0.0, exclusive_minimum=True, dynamic=True),
     "max_nav_future_s": ParamSpec("refuse a fix stamped further ahead than this [s]", "float",
                                   minimum=0.0, exclusive_minimum=True, dynamic=True),
-    "solve_deadline_s": ParamSpec("SCP wall-clock budget per plan; the best feasible iterate "
-                                  "is returned on expiry [s]", "float", minimum=0.0,
-                                  exclusive_minimum=True, dynamic=True),
+    "solve_deadline_s": ParamSpec("wall-clock budget of a whole replan (CVX, ART proposal, "
+                                  "every SCVx* run; recording not included): on expiry the "
+                                  "best feasible plan at hand is returned [s]", "float",
+                                  minimum=0.0, exclusive_minimum=True, dynamic=True),
     "min_remaining_nodes": ParamSpec("below this many nodes left the plan in force is flown "
                                      "out, not replanned", "int", minimum=2, dynamic=True),
     "nav_qos_reliability": ParamSpec("reliability of the nav subscription: best_effort matches "

@@ -224,14 +224,45 @@ def test_unconverged_art_scp_is_retried_from_cvx():
 
 
 def test_deadline_is_honoured_with_art(provider):
-    """The ART-warm-started SCP and its retry share the one SCP deadline (one iteration and
-    the final evaluation may run past it: allowance 400 ms on a loaded 2-core machine)."""
-    deadline_s = 0.15
-    pipeline = GuidancePipeline(provider=provider, deadline_s=deadline_s)
-    for seed in (3, 11):
-        result = pipeline.plan(_request(seed, chance=True, warm_start="art"))
-        assert result.timings_ms["scp"] <= 1e3 * deadline_s + 400.0, result.timings_ms
-        assert result.status in set(ScpStatus)
+    """The deadline bounds the whole plan: CVX, the proposal and both SCVx* runs (one SCVx*
+    iteration, one rollout step and the final evaluation may run past it: allowance 400 ms on a
+    loaded 2-core machine)."""
+    for deadline_s in (0.15, 0.4):
+        pipeline = GuidancePipeline(provider=provider, deadline_s=deadline_s)
+        for seed in (3, 11):
+            result = pipeline.plan(_request(seed, chance=True, warm_start="art"))
+            assert result.timings_ms["total"] <= 1e3 * deadline_s + 400.0, result.timings_ms
+            assert result.status in set(ScpStatus)
+
+
+class Slow(Scaled):
+    """Scaled, after a pause longer than the test's deadline (a provider without a deadline
+    argument: the pipeline cannot stop it, only what comes after)."""
+
+    def propose(self, request, safety, cvx):
+        import time
+
+        time.sleep(0.3)
+        return super().propose(request, safety, cvx)
+
+
+def test_a_deadline_that_passes_in_the_proposal_ends_the_plan(provider):
+    """A rollout that would run past the deadline stops (CVX warm start, said in the
+    reason), and SCVx* then gets no time: the plan is the best feasible iterate at hand
+    (status TIMEOUT); a provider that takes no deadline is waited for, nothing after it runs."""
+    request = _request(3, chance=True, warm_start="art")
+    pipeline = GuidancePipeline(provider=provider)
+    pipeline.plan(request)  # horizon and safety model cached: CVX then takes ~5 ms
+    pipeline.deadline_s = 0.05  # the sweep takes > 100 ms
+    result = pipeline.plan(request)
+    assert "DeadlineError" in result.warm_start_reason and result.warm_start == "cvx"
+    assert result.status is ScpStatus.TIMEOUT and result.scp.iterations == 0
+    assert result.timings_ms["total"] <= 50.0 + 300.0, result.timings_ms
+    slow = GuidancePipeline(provider=Slow(1.0), deadline_s=0.05).plan(request)
+    assert slow.status is ScpStatus.TIMEOUT and slow.scp.iterations == 0
+    assert slow.timings_ms["scp"] <= 300.0, slow.timings_ms
+    no_time = GuidancePipeline(provider=provider, deadline_s=1e-9).plan(request)
+    assert "deadline (solve_deadline_s) passed before ART" in no_time.warm_start_reason
 
 
 def test_corrupt_model_is_refused_and_plan_falls_back(model_path, tmp_path, capsys):
