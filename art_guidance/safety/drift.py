@@ -212,7 +212,7 @@ class DriftArcs:
               q: float) -> ArcItems:
         """Arcs of post-burn states `z_m` (M, 6) [m] from nodes `node` (M,), covariance or None."""
         m = node.size
-        maps = _take(self.maps, node)  # (M, 18, 18), a view when every arc is of one node
+        maps = _take(self.maps, node)  # (M, 18, 18)
         g = maps.reshape(m, N_TERMS, 3, 6)
         coef = g @ z_m[:, None, :, None]  # (M, 18, 3, 1)
         coef = coef[..., 0]
@@ -418,17 +418,11 @@ class DriftArcs:
 
 
 def _take(arr: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``arr[idx]`` (read-only use), without a copy when idx is 0 .. len(arr) - 1 (every node,
-    in order) or one index repeated (the rollout: all arcs start at one node; a broadcast
-    view then)."""
-    n, m = arr.shape[0], idx.size
-    if m == 0:
-        return arr[idx]
-    first, last = idx[0], idx[-1]
-    if m == n and first == 0 and last == n - 1 and np.all(np.diff(idx) == 1):
-        return arr
-    if first == last and m > 1 and not np.any(idx != first):
-        return np.broadcast_to(arr[first], (m,) + arr.shape[1:])
+    """``arr[idx]``, without the copy when idx is 0 .. len(arr) - 1 (every node, in order)."""
+    n = arr.shape[0]
+    if n > 32 and idx.size == n and idx[0] == 0 and idx[-1] == n - 1 \
+            and np.all(np.diff(idx) == 1):
+        return arr  # below 33 rows the copy costs less than the check
     return arr[idx]
 
 

@@ -1,0 +1,162 @@
+"""Benchmark: the ART proposal as the planner makes it, the fast path against the reference.
+
+For chance-constrained `plan` scenarios (seeds FIRST.., held out from the shipped models'
+training data) on which CVX is not passively safe (`auto` runs ART only there), the shipped
+default model proposes a warm start (`ArtWarmStart.propose`: the conditioning sweep with the C
+update at every step, then the judging of its candidates), one torch thread, in one process:
+
+- `fast`: the planner's path;
+- `reference`: the same proposal through the previous safety path, the K = 1 oracles of the
+  fast one: every rollout step's violations decided by the certified sign-only minimum
+  (`DriftArcs.minimum(sign_only=True)`, with its t* and candidate bookkeeping) instead of
+  `DriftArcs.violated`, every candidate judged by its own full `PassiveSafety.evaluate`
+  instead of one sign-only `evaluate_batch` over all of them.
+
+The two alternate scenario by scenario; the proposals must be identical (controls and
+constraint-to-go), and the numbers are medians of wall and CPU (process) time with the paired
+ratio. The fast path's time is split into the C update (`step_violations`), the candidates'
+terminal corrections, their safety search, and the rest (transformer, dynamics, bookkeeping);
+`sweep_K_ms` times proposals with sweeps of K reward scales (the transformer's work grows
+with the batch: at batch 8 it is arithmetic, not per-call overhead).
+
+    art-guidance bench proposal --repeats 40 --first-seed 20000 --json out/proposal.json
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import torch
+
+import art_guidance.art.provider as provider_module
+from art_guidance.art.provider import ArtWarmStart
+from art_guidance.config import GuidanceConfig, ScenarioConfig
+from art_guidance.dynamics import roe_from_rtn_linear
+from art_guidance.optim import solve_cvx
+from art_guidance.planning import GuidancePipeline, PlanRequest
+from art_guidance.planning.pipeline import cvx_is_safe
+from art_guidance.safety.passive import SafetyEvaluation
+from art_guidance.scenarios import sample_scenario
+
+SWEEPS = {1: (1.0,), 2: (0.9, 1.1), 4: (0.85, 0.95, 1.05, 1.2)}  # and 8: the default
+
+
+class _Reference:
+    """A PassiveSafety whose rollout decisions and candidate judging take the reference path."""
+
+    def __init__(self, safety) -> None:
+        self._safety = safety
+
+    def __getattr__(self, name: str):
+        return getattr(self._safety, name)
+
+    def step_violations(self, i, roe_m, dv_rtn_mps, z_m):
+        s = self._safety
+        items = s._items_at(int(i), roe_m, dv_rtn_mps, z_m)
+        return s.arcs.minimum(items, sign_only=True).margin < 0.0
+
+    def evaluate_batch(self, roe_m, dv_rtn_mps, sign_only=False):
+        evs = [self._safety.evaluate(r, u) for r, u in zip(roe_m, dv_rtn_mps)]
+        return SafetyEvaluation(*(np.stack([getattr(e, f.name) for e in evs])
+                                  for f in dataclasses.fields(SafetyEvaluation)))
+
+
+class _Timed:
+    """A PassiveSafety that adds up the time of the rollout's C update and of the judging's
+    safety search."""
+
+    def __init__(self, safety) -> None:
+        self._safety, self.c_update_s, self.judge_eval_s = safety, 0.0, 0.0
+
+    def __getattr__(self, name: str):
+        return getattr(self._safety, name)
+
+    def step_violations(self, *args):
+        t = time.perf_counter()
+        out = self._safety.step_violations(*args)
+        self.c_update_s += time.perf_counter() - t
+        return out
+
+    def evaluate_batch(self, *args, **kwargs):
+        t = time.perf_counter()
+        out = self._safety.evaluate_batch(*args, **kwargs)
+        self.judge_eval_s += time.perf_counter() - t
+        return out
+
+
+def _scenarios(pipeline: GuidancePipeline, first: int, n: int) -> list:
+    """(request, safety, cvx) of the first `n` seeds from `first` on which CVX is unsafe."""
+    sc = ScenarioConfig()
+    chief = np.array(sc.chief_oe)
+    out, seed = [], first
+    while len(out) < n and seed < first + 20 * n:
+        s = sample_scenario(sc, seed)
+        seed += 1
+        request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
+                              chance_constrained=True)
+        horizon, safety = pipeline._setup(request)
+        cvx = solve_cvx(horizon, request.roe0_m,
+                        np.linalg.solve(horizon.psi[-1], request.target_rtn))
+        if cvx.status.feasible and not cvx_is_safe(cvx, safety):
+            out.append((request, safety, cvx))
+    return out
+
+
+def _timed(fn) -> tuple[object, float, float]:
+    """(result, wall ms, CPU ms) of fn()."""
+    w, c = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, 1e3 * (time.perf_counter() - w), 1e3 * (time.process_time() - c)
+
+
+def run(repeats: int = 30, first_seed: int = 20000) -> dict:
+    """Fast and reference proposals alternated over `repeats` scenarios; medians [ms]."""
+    torch.set_num_threads(1)
+    provider = ArtWarmStart.load()
+    provider.planning = GuidanceConfig.load().planning
+    pipeline = GuidancePipeline(provider=provider)
+    cases = _scenarios(pipeline, int(first_seed), max(int(repeats), 1))
+    request, safety, cvx = cases[0]
+    provider.propose(request, safety, cvx)  # warm-up (decoder, caches)
+    rows, same = [], 0
+    parts = {"c_update": [], "judge_correction": [], "judge_search": [], "rest": []}
+    original = provider_module.judged_trajectory
+    for request, safety, cvx in cases:
+        ref, ref_wall, ref_cpu = _timed(lambda: provider.propose(request, _Reference(safety),
+                                                                 cvx))
+        timed = _Timed(safety)
+        corr = [0.0]
+
+        def corrected(*args, _f=original, _acc=corr):
+            t = time.perf_counter()
+            out = _f(*args)
+            _acc[0] += time.perf_counter() - t
+            return out
+
+        provider_module.judged_trajectory = corrected
+        try:
+            fast, wall, cpu = _timed(lambda: provider.propose(request, timed, cvx))
+        finally:
+            provider_module.judged_trajectory = original
+        same += int(np.array_equal(fast.dv_rtn_mps, ref.dv_rtn_mps)
+                    and np.array_equal(fast.constraint_to_go, ref.constraint_to_go))
+        rows.append((wall, cpu, ref_wall, ref_cpu))
+        parts["c_update"].append(1e3 * timed.c_update_s)
+        parts["judge_correction"].append(1e3 * corr[0])
+        parts["judge_search"].append(1e3 * timed.judge_eval_s)
+        parts["rest"].append(wall - 1e3 * (timed.c_update_s + corr[0] + timed.judge_eval_s))
+    wall, cpu, ref_wall, ref_cpu = (np.array(x) for x in zip(*rows))
+    out = {"scenarios": len(rows), "first_seed": int(first_seed),
+           "identical_proposals": same,
+           "fast_ms": float(np.median(wall)), "reference_ms": float(np.median(ref_wall)),
+           "fast_cpu_ms": float(np.median(cpu)), "reference_cpu_ms": float(np.median(ref_cpu)),
+           "speedup_paired_cpu": float(np.median(ref_cpu / cpu)),
+           "speedup_paired_wall": float(np.median(ref_wall / wall))}
+    out.update({f"fast_{k}_ms": float(np.median(v)) for k, v in parts.items()})
+    for k, scales in {**SWEEPS, 8: provider.reward_scales}.items():
+        sweep = ArtWarmStart(provider.art, reward_scales=scales)
+        sweep.planning = provider.planning
+        cpu_ms = [_timed(lambda: sweep.propose(r, s, c))[2] for r, s, c in cases]
+        out[f"sweep_{k}_cpu_ms"] = float(np.median(cpu_ms))
+    return out
