@@ -30,6 +30,32 @@ def check_oe(oe: object, field: str = "chief_oe") -> np.ndarray:
     return arr
 
 
+# The planner's domain (a request's and a navigation fix's chief): a near-circular Earth orbit.
+MIN_PERIGEE_ALTITUDE_M = 100e3  # below it the orbit decays within hours (and may hit the Earth)
+MAX_SEMI_MAJOR_AXIS_M = 1e8     # well beyond GEO (42,164 km), where J2 is no longer the model
+MAX_ECCENTRICITY = 0.1          # the control matrix and Psi are the near-circular forms
+
+
+def check_chief(oe: object, field: str = "chief_oe") -> np.ndarray:
+    """`check_oe`, and the planner's domain: perigee altitude >= MIN_PERIGEE_ALTITUDE_M,
+    a <= MAX_SEMI_MAJOR_AXIS_M, e <= MAX_ECCENTRICITY; returns a (6,) array.
+
+    Raises:
+        InputError: naming the element and the bound.
+    """
+    arr = check_oe(oe, field)
+    a, e = float(arr[0]), float(arr[1])
+    if not e <= MAX_ECCENTRICITY:
+        raise InputError(field, f"eccentricity above {MAX_ECCENTRICITY} (the planner's "
+                         "models are the near-circular forms)", e)
+    if not a <= MAX_SEMI_MAJOR_AXIS_M:
+        raise InputError(field, f"semi-major axis above {MAX_SEMI_MAJOR_AXIS_M:.0f} m", a)
+    if not a * (1.0 - e) - R_EARTH_M >= MIN_PERIGEE_ALTITUDE_M:
+        raise InputError(field, f"perigee altitude below {MIN_PERIGEE_ALTITUDE_M:.0f} m",
+                         a * (1.0 - e) - R_EARTH_M)
+    return arr
+
+
 def mean_motion(a_m: float) -> float:
     """Keplerian mean motion [rad/s] for semi-major axis `a_m` [m]."""
     return float(np.sqrt(MU_M3PS2 / a_m**3))

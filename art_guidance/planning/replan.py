@@ -51,6 +51,7 @@ class ReplanSettings:
         replan_period_s: also replan this often in stamp time [s]; 0 = off.
         stamp_check: "wallclock" (age/future limits and order), "order" (monotonic), "off".
         max_nav_age_s, max_nav_future_s: wall-clock stamp limits [s].
+        max_stamp_jump_s: "order": largest step of a stamp ahead of the last accepted one [s].
         min_remaining_nodes: below this many nodes left the plan in force is flown out.
         ae_to_koz_node: node of the approach-ellipsoid -> keep-out-zone switch of a new plan.
     """
@@ -60,6 +61,7 @@ class ReplanSettings:
     stamp_check: str = _NODE["stamp_check"]
     max_nav_age_s: float = _NODE["max_nav_age_s"]
     max_nav_future_s: float = _NODE["max_nav_future_s"]
+    max_stamp_jump_s: float = _NODE["max_stamp_jump_s"]
     min_remaining_nodes: int = _NODE["min_remaining_nodes"]
     ae_to_koz_node: int = ScenarioConfig().ae_to_koz_node
 
@@ -67,7 +69,8 @@ class ReplanSettings:
         if self.stamp_check not in STAMP_CHECKS:
             raise ConfigError(f"stamp_check must be one of {STAMP_CHECKS}, "
                               f"got {self.stamp_check!r}")
-        for name in ("replan_sigma_threshold", "max_nav_age_s", "max_nav_future_s"):
+        for name in ("replan_sigma_threshold", "max_nav_age_s", "max_nav_future_s",
+                     "max_stamp_jump_s"):
             if not float(getattr(self, name)) > 0:
                 raise ConfigError(f"parameter {name} must be > 0, got {getattr(self, name)}")
         if not float(self.replan_period_s) >= 0:
@@ -137,6 +140,10 @@ class ReplanPolicy:
         floor = self.stamp_floor_ns
         if floor is not None and stamp_ns <= floor:
             raise GuidanceError(f"stale stamp: {stamp_ns} ns is not newer than {floor} ns")
+        if s.stamp_check == "order" and floor is not None \
+                and (stamp_ns - floor) * 1e-9 > s.max_stamp_jump_s:
+            raise GuidanceError(f"stamp jumps {(stamp_ns - floor) * 1e-9:.3f} s ahead of the "
+                                f"last accepted fix (max_stamp_jump_s {s.max_stamp_jump_s:g} s)")
         if s.stamp_check == "wallclock":
             age_s = (now_ns - stamp_ns) * 1e-9
             if age_s > s.max_nav_age_s:

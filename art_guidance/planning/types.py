@@ -11,7 +11,7 @@ from typing import Protocol
 import numpy as np
 
 from art_guidance.checks import as_finite_array
-from art_guidance.dynamics import check_oe
+from art_guidance.dynamics import check_chief
 from art_guidance.errors import InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus
 from art_guidance.safety import PassiveSafety
@@ -58,7 +58,7 @@ class PlanRequest:
     koz_switch_node: int | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "chief_oe", check_oe(self.chief_oe))
+        object.__setattr__(self, "chief_oe", check_chief(self.chief_oe))
         object.__setattr__(self, "roe0_m", as_finite_array("roe0_m", self.roe0_m, (6,)))
         object.__setattr__(self, "target_rtn",
                            as_finite_array("target_rtn", self.target_rtn, (6,)))

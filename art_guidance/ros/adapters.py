@@ -12,15 +12,15 @@ from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest,
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from art_guidance.checks import as_finite_array, check_psd
-from art_guidance.dynamics import check_oe, psi_matrix
+from art_guidance.dynamics import check_chief, psi_matrix
 from art_guidance.errors import InputError
 from art_guidance.optim import ScpStatus
 from art_guidance.planning import WARM_STARTS, NavState, PlanResult, Target
 from art_guidance.planning.types import N_ORBITS_RANGE
 from art_guidance.sim.link import LinkPlan
 
-FRAMES = {RelativeNavState.REPRESENTATION_ROE: ("chief_roe", ""),
-          RelativeNavState.REPRESENTATION_RTN: ("chief_rtn", "")}
+FRAMES = {RelativeNavState.REPRESENTATION_ROE: ("chief_roe",),
+          RelativeNavState.REPRESENTATION_RTN: ("chief_rtn",)}
 MAX_RANGE_M = 500e3     # beyond this the linear relative models are meaningless
 MAX_SPEED_MPS = 500.0   # relative speed bound for an RTN state
 REQUEST_WARM_STARTS = ("",) + WARM_STARTS  # "" = auto
@@ -53,10 +53,16 @@ def nav_from_msg(msg: RelativeNavState) -> NavState:
     if msg.header.frame_id not in FRAMES[msg.representation]:
         raise InputError("header.frame_id", f"unknown frame for this representation; expected "
                          f"{FRAMES[msg.representation][0]!r}", msg.header.frame_id)
-    chief = check_oe(np.asarray(msg.chief_oe, float), "chief_oe")
+    if not 0 <= int(msg.header.stamp.nanosec) < 1_000_000_000:
+        raise InputError("header.stamp.nanosec", "must be in [0, 1e9)",
+                         int(msg.header.stamp.nanosec))
+    chief = check_chief(np.asarray(msg.chief_oe, float), "chief_oe")
     mean = as_finite_array("mean", np.asarray(msg.mean, float), (6,))
     cov = check_psd("covariance", as_finite_array(
         "covariance", np.asarray(msg.covariance, float), (36,)).reshape(6, 6))
+    if not np.max(np.abs(cov)) <= MAX_RANGE_M**2:  # a zero covariance is a perfect estimate
+        raise InputError("covariance", f"a standard deviation above {MAX_RANGE_M:.0f} m "
+                         "(m/s)", float(np.sqrt(np.max(np.abs(cov)))))
     psi = psi_matrix(chief)
     # every bound is written "not (x <= limit)" and checked before any product: a finite
     # but huge input (1e308) overflows to inf/NaN there, and NaN compares False
@@ -85,8 +91,12 @@ def target_from_msg(msg: ReplanRequest, waypoints: dict) -> Target:
     """Validate a ReplanRequest against the configured waypoints."""
     if msg.waypoint == "custom":
         target = as_finite_array("target_rtn", np.asarray(msg.target_rtn, float), (6,))
-        if np.linalg.norm(target[:3]) > MAX_RANGE_M:
-            raise InputError("target_rtn", "target too far", target.tolist())
+        if not np.max(np.abs(target[:3])) <= MAX_RANGE_M:
+            raise InputError("target_rtn", f"target further than {MAX_RANGE_M:.0f} m",
+                             target.tolist())
+        if not np.max(np.abs(target[3:])) <= MAX_SPEED_MPS:
+            raise InputError("target_rtn", f"target speed above {MAX_SPEED_MPS} m/s",
+                             target.tolist())
     elif msg.waypoint in waypoints:
         target = np.asarray(waypoints[msg.waypoint], float)
     else:

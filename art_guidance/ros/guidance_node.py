@@ -52,12 +52,23 @@ OK, WARN, ERROR = 0, 1, 2
 SPIN_PERIOD_S = 0.1  # the executor wakes this often to notice SIGINT/SIGTERM [s]
 DEPUTY_VIZ_PERIOD_S = 0.5  # smallest stamp-time spacing of the deputy's visualisation [s]
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
-                     "max_nav_age_s", "max_nav_future_s", "min_remaining_nodes")
+                     "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
+                     "min_remaining_nodes")
 PARAMETERS = node_parameter_defaults()  # config/guidance_node.yaml: the one table
 VIZ_TYPES = {topics.PLAN_PATH: Path, topics.PLAN_MARKERS: MarkerArray,
              topics.DEPUTY_MARKERS: MarkerArray, topics.DEPUTY_POSE: PoseWithCovarianceStamped}
 VIZ_TYPE_NAMES = {topic: f"{t.__module__.split('.')[0]}/msg/{t.__name__}"
                   for topic, t in VIZ_TYPES.items()}
+
+
+def solver_error_text(exc: BaseException, active_id: str) -> str:
+    """The status text of a plan whose solve raised: what happened, what stays in force and
+    what to check."""
+    kept = f"plan {active_id} stays in force" if active_id else "no plan is in force"
+    return (f"planning failed ({type(exc).__name__}: {exc}); {kept}. The fix was accepted but "
+            "the planner could not solve from it: check its chief elements, state and "
+            "covariance and the target against the limits in docs/node.md, and report the "
+            "recorded solve if they are within them")
 
 
 class GuidanceNodeBase:
@@ -262,10 +273,11 @@ class GuidanceNodeBase:
             except Exception as exc:  # the worker must survive anything
                 if not self.context.ok():
                     return  # shutting down under a running solve: nothing left to tell
-                self._log().error(f"planning failed: {type(exc).__name__}: {exc}")
+                text = solver_error_text(exc, self._active_id())
+                self._log().error(f"planning failed: {text}")
                 self.plan_pub.publish(status_plan_msg(
                     job.nav.stamp_ns, self._next_id(), ManeuverPlan.STATUS_SOLVER_ERROR,
-                    f"{type(exc).__name__}: {exc}", self._active_id()))
+                    text, self._active_id()))
             finally:
                 self.core.job_done()
 

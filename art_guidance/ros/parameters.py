@@ -102,6 +102,11 @@ SPECS: dict[str, ParamSpec] = {
                                "float", minimum=0.0, exclusive_minimum=True, dynamic=True),
     "max_nav_future_s": ParamSpec("refuse a fix stamped further ahead than this [s]", "float",
                                   minimum=0.0, exclusive_minimum=True, dynamic=True),
+    "max_stamp_jump_s": ParamSpec("stamp_check order: refuse a fix stamped further ahead of "
+                                  "the last accepted fix than this (a stamp from the future "
+                                  "would otherwise become the floor every later fix is "
+                                  "refused against) [s]", "float", minimum=0.0,
+                                  exclusive_minimum=True, dynamic=True),
     "solve_deadline_s": ParamSpec("wall-clock budget of a whole replan (CVX, ART proposal, "
                                   "every SCVx* run; recording not included): on expiry the "
                                   "best feasible plan at hand is returned [s]", "float",

@@ -101,7 +101,16 @@ def _bad_messages(now: int) -> dict[str, RelativeNavState]:
     bad_repr.representation = 7
     chief = np.array(ScenarioConfig().chief_oe)
     chief[1] = 1.2
+    eccentric, far = chief.copy(), chief.copy()
+    eccentric[1], far[1], far[0] = 0.95, 5.58e-4, 1e12
+    bad_nanosec = nav_msg(now + 10, NOMINAL_RTN)
+    bad_nanosec.header.stamp.nanosec = 1_500_000_000
     return {
+        "empty_frame": nav_msg(now + 7, NOMINAL_RTN, frame_id=""),
+        "huge_covariance": nav_msg(now + 8, NOMINAL_RTN, cov=1e300 * np.eye(6)),
+        "perigee_inside_earth": nav_msg(now + 9, NOMINAL_RTN, chief_oe=eccentric),
+        "semi_major_axis_1e12": nav_msg(now + 11, NOMINAL_RTN, chief_oe=far),
+        "nanosec": bad_nanosec,
         "nan": nav_msg(now + 1, nan),
         "non_psd": nav_msg(now + 2, NOMINAL_RTN, cov=non_psd),
         "representation": bad_repr,
@@ -115,15 +124,18 @@ def _bad_messages(now: int) -> dict[str, RelativeNavState]:
 
 def test_bad_messages_are_rejected_and_node_keeps_serving(client, node_proc):
     now = time.time_ns()
-    bad = _bad_messages(now)
-    for msg in bad.values():
-        client.nav_pub.publish(msg)
-    for name, msg in bad.items():
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        assert client.decision_for(stamp) == "rejected", name
-        status = client.plan_for(stamp, timeout_s=5.0)
-        assert status is not None and status.status == ManeuverPlan.STATUS_REJECTED_INPUT, name
-        assert status.status_text, name
+    bad = list(_bad_messages(now).items())
+    for first in range(0, len(bad), 6):  # bursts within the node's nav queue (depth 10)
+        chunk = bad[first:first + 6]
+        for _, msg in chunk:
+            client.nav_pub.publish(msg)
+        for name, msg in chunk:
+            stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            assert client.decision_for(stamp) == "rejected", name
+            status = client.plan_for(stamp, timeout_s=5.0)
+            assert status is not None and status.status == ManeuverPlan.STATUS_REJECTED_INPUT, \
+                name
+            assert status.status_text, name
     good = time.time_ns()
     client.nav_pub.publish(nav_msg(good, NOMINAL_RTN + [50.0, 0, 0, 0, 0, 0]))
     assert client.decision_for(good) in ("replanning", "on_plan")
@@ -143,6 +155,11 @@ def test_fuzzed_fatal_sequences_are_refused_and_change_nothing(client, node_proc
                                          horizon_orbits=0.005))
     diag = request_diag(since)
     assert diag is not None and "horizon_orbits" in diag.get("reason", ""), diag
+    since = time.monotonic()
+    client.req_pub.publish(ReplanRequest(waypoint="custom", chance_constrained=True,
+                                         target_rtn=[0.0, 750.0, 0.0, 1e9, 0.0, 0.0]))
+    diag = request_diag(since)
+    assert diag is not None and "target speed" in diag.get("reason", ""), diag
     huge = time.time_ns()
     client.nav_pub.publish(nav_msg(huge, [1e308, 0, 0, 0, 0, 0]))
     assert client.decision_for(huge) == "rejected"

@@ -61,8 +61,23 @@ def test_stamp_checks():
     p.check_stamp(now - 10, now)  # a new target starts a new stamp sequence
 
 
+def test_order_check_bounds_the_jump_of_a_stamp():
+    """In the stamp-order mode (simulated time, no clock to compare with) a fix far ahead of the
+    last accepted one is refused instead of becoming the floor that every later fix would be
+    refused against; the jump allowed is max_stamp_jump_s (600 s by default)."""
+    p = _policy()
+    p.accept(NavState(T0_NS, CHIEF, np.zeros(6), np.eye(6)))
+    with pytest.raises(GuidanceError, match="jumps 3600.000 s ahead"):
+        p.check_stamp(T0_NS + 3600 * 10**9, 0)
+    assert p.stamp_floor_ns == T0_NS
+    p.check_stamp(T0_NS + 600 * 10**9, 0)  # at the bound: accepted
+    p.reset()
+    p.check_stamp(T0_NS + 3600 * 10**9, 0)  # a new target starts a new sequence
+
+
 @pytest.mark.parametrize("kw", [{"stamp_check": "sometimes"}, {"replan_sigma_threshold": 0},
-                                {"min_remaining_nodes": 1}, {"replan_period_s": -1.0}])
+                                {"min_remaining_nodes": 1}, {"replan_period_s": -1.0},
+                                {"max_stamp_jump_s": 0.0}])
 def test_invalid_settings_are_refused(kw):
     with pytest.raises(ConfigError):
         ReplanSettings(**kw)
