@@ -42,7 +42,7 @@ import numpy as np
 from art_guidance.config import ScpConfig
 from art_guidance.dynamics import DeputyLinearization, Horizon
 from art_guidance.optim.cvx import control_cost, terminal_maps
-from art_guidance.optim.problem import pooled_subproblem
+from art_guidance.optim.problem import SubproblemOptions, pooled_subproblem
 from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus
 from art_guidance.safety import PassiveSafety
 
@@ -134,7 +134,18 @@ class Scvx:
 
     def __init__(self, safety: PassiveSafety, roe0_m: np.ndarray, roe_f_m: np.ndarray,
                  config: ScpConfig | None = None, norm: str = "l2",
-                 solver: str = "clarabel", samples_per_node: int = 1) -> None:
+                 solver: str = "clarabel", samples_per_node: int = 1,
+                 subproblem: SubproblemOptions | None = None) -> None:
+        """Args:
+            safety: the passive-safety model (its horizon is the plan's).
+            roe0_m, roe_f_m: (6,) initial pre-burn and terminal post-burn ROE [m].
+            config: SCVx* parameters (default: the packaged scp.yaml).
+            norm: "l2" or "l1" control cost.
+            solver: "clarabel" or "osqp" (l1 only).
+            samples_per_node: drift instants linearised per node.
+            subproblem: how the subproblem is posed (`optim.problem.SubproblemOptions`;
+                `REFERENCE_OPTIONS` is the earlier, slower form, kept as the oracle).
+        """
         self.safety = safety
         self.horizon = safety.horizon
         self.roe0_m = np.asarray(roe0_m, float)
@@ -149,7 +160,7 @@ class Scvx:
         self.tighten = self.cfg.tightening
         # reused across runs over this horizon (same pattern and solver, numbers updated)
         self.sub = pooled_subproblem(self.horizon, self.roe0_m, self.roe_f_m, norm, solver,
-                                     self.k)
+                                     self.k, subproblem)
 
     # ------------------------------------------------------------------ dynamics
     def _propagate(self, dv_rtn_mps: np.ndarray) -> np.ndarray:

@@ -186,18 +186,21 @@ SOLVERS = {"clarabel": ClarabelSolver, "osqp": OsqpSolver}
 
 
 def make_solver(name: str, p: sp.csc_matrix, q: np.ndarray, a: sp.csc_matrix, b: np.ndarray,
-                cones: Cones, scaled: bool = False) -> ClarabelSolver | OsqpSolver:
+                cones: Cones, scaled: bool = False,
+                tol: float | None = None) -> ClarabelSolver | OsqpSolver:
     """Construct a solver by name ('clarabel' or 'osqp').
 
     Args:
         name: 'clarabel' or 'osqp'.
         p, q, a, b, cones: the problem (see the solver classes).
         scaled: the data is already well scaled (Clarabel then skips its equilibration).
+        tol: Clarabel's gap and feasibility tolerances (None: its class default).
     """
     try:
         cls = SOLVERS[name]
     except KeyError:
         raise SolverError(f"unknown solver {name!r}; choose from {sorted(SOLVERS)}") from None
     if cls is ClarabelSolver:
-        return cls(p, q, a, b, cones, equilibrate=not scaled)
+        extra = {} if tol is None else {"tol": tol}
+        return cls(p, q, a, b, cones, equilibrate=not scaled, **extra)
     return cls(p, q, a, b, cones)
