@@ -10,6 +10,7 @@ Every plan says in words which warm start it used and why (`PlanResult.warm_star
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -20,6 +21,7 @@ from art_guidance.config import GuidanceConfig
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
+from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions
 from art_guidance.planning.posthoc import check_proposal
 from art_guidance.planning.types import (
     PlanRequest, PlanResult, PosthocDecision, ScpAttempt, WarmStart, WarmStartProposal,
@@ -33,12 +35,15 @@ class GuidancePipeline:
 
     def __init__(self, config: GuidanceConfig | None = None,
                  provider: WarmStartProvider | None = None,
-                 deadline_s: float | None = None) -> None:
+                 deadline_s: float | None = None,
+                 subproblem: SubproblemOptions | None = None) -> None:
         """Args:
             config: the configuration bundle (default: the packaged YAML files).
             provider: a learned warm-start provider, or None (CVX only).
             deadline_s: wall-clock budget of one whole plan [s] (CVX, the learned proposal
                 and every SCVx* run, counted from the call of `plan`), or None.
+            subproblem: how SCVx*'s subproblem is posed (`optim.problem.SubproblemOptions`;
+                None: the default); recorded with the configuration (`config_json`).
         """
         self.config = config or GuidanceConfig.load()
         if provider is not None and hasattr(provider, "planning"):
@@ -49,19 +54,26 @@ class GuidancePipeline:
         self.samples_per_node = self.config.planning.samples_per_node
         self.provider = provider
         self.deadline_s = deadline_s
+        self.subproblem = subproblem or SubproblemOptions()
         self._cache: dict = {}
 
     def config_json(self) -> dict:
         """The configuration this pipeline plans with (recorded with every run)."""
         return {**self.config.to_json(), "deadline_s": self.deadline_s,
-                "config_sha256": self.config.sha256()}
+                "config_sha256": self.config.sha256(),
+                "scp_subproblem": dataclasses.asdict(self.subproblem)}
 
     @classmethod
     def from_config_json(cls, data: dict) -> "GuidancePipeline":
-        """Rebuild a pipeline from `config_json` output (for replay)."""
+        """Rebuild a pipeline from `config_json` output (for replay). A record from before
+        the subproblem's options were recorded was solved with `REFERENCE_OPTIONS`, and is
+        replayed with them."""
         try:
-            return cls(GuidanceConfig.from_json(data), deadline_s=data["deadline_s"])
-        except (KeyError, TypeError, ConfigError) as exc:
+            sub = data.get("scp_subproblem")
+            options = REFERENCE_OPTIONS if sub is None else SubproblemOptions(**sub)
+            return cls(GuidanceConfig.from_json(data), deadline_s=data["deadline_s"],
+                       subproblem=options)
+        except (KeyError, TypeError, ConfigError, InputError) as exc:
             raise InputError("config", f"recorded configuration is malformed: {exc!r}") from exc
 
     def _setup(self, request: PlanRequest) -> tuple[Horizon, PassiveSafety]:
@@ -114,7 +126,7 @@ class GuidancePipeline:
         cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
             else np.zeros((horizon.n_nodes, 3))
         scvx = Scvx(safety, request.roe0_m, roe_f, self.scp_config,
-                    samples_per_node=self.samples_per_node)
+                    samples_per_node=self.samples_per_node, subproblem=self.subproblem)
         source, reason, discarded = learned.source, learned.reason, None
         warm = {"cvx": cvx_dv, "art": learned.dv}
         other = "cvx" if source == "art" else "art"

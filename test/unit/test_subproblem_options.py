@@ -130,3 +130,17 @@ def test_options_are_validated_and_pooled_apart(setup):
     assert a is not b and a.options == SubproblemOptions() and b.options == REFERENCE_OPTIONS
     assert problem.pooled_subproblem(horizon, x0, xf, samples_per_node=3,
                                      options=SubproblemOptions()) is a
+
+
+def test_the_pipeline_records_its_subproblem_and_replays_older_records_as_solved():
+    """`config_json` records the subproblem's options; a record from before they were recorded
+    was solved with the reference form, and `from_config_json` rebuilds it so (a log replays as
+    it was flown)."""
+    from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions
+    from art_guidance.planning import GuidancePipeline
+
+    record = GuidancePipeline().config_json()
+    assert record["scp_subproblem"] == {"tol": 1e-6, "drop_idle_control_box": True}
+    assert GuidancePipeline.from_config_json(record).subproblem == SubproblemOptions()
+    older = {k: v for k, v in record.items() if k != "scp_subproblem"}
+    assert GuidancePipeline.from_config_json(older).subproblem == REFERENCE_OPTIONS
