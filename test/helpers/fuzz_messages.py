@@ -47,7 +47,8 @@ class Message:
 def _float(rng: np.random.Generator, valid: float) -> float:
     if rng.random() < 0.7:
         return float(FLOATS[rng.integers(len(FLOATS))])
-    return float(valid * 10.0 ** rng.uniform(-6, 12) * rng.choice([-1.0, 1.0]))
+    with np.errstate(over="ignore"):  # a huge value times 1e12 is inf: a case as well
+        return float(valid * 10.0 ** rng.uniform(-6, 12) * rng.choice([-1.0, 1.0]))
 
 
 def _stamp(rng: np.random.Generator, msg: object, now_ns: int) -> None:
@@ -162,11 +163,12 @@ def run_campaign(client, node_proc, first_seed: int, n_cases: int,
                  progress=None) -> dict:
     """Send the cases `first_seed` .. `first_seed + n_cases - 1` (module docstring).
 
-    Returns counts: cases, messages, nav answers by decision, requests answered, and the
-    nav -> answer latency median [ms]. Raises AssertionError naming the seed on a failure.
+    Returns counts: cases, messages of the cases (and the closing request and fix of each,
+    apart), nav answers by decision, requests answered, and the nav -> answer latency median
+    [ms]. Raises AssertionError naming the seed on a failure.
     """
     counts = {"cases": 0, "messages": 0, "rejected": 0, "replanning": 0, "on_plan": 0,
-              "requests": 0, "mutated": 0}
+              "requests": 0, "mutated": 0, "closing_messages": 0}
     answer_ms = []
     # the first samples after an endpoint match can be lost while discovery completes on the
     # node's side: a fix resent until answered (`Client.send_nav`) opens the campaign
@@ -194,6 +196,7 @@ def run_campaign(client, node_proc, first_seed: int, n_cases: int,
                 counts[decision if decision in counts else "on_plan"] += 1
             assert node_proc.poll() is None, f"{where}: the node stopped"
         _assert_still_plans(client, seed, plan_timeout_s)
+        counts["closing_messages"] += 2  # the valid request and fix after the case
         counts["cases"] += 1
         if progress is not None:
             progress(counts)
