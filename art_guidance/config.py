@@ -273,6 +273,7 @@ class PlanningConfig:
     posthoc_subject: str = "warm_start"
     art_min_gain_mps: float = 0.001
     skip_art_when_cvx_safe: bool = True
+    propose_concurrently: bool = False
 
     def __post_init__(self) -> None:
         if self.posthoc_subject not in POSTHOC_SUBJECTS:
@@ -285,6 +286,9 @@ class PlanningConfig:
         if not isinstance(self.also_solve_from_cvx, bool):
             raise ConfigError(f"also_solve_from_cvx must be true or false, got "
                               f"{self.also_solve_from_cvx!r}")
+        if not isinstance(self.propose_concurrently, bool):
+            raise ConfigError(f"propose_concurrently must be true or false, got "
+                              f"{self.propose_concurrently!r}")
         if not isinstance(self.skip_art_when_cvx_safe, bool):
             raise ConfigError(f"skip_art_when_cvx_safe must be true or false, got "
                               f"{self.skip_art_when_cvx_safe!r}")
@@ -311,12 +315,14 @@ class PlanningConfig:
 # Planning fields that the dataset generator does not use (the post hoc check and the
 # in-flight choices between warm starts); `samples_per_node` shapes SCVx* and does matter.
 FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
-                        "posthoc_subject", "art_min_gain_mps", "skip_art_when_cvx_safe")
+                        "posthoc_subject", "art_min_gain_mps", "skip_art_when_cvx_safe",
+                        "propose_concurrently")
 
 
 # What the pipeline did before these planning fields existed: fly the cheaper plan whatever
 # the gap, and run ART even when the CVX plan is passively safe.
-_BEFORE = {"art_min_gain_mps": 0.0, "skip_art_when_cvx_safe": False}
+_BEFORE = {"art_min_gain_mps": 0.0, "skip_art_when_cvx_safe": False,
+           "propose_concurrently": False}
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,6 +56,7 @@ class GuidancePipeline:
         self.provider = provider
         self.deadline_s = deadline_s
         self.subproblem = subproblem or SubproblemOptions()
+        self._executor: ThreadPoolExecutor | None = None
         self._cache: dict = {}
 
     def config_json(self) -> dict:
@@ -121,26 +123,33 @@ class GuidancePipeline:
         roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
         cvx = solve_cvx(horizon, request.roe0_m, roe_f)
         t_cvx = time.perf_counter()
-        learned = self._learned(request, roe_f, safety, cvx, deadline)
-        t_art = time.perf_counter()
         cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
             else np.zeros((horizon.n_nodes, 3))
         scvx = Scvx(safety, request.roe0_m, roe_f, self.scp_config,
                     samples_per_node=self.samples_per_node, subproblem=self.subproblem)
+        early, learned, art_ms = self._propose(request, roe_f, safety, cvx, cvx_dv, scvx,
+                                               deadline, t0)
+        t_art = time.perf_counter()
         source, reason, discarded = learned.source, learned.reason, None
         warm = {"cvx": cvx_dv, "art": learned.dv}
+
+        def solve(src: str, budget_s: float | None) -> ScpResult:
+            """SCVx* from a warm start (from CVX: the run made during the proposal, if any)."""
+            return early if src == "cvx" and early is not None \
+                else scvx.solve(warm[src], deadline_s=budget_s)
+
         other = "cvx" if source == "art" else "art"
         budget = self._time_left(t0)
         if warm[other] is not None and budget is not None:
             budget *= self.config.planning.art_deadline_share  # leave time for the retry
-        res = scvx.solve(warm[source], deadline_s=budget)
+        res = solve(source, budget)
         second = second_run(res, source, warm[other] is not None,
                             request.warm_start == WarmStart.AUTO.value
                             and self.config.planning.also_solve_from_cvx
                             and self._time_left(t0) != 0.0)
         if second is not None:
             alt_source, why = second
-            alt = scvx.solve(warm[alt_source], deadline_s=self._time_left(t0))
+            alt = solve(alt_source, self._time_left(t0))
             keep_first = keep_first_plan(res, alt, source,
                                          self.config.planning.art_min_gain_mps)
             kept, lost = (res, alt) if keep_first else (alt, res)
@@ -158,13 +167,55 @@ class GuidancePipeline:
             res = kept
         t_end = time.perf_counter()
         margin = float(safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
+        # with the concurrent proposal, "art" (its own wall time) overlaps "scp" (every SCVx*
+        # run, the one from CVX made meanwhile included): their sum then exceeds the total
+        scp_ms = 1e3 * (t_end - t_art) + (0.0 if early is None else early.solve_time_ms)
         timings = {"setup": 1e3 * (t_setup - t0), "cvx": 1e3 * (t_cvx - t_setup),
-                   "art": 1e3 * (t_art - t_cvx), "scp": 1e3 * (t_end - t_art),
-                   "total": 1e3 * (t_end - t0)}
+                   "art": art_ms, "scp": scp_ms, "total": 1e3 * (t_end - t0)}
         return PlanResult(res.status, request.chief_oe, horizon.epochs_s, res.dv_rtn_mps,
                           res.roe_m, horizon.to_rtn(res.roe_m), res.cost_mps, res, cvx, source,
                           learned.posthoc, margin, timings, request, learned.proposal, reason,
                           discarded)
+
+    def _propose(self, request: PlanRequest, roe_f: np.ndarray, safety: PassiveSafety,
+                 cvx: ConvexSolution, cvx_dv: np.ndarray, scvx: Scvx, deadline: float | None,
+                 t0: float) -> tuple[ScpResult | None, "_Learned", float]:
+        """The learned warm start step (`_learned`): (SCVx* from CVX if it was solved
+        meanwhile, else None; the decision; the proposal's wall time [ms]).
+
+        With `propose_concurrently`, warm start auto and `also_solve_from_cvx` (so that SCVx*
+        from CVX is solved whatever the check decides), a model, and a CVX plan that is feasible
+        but not passively safe (otherwise ART is not run), the proposal runs in the pipeline's
+        worker thread while this thread solves SCVx* from CVX. The plan is the one the sequence
+        gives: SCVx* is deterministic, and each run uses this thread's pooled subproblem.
+        """
+        planning = self.config.planning
+        if planning.propose_concurrently and planning.also_solve_from_cvx \
+                and request.warm_start == WarmStart.AUTO.value and self.provider is not None \
+                and cvx.status.feasible \
+                and not (planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety)):
+            future = self._worker().submit(self._timed_learned, request, roe_f, safety, cvx,
+                                           deadline)
+            budget = self._time_left(t0)
+            early = scvx.solve(cvx_dv, deadline_s=None if budget is None
+                               else budget * planning.art_deadline_share)
+            learned, art_ms = future.result()
+            return early, learned, art_ms
+        learned, art_ms = self._timed_learned(request, roe_f, safety, cvx, deadline)
+        return None, learned, art_ms
+
+    def _timed_learned(self, *args: object) -> tuple["_Learned", float]:
+        """`_learned` and its wall time [ms]."""
+        t = time.perf_counter()
+        learned = self._learned(*args)
+        return learned, 1e3 * (time.perf_counter() - t)
+
+    def _worker(self) -> ThreadPoolExecutor:
+        """The thread that makes learned proposals concurrently (started on first use)."""
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(max_workers=1,
+                                                thread_name_prefix="art_proposal")
+        return self._executor
 
     def _time_left(self, t_start: float) -> float | None:
         """What is left of the plan's deadline, started at `t_start` [s] (None: no

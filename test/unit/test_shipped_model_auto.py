@@ -57,3 +57,34 @@ def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(mode):
           f" cvx {np.mean([r[5] for r in rows]):.1f}")
     assert accepted.sum() >= MIN_ACCEPTED[mode]
     assert -d.sum() >= MIN_TOTAL_GAIN_MPS[mode]
+
+
+@pytest.mark.parametrize("mode", sorted(DEFAULT_MODELS))
+def test_the_concurrent_proposal_plans_as_the_sequence(mode):
+    """`propose_concurrently` (SCVx* from CVX while the proposal is made; off by default)
+    changes the time only: on 12 held-out scenarios per mode every plan, its warm start, the
+    decision's reason, the post hoc numbers and the discarded attempt equal those of the
+    sequence, bit for bit (including scenarios whose proposal the check accepts)."""
+    import dataclasses
+
+    config = GuidanceConfig.load()
+    provider = ArtWarmStart.load(default_model_path(mode))
+    con_config = config.replace(planning=dataclasses.replace(config.planning,
+                                                             propose_concurrently=True))
+    concurrent = GuidancePipeline(con_config, provider=provider)
+    sequence = GuidancePipeline(config, provider=provider)
+    accepted = ran = 0
+    for req in heldout_requests(12, DEFAULT_MODELS[mode]):
+        a, b = concurrent.plan(req), sequence.plan(req)
+        assert a.status == b.status and a.warm_start == b.warm_start, b.warm_start_reason
+        assert np.array_equal(a.dv_rtn_mps, b.dv_rtn_mps) and a.cost_mps == b.cost_mps
+        assert a.warm_start_reason == b.warm_start_reason and a.posthoc == b.posthoc
+        assert (a.discarded is None) == (b.discarded is None)
+        if a.discarded is not None:  # the same attempt, timed apart
+            assert dataclasses.replace(a.discarded, solve_time_ms=0.0) == \
+                dataclasses.replace(b.discarded, solve_time_ms=0.0)
+        ran += a.proposal is not None
+        accepted += a.posthoc is not None and bool(a.posthoc.accepted)
+    assert ran >= 6, ran
+    if mode == "deterministic":
+        assert accepted >= 1, accepted
