@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
 
 import numpy as np
@@ -53,7 +54,6 @@ def run(args: argparse.Namespace) -> int:
         return _offline_demo(args)
     import os
     import signal
-    import subprocess
     import time
     from pathlib import Path
 
@@ -75,18 +75,29 @@ def run(args: argparse.Namespace) -> int:
     if args.fault:
         sim_cmd += ["-p", f"fault:={args.fault}", "-p", f"fault_node:={args.fault_node}"]
     print(f"guidance node and simulator on ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']}; logs in {run}")
-    with open(run / "node.log", "w") as node_log:
+    with open(run / "node.log", "w") as node_log, open(run / "sim.out", "w+") as sim_out:
         node = subprocess.Popen(node_cmd, env=env, stdout=node_log, stderr=subprocess.STDOUT)
         try:
-            sim = subprocess.run(sim_cmd, env=env, stdout=subprocess.PIPE, text=True,
-                                 timeout=args.timeout)
+            sim = subprocess.Popen(sim_cmd, env=env, stdout=sim_out, text=True)
+            died = _wait_for_sim(sim, node, args.timeout)
+        except subprocess.TimeoutExpired:
+            print(f"the flight ran past --timeout {args.timeout:g} s and was stopped; logs in "
+                  f"{run}", file=sys.stderr)
+            return 1
         finally:
             node.send_signal(signal.SIGINT)
             try:
                 node.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 node.kill()
-    summary = _last_json_line(sim.stdout)
+        sim_out.seek(0)
+        sim_text = sim_out.read()
+    if died is not None:
+        tail = "".join((run / "node.log").read_text(errors="replace").splitlines(True)[-15:])
+        print(f"the guidance node exited with code {died} while the simulator was flying; the "
+              f"flight was stopped. Last lines of {run / 'node.log'}:\n{tail}", file=sys.stderr)
+        return 1
+    summary = _last_json_line(sim_text)
     if bag.is_dir() and "total_dv_mps" in summary and not args.no_compare:
         summary.update(_warm_start_comparison(bag, args, summary["total_dv_mps"]))
         write_json_atomic(run / "demo_summary.json", summary)
@@ -96,6 +107,33 @@ def run(args: argparse.Namespace) -> int:
     print(f"MCAP log (rosbag2 bag): {bag}\nplot: {run / 'rendezvous.png'}\n"
           f"node log: {run / 'node.log'}\nreplay it: art-guidance replay {bag}")
     return sim.returncode
+
+
+def _wait_for_sim(sim: subprocess.Popen, node: subprocess.Popen,
+                  timeout_s: float) -> int | None:
+    """Wait for the simulator to end; None, or the node's exit code if the node ended first
+    (the simulator is then stopped: without guidance it would only wait for plans).
+
+    Raises:
+        subprocess.TimeoutExpired: the simulator ran past `timeout_s` (it is stopped).
+    """
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while sim.poll() is None:
+        code = node.poll()
+        if code is not None or time.monotonic() > deadline:
+            sim.terminate()
+            try:
+                sim.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                sim.kill()
+                sim.wait()
+            if code is not None:
+                return code
+            raise subprocess.TimeoutExpired(sim.args, timeout_s)
+        time.sleep(0.2)
+    return None
 
 
 def _warm_start_comparison(bag: object, args: argparse.Namespace, total_dv_mps: float) -> dict:

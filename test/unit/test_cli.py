@@ -105,3 +105,31 @@ def test_node_takes_ros_args_as_users_type_them(argv, expected, monkeypatch):
     assert main(argv) == 0
     assert seen["args"] == ["guidance_node", *expected]
     assert seen["managed"] == ("--managed" in argv)
+
+
+def _child(code: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", code])
+
+
+def test_demo_stops_the_flight_when_the_node_dies():
+    """The demo's wait: a node that exits while the simulator flies is reported with its exit
+    code at once (the simulator is stopped), not after the simulator's plan timeout."""
+    import time
+
+    from art_guidance.cli.demo import _wait_for_sim
+
+    sim, node = _child("import time; time.sleep(60)"), _child("raise SystemExit(2)")
+    t0 = time.monotonic()
+    assert _wait_for_sim(sim, node, timeout_s=60) == 2
+    assert time.monotonic() - t0 < 10 and sim.poll() is not None
+    sim, node = _child("pass"), _child("import time; time.sleep(60)")
+    assert _wait_for_sim(sim, node, timeout_s=60) is None and sim.returncode == 0
+    node.kill()
+    node.wait()
+    sim = _child("import time; time.sleep(60)")
+    node = _child("import time; time.sleep(60)")
+    with pytest.raises(subprocess.TimeoutExpired):
+        _wait_for_sim(sim, node, timeout_s=0.5)
+    assert sim.poll() is not None
+    node.kill()
+    node.wait()
