@@ -11,7 +11,7 @@ roe_f_m) in RTN; the RTN states are `rtn` = Psi_i x_i.
 Batches are sequences of the N nodes of a trajectory or, for a share of them, suffixes starting
 at a random node k (teaching replans over the remaining horizon); suffixes are shifted to the
 front and padded at the end, where causality keeps the padding out of every valid prediction
-and the loss mask out of the loss. Rows of DAgger datasets (`art_guidance.art.dagger`) carry
+and the loss mask out of the loss. Rows of DAgger datasets (`art_guidance.data.dagger`) carry
 `train_from`, the first node whose control is an expert label: their earlier nodes (the
 model's own rollout) are context only, kept out of the loss mask (`valid_mask`); rows of
 ordinary datasets have train_from 0 (a missing field reads as 0). Time-step indices follow

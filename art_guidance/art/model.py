@@ -166,6 +166,16 @@ def loss_terms(model: ArtModel, batch: dict[str, torch.Tensor], burn_threshold_m
     return sse_u, sse_x, bce
 
 
+def combined_loss(sse_u: torch.Tensor | float, sse_x: torch.Tensor | float,
+                  bce: torch.Tensor | float, counts: tuple[int, int],
+                  gate_weight: float) -> torch.Tensor | float:
+    """The training loss from the sums of `loss_terms` and the `loss_counts` of the same
+    (global) batch: mean control MSE + mean next-state MSE + `gate_weight` x the gate's mean
+    cross-entropy (its sum runs over the valid steps, n_u / CONTROL_DIM of them)."""
+    n_u, n_x = counts
+    return sse_u / n_u + sse_x / n_x + gate_weight * CONTROL_DIM * bce / n_u
+
+
 def loss_counts(mask: torch.Tensor) -> tuple[int, int]:
     """Entries the control and state sums of `loss_terms` run over: (3 * valid steps,
     6 * valid next steps); the gate's sum runs over the valid steps (first count / 3).

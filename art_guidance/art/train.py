@@ -46,7 +46,7 @@ from art_guidance.art.data import (
     trained_seed_bases, valid_mask, validation_starts,
 )
 from art_guidance.art.distributed import DistContext, init_distributed, shutdown_distributed
-from art_guidance.art.model import ArtModel, loss_counts, loss_terms
+from art_guidance.art.model import ArtModel, combined_loss, loss_counts, loss_terms
 from art_guidance.art.rollout import training_config
 from art_guidance.config import GuidanceConfig
 from art_guidance.errors import ConfigError, GuidanceError, InputError
@@ -338,7 +338,7 @@ class _Trainer:
         step, n = self.prog.step, self.data.n_nodes
         rows = self._rows(step)
         starts = suffix_starts(self.opts.seed, step, rows.size, n, self.tcfg.suffix_fraction)
-        n_u, n_x = loss_counts(valid_mask(starts, n, self.train_from[rows]))
+        counts = loss_counts(valid_mask(starts, n, self.train_from[rows]))
         mine = self.ctx.share(np.arange(rows.size))
         for group in self.opt.param_groups:
             group["lr"] = self._lr(step)
@@ -351,7 +351,7 @@ class _Trainer:
                                self.ctx.device)
             with self._precision():
                 sse_u, sse_x, bce = loss_terms(self.model, batch, self.tcfg.burn_threshold_mps)
-            loss = sse_u / n_u + sse_x / n_x + self.tcfg.gate_weight * 3.0 * bce / n_u
+            loss = combined_loss(sse_u, sse_x, bce, counts, self.tcfg.gate_weight)
             loss.backward()
             local = float(loss.detach())
         self.ctx.sum_gradients(self.params)
@@ -364,7 +364,7 @@ class _Trainer:
     def validation_loss(self) -> float:
         """Loss of the current weights on the validation sequences (eval mode)."""
         rows, starts = self.data.val_rows, self.val_starts
-        n_u, n_x = loss_counts(valid_mask(starts, self.data.n_nodes, self.train_from[rows]))
+        counts = loss_counts(valid_mask(starts, self.data.n_nodes, self.train_from[rows]))
         mine = self.ctx.share(np.arange(rows.size))
         sse = [0.0, 0.0, 0.0]
         self.model.eval()
@@ -378,7 +378,7 @@ class _Trainer:
                 for j, term in enumerate(terms):
                     sse[j] += float(term)
         total = self.ctx.sum(sse)
-        return total[0] / n_u + total[1] / n_x + self.tcfg.gate_weight * 3.0 * total[2] / n_u
+        return combined_loss(*total, counts, self.tcfg.gate_weight)
 
     def _precision(self) -> contextlib.AbstractContextManager:
         """bf16 autocast of the forward pass on CUDA when asked, else nothing."""

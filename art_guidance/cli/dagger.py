@@ -16,7 +16,7 @@ def run(args: argparse.Namespace) -> int:
     row and train_from = k, so that training learns only the expert's controls (the prefix is
     context). The output is a dataset directory of the source's mode and configuration with no
     test split: train on both with `art-guidance train --data SRC --data OUT --out CKPT`."""
-    from art_guidance.art.dagger import dagger
+    from art_guidance.data.dagger import dagger
 
     summary = dagger(args.out, args.model, args.data, args.n, seed=args.seed,
                      workers=args.workers, engine=args.engine, shard_size=args.shard_size,

@@ -74,7 +74,7 @@ def _figures_only(args: argparse.Namespace) -> int:
 
 
 def _rollouts(args: argparse.Namespace) -> int:
-    from art_guidance.art.suite import evaluate_model
+    from art_guidance.eval.suite import evaluate_model
     from art_guidance.data.storage import load_dataset
 
     if len(args.data) != 1:

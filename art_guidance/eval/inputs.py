@@ -108,14 +108,14 @@ def model_info(path: str | Path) -> ModelInfo:
 
 
 def heldout(path: str | Path, split: str = "test") -> dict[str, np.ndarray]:
-    """`art.scoring.heldout_scenarios` of a complete dataset, read shard by shard so that only
+    """`eval.scoring.heldout_scenarios` of a complete dataset, read shard by shard so that only
     the held-out rows of the fields it selects are kept in memory (sorted by sample index).
     `split` "all" takes every scenario (a dataset no model under evaluation was trained on).
 
     Raises:
         DatasetError: an incomplete or corrupt dataset.
     """
-    from art_guidance.art.scoring import heldout_scenarios
+    from art_guidance.eval.scoring import heldout_scenarios
 
     parts = [heldout_scenarios(arrays, split=split) for arrays in complete_shards(path)]
     cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

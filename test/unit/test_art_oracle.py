@@ -2,7 +2,7 @@
 planner did.
 
 A perfect model would emit the dataset's controls. Driven through the rollout's propagation,
-R and C updates and post hoc metrics (`art.rollout.replay`, `art.scoring.score_oracle`),
+R and C updates and post hoc metrics (`art.rollout.replay`, `eval.scoring.score_oracle`),
 they must reproduce the dataset's states, its constraint-to-go labels C(t_1) and its
 E_R = (J - J_CVX) / J_CVX; otherwise even a perfect model is rejected by the post hoc check.
 The scenarios come from a seed no shipped model was trained on.
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from art_guidance.art.scoring import score_oracle, heldout_scenarios
+from art_guidance.eval.scoring import score_oracle, heldout_scenarios
 from art_guidance.art.rollout import replay
 from art_guidance.config import GuidanceConfig
 from art_guidance.data.generate import generate

@@ -355,7 +355,7 @@ def test_sweep_proposes_the_best_of_its_candidates(model_path):
 def test_the_rollouts_suite_scores_what_the_sweep_proposes(model_path):
     """`evaluate --suite rollouts --sweep` scores the candidate the provider proposes (ranked
     by the check's subject, the terminal warm start by default), by its rollout's own cost."""
-    from art_guidance.art.scoring import score_rollouts
+    from art_guidance.eval.scoring import score_rollouts
     from art_guidance.optim import solve_cvx
 
     scales = (0.8, 1.0, 1.2)

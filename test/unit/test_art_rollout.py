@@ -16,7 +16,7 @@ from helpers.art_models import untrained_art
 
 from art_guidance.art import ArtModel, TrainedArt, preset
 from art_guidance.art.config import FEATURES, SLOTS
-from art_guidance.art.scoring import score_rollouts, heldout_scenarios
+from art_guidance.eval.scoring import score_rollouts, heldout_scenarios
 from art_guidance.art.model import loss_terms
 from art_guidance.art.rollout import rollout
 from art_guidance.config import ScenarioConfig

@@ -17,7 +17,7 @@ import torch
 
 from art_guidance.art import build_safety, checkpoint
 from art_guidance.art.config import TrainConfig
-from art_guidance.art.dagger import (
+from art_guidance.data.dagger import (
     DAGGER_STREAM, FIELDS, dagger, dagger_node, expert_from, scenario_pool,
 )
 from art_guidance.art.data import load_training_data, make_batch, manifest_digest, valid_mask

@@ -310,7 +310,7 @@ def test_summary_of_stored_columns_equals_summary_of_rows():
 
 
 def test_heldout_reads_the_same_scenarios_as_the_full_load(inputs):
-    from art_guidance.art.scoring import heldout_scenarios
+    from art_guidance.eval.scoring import heldout_scenarios
     from art_guidance.data.storage import load_dataset
 
     full = heldout_scenarios(load_dataset(inputs["chance"]))

@@ -10,7 +10,7 @@ Sample i of a DAgger dataset of n samples:
 1. scenario: the (i mod P)-th of the P feasible train-split scenarios of SRC whose CVX solve
    succeeded, by sample index (SRC's test split is never read);
 2. rollout: the model from the scenario's initial state, conditioned on R(t_1) = -J_CVX and
-   C(t_1) = 0 with the target as goal (as `art_guidance.art.scoring`), on the horizon and
+   C(t_1) = 0 with the target as goal (as `art_guidance.eval.scoring`), on the horizon and
    passive-safety model of its training data (`rollout.build_safety`); the rollouts of the
    samples g B .. g B + B - 1 (B = `batch`) run as one batch, whatever the chunking;
 3. node k = 1 + default_rng(SeedSequence([seed, DAGGER_STREAM, i])).integers(N - 3), in

@@ -37,7 +37,8 @@ def evaluate_model(data: dict, model_path: str, n: int | None, threads: int,
     import torch
     from tqdm import tqdm
 
-    from art_guidance.art import build_safety, score_rollouts, heldout_scenarios, load
+    from art_guidance.art import build_safety, load
+    from art_guidance.eval.scoring import heldout_scenarios, score_rollouts
 
     torch.set_num_threads(threads)
     art = load(model_path)
@@ -105,7 +106,7 @@ def _training_summary(art: object) -> dict:
 
 def _oracle(safety: object, held: dict, m: int, c_cvx_now: np.ndarray) -> dict:
     """A perfect model: the plans' own controls through the rollout machinery (`replay`)."""
-    from art_guidance.art import score_oracle
+    from art_guidance.eval.scoring import score_oracle
 
     ok = held["feasible"][:m]
     ev = score_oracle(safety, held["roe0_m"][:m][ok], held["dv_rtn_mps"][:m][ok],
