@@ -2,7 +2,8 @@
 
 The node runs in its own process (as `ros2 run` would start it) with every nav message forced to
 replan; the client publishes a nav state, waits for the plan with that stamp, and repeats. This
-runs twice: with the learned warm start (`warm_start auto`, the shipped model) and CVX only.
+runs three times: with the learned warm start (`warm_start auto`, the shipped model), CVX only,
+and `auto` with the proposal made in a worker process (`propose_concurrently`).
 The reference is the same `GuidancePipeline.plan` called in-process on the same states, so the
 difference is the node and middleware overhead; its timings give the split per stage (CVX,
 ART rollout + post hoc check, SCP).
@@ -36,14 +37,17 @@ def _states(repeats: int) -> list[np.ndarray]:
             for _ in range(repeats + 1)]
 
 
-def _node_latency(warm_start: str, states: list[np.ndarray], client_cls, nav_msg) -> list[float]:
-    """Nav -> plan latency [ms] of a node process with `warm_start` (first plan excluded)."""
+def _node_latency(warm_start: str, states: list[np.ndarray], client_cls, nav_msg,
+                  concurrent: bool = False) -> list[float]:
+    """Nav -> plan latency [ms] of a node process with `warm_start` (first plan excluded);
+    `concurrent`: with `propose_concurrently` (the proposal in a worker process)."""
     env = dict(os.environ)
     proc = subprocess.Popen([sys.executable, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "-p", "replan_sigma_threshold:=1e-9", "-p", "record:=false",
-                             "-p", f"warm_start:={warm_start}"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    client = client_cls(f"art_guidance_bench_client_{warm_start}")
+                             "-p", f"warm_start:={warm_start}",
+                             "-p", f"propose_concurrently:={str(concurrent).lower()}"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    client = client_cls(f"art_guidance_bench_client_{warm_start}_{int(concurrent)}")
     latency = []
     try:
         if not client.wait_matched(60.0):
@@ -107,6 +111,11 @@ def run(repeats: int = 30) -> dict:
         if warm_start == "auto":
             out["auto_art_accepted"] = f"{accepted}/{repeats}"
     out["auto_over_cvx_latency_p50"] = out["auto_latency_p50_ms"] / out["cvx_latency_p50_ms"]
+    latency = _node_latency("auto", states, Client, nav_msg, concurrent=True)
+    out.update(auto_concurrent_latency_p50_ms=float(np.percentile(latency, 50)),
+               auto_concurrent_latency_p95_ms=float(np.percentile(latency, 95)),
+               auto_concurrent_over_cvx_latency_p50=float(np.percentile(latency, 50))
+               / out["cvx_latency_p50_ms"])
     return out
 
 

@@ -9,8 +9,8 @@ accepted ART, how often the plan kept came from ART, the paired cost difference 
 only) [mm/s], and the median total planning time of both (one process, one torch thread) with
 the median of the paired ratios, over all seeds and over those where ART ran (`auto` skips it
 where CVX is already passively safe); `auto` also once more with the proposal and SCVx* from
-CVX run concurrently in two threads (`propose_concurrently: true`; the default is one after the
-other).
+CVX run concurrently, the proposal in a worker process (`propose_concurrently: true`; the
+default is one after the other).
 """
 from __future__ import annotations
 
@@ -37,23 +37,27 @@ def run(repeats: int = 40, first_seed: int = 0) -> dict:
     auto = GuidancePipeline(provider=provider)
     config = GuidanceConfig.load()
     concurrent = GuidancePipeline(config.replace(planning=dataclasses.replace(
-        config.planning, propose_concurrently=True)), provider=provider)
+        config.planning, propose_concurrently=True)), provider=ArtWarmStart.load())
+    concurrent.start_proposal_worker()
     cvx_only = GuidancePipeline()
     rows, t_con = [], []
     t0 = time.perf_counter()
-    for seed in range(int(first_seed), int(first_seed) + max(int(repeats), 1)):
-        s = sample_scenario(scenario, seed)
-        request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
-                              chance_constrained=True, warm_start="auto")
-        a = auto.plan(request)
-        t_con.append(concurrent.plan(request).timings_ms["total"])
-        c = cvx_only.plan(PlanRequest(chief, request.roe0_m, s.target_rtn,
-                                      chance_constrained=True, warm_start="cvx"))
-        rows.append((a.posthoc is not None and a.posthoc.accepted, a.warm_start == "art",
-                     a.status.feasible, c.status.feasible, a.cost_mps, c.cost_mps,
-                     a.timings_ms["total"], c.timings_ms["total"],
-                     a.posthoc.e_r if a.posthoc is not None else np.nan,
-                     a.proposal is not None, a.timings_ms["art"]))
+    try:
+        for seed in range(int(first_seed), int(first_seed) + max(int(repeats), 1)):
+            s = sample_scenario(scenario, seed)
+            request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
+                                  chance_constrained=True, warm_start="auto")
+            a = auto.plan(request)
+            t_con.append(concurrent.plan(request).timings_ms["total"])
+            c = cvx_only.plan(PlanRequest(chief, request.roe0_m, s.target_rtn,
+                                          chance_constrained=True, warm_start="cvx"))
+            rows.append((a.posthoc is not None and a.posthoc.accepted, a.warm_start == "art",
+                         a.status.feasible, c.status.feasible, a.cost_mps, c.cost_mps,
+                         a.timings_ms["total"], c.timings_ms["total"],
+                         a.posthoc.e_r if a.posthoc is not None else np.nan,
+                         a.proposal is not None, a.timings_ms["art"]))
+    finally:
+        concurrent.close()
     acc, art, ok_a, ok_c, j_a, j_c, t_a, t_c, e_r, ran, t_art = (np.array(x) for x in zip(*rows))
     both = ok_a & ok_c
     gap_mmps = 1e3 * (j_a - j_c)[both]

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +23,9 @@ from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
 from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions
 from art_guidance.planning.posthoc import check_proposal
+from art_guidance.planning.proposal_process import (
+    GRACE_S, NO_DEADLINE_TIMEOUT_S, ProposalProcess, model_key,
+)
 from art_guidance.planning.types import (
     PlanRequest, PlanResult, PosthocDecision, ScpAttempt, WarmStart, WarmStartProposal,
     WarmStartProvider,
@@ -56,7 +58,7 @@ class GuidancePipeline:
         self.provider = provider
         self.deadline_s = deadline_s
         self.subproblem = subproblem or SubproblemOptions()
-        self._executor: ThreadPoolExecutor | None = None
+        self._worker: ProposalProcess | None = None
         self._cache: dict = {}
 
     def config_json(self) -> dict:
@@ -184,23 +186,35 @@ class GuidancePipeline:
         meanwhile, else None; the decision; the proposal's wall time [ms]).
 
         With `propose_concurrently`, warm start auto and `also_solve_from_cvx` (so that SCVx*
-        from CVX is solved whatever the check decides), a model, and a CVX plan that is feasible
-        but not passively safe (otherwise ART is not run), the proposal runs in the pipeline's
-        worker thread while this thread solves SCVx* from CVX. The plan is the one the sequence
-        gives: SCVx* is deterministic, and each run uses this thread's pooled subproblem.
+        from CVX is solved whatever the check decides), a model loaded from a file, and a CVX
+        plan that is feasible but not passively safe (otherwise ART is not run), the proposal
+        is made in the pipeline's worker process (`proposal_process`) while this thread solves
+        SCVx* from CVX. The plan is the one the sequence gives. A worker that fails or answers
+        late is stopped and the proposal is made here instead (`proposal_worker_error` says
+        why).
         """
         planning = self.config.planning
-        if planning.propose_concurrently and planning.also_solve_from_cvx \
-                and request.warm_start == WarmStart.AUTO.value and self.provider is not None \
-                and cvx.status.feasible \
+        model = model_key(self.provider)
+        if planning.propose_concurrently and planning.also_solve_from_cvx and model \
+                and request.warm_start == WarmStart.AUTO.value and cvx.status.feasible \
                 and not (planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety)):
-            future = self._worker().submit(self._timed_learned, request, roe_f, safety, cvx,
-                                           deadline)
-            budget = self._time_left(t0)
-            early = scvx.solve(cvx_dv, deadline_s=None if budget is None
-                               else budget * planning.art_deadline_share)
-            learned, art_ms = future.result()
-            return early, learned, art_ms
+            worker = self._proposal_worker()
+            left = None if deadline is None else max(deadline - time.perf_counter(), 0.0)
+            job = {"config": self.config.to_json(), "config_sha256": self.config.sha256(),
+                   "model": model, "request": request, "roe_f": roe_f, "cvx": cvx,
+                   "time_left_s": left}
+            if worker.submit(job):
+                budget = self._time_left(t0)
+                early = scvx.solve(cvx_dv, deadline_s=None if budget is None
+                                   else budget * planning.art_deadline_share)
+                wait = NO_DEADLINE_TIMEOUT_S if deadline is None \
+                    else max(deadline - time.perf_counter(), 0.0) + GRACE_S
+                answer = worker.collect(wait)
+                if answer is not None:
+                    learned, art_ms = answer
+                    return early, learned, art_ms
+                learned, art_ms = self._timed_learned(request, roe_f, safety, cvx, deadline)
+                return early, learned, art_ms
         learned, art_ms = self._timed_learned(request, roe_f, safety, cvx, deadline)
         return None, learned, art_ms
 
@@ -210,12 +224,31 @@ class GuidancePipeline:
         learned = self._learned(*args)
         return learned, 1e3 * (time.perf_counter() - t)
 
-    def _worker(self) -> ThreadPoolExecutor:
-        """The thread that makes learned proposals concurrently (started on first use)."""
-        if self._executor is None:
-            self._executor = ThreadPoolExecutor(max_workers=1,
-                                                thread_name_prefix="art_proposal")
-        return self._executor
+    def _proposal_worker(self) -> ProposalProcess:
+        if self._worker is None:
+            self._worker = ProposalProcess()
+        return self._worker
+
+    @property
+    def proposal_worker_error(self) -> str:
+        """Why the worker process last failed ("" = it did not, or there is none)."""
+        return "" if self._worker is None else self._worker.error
+
+    def start_proposal_worker(self) -> bool:
+        """Start the worker process and load the model in it now, not in the first plan
+        (`propose_concurrently` with a model loaded from a file; True if it runs, False and
+        `proposal_worker_error` if it could not start; a no-op returning False otherwise)."""
+        model = model_key(self.provider)
+        if not (self.config.planning.propose_concurrently and model):
+            return False
+        return self._proposal_worker().start(self.config.to_json(), self.config.sha256(),
+                                             model)
+
+    def close(self) -> None:
+        """Stop the proposal worker process, if any (the pipeline stays usable: a later
+        concurrent proposal starts it again)."""
+        if self._worker is not None:
+            self._worker.close()
 
     def _time_left(self, t_start: float) -> float | None:
         """What is left of the plan's deadline, started at `t_start` [s] (None: no

@@ -41,7 +41,7 @@ from art_guidance.record.recorder import (
     NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE, McapRecorder,
     default_log_dir,
 )
-from art_guidance.ros.parameters import SPECS, check_table, descriptor
+from art_guidance.ros.parameters import PLANNING_PARAMETERS, SPECS, check_table, descriptor
 from art_guidance.ros import visualization as viz
 from art_guidance.ros.adapters import (
     diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg, stamp_to_ns, status_plan_msg,
@@ -82,8 +82,8 @@ class GuidanceNodeBase:
         for name, default in PARAMETERS.items():
             self.declare_parameter(name, default, descriptor(name))
         config = GuidanceConfig.load(self.get_parameter("config_dir").value or None)
-        self.declare_parameter("samples_per_node", config.planning.samples_per_node,
-                               descriptor("samples_per_node"))
+        for name in PLANNING_PARAMETERS:
+            self.declare_parameter(name, getattr(config.planning, name), descriptor(name))
         self.p = {name: spec.coerce(name, self.get_parameter(name).value)
                   for name, spec in SPECS.items()}
         self.core: GuidanceCore | None = None  # None: not configured
@@ -94,7 +94,8 @@ class GuidanceNodeBase:
         pipeline, the replan policy and the recorder. Raises GuidanceError on bad config."""
         config = GuidanceConfig.load(self.p["config_dir"] or None)
         config = config.replace(planning=dataclasses.replace(
-            config.planning, samples_per_node=int(self.p["samples_per_node"])))
+            config.planning, samples_per_node=int(self.p["samples_per_node"]),
+            propose_concurrently=bool(self.p["propose_concurrently"])))
         self.scenario = config.scenario
         if self.p["default_waypoint"] not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {self.p['default_waypoint']!r} is not one of "
@@ -102,6 +103,13 @@ class GuidanceNodeBase:
         self.provider, self.model_status = self._load_model()
         self.pipeline = GuidancePipeline(config, provider=self.provider,
                                          deadline_s=self.p["solve_deadline_s"])
+        if config.planning.propose_concurrently and self.provider is not None:
+            if self.pipeline.start_proposal_worker():
+                self.get_logger().info("learned proposals are made in a worker process")
+            else:
+                self.get_logger().warning(f"the proposal worker process did not start, "
+                                          f"proposals are made in line: "
+                                          f"{self.pipeline.proposal_worker_error}")
         settings = {name: self.p[name] for name in POLICY_PARAMETERS}
         target = Target(self.p["default_waypoint"],
                         np.asarray(self.scenario.waypoints_rtn[self.p["default_waypoint"]]),
@@ -406,6 +414,7 @@ class GuidanceNodeBase:
         if self.core is None:  # never configured
             return
         self._stop_worker()
+        self.pipeline.close()
         if self.recorder is not None:
             self.recorder.finish()
             self._log().info(f"recorded {self.recorder.solves} solves to "

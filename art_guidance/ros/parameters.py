@@ -1,7 +1,8 @@
 """The guidance node's ROS parameters: what each means, its constraints, whether it may change.
 
 Defaults come from `config/guidance_node.yaml` (`config.node_parameter_defaults`), plus
-`samples_per_node` from `planning.yaml`; this module adds the descriptors. Importing it loads no
+`samples_per_node` and `propose_concurrently` from `planning.yaml`; this module adds the
+descriptors. Importing it loads no
 ROS module (the CLI's `node --help` lists the parameters from here); `descriptor` imports
 rcl_interfaces when the node asks for one.
 
@@ -124,7 +125,13 @@ SPECS: dict[str, ParamSpec] = {
                                   minimum=4096),
     "samples_per_node": ParamSpec("drift samples linearised per node in SCP (default: "
                                   "planning.yaml)", "int", minimum=1),
+    "propose_concurrently": ParamSpec("warm_start auto: make the learned proposal in a worker "
+                                      "process (started at configure, ~300 MB) while SCVx* "
+                                      "from CVX is solved; the same plans, sooner where a core "
+                                      "is free (default: planning.yaml)", "bool"),
 }
+# parameters whose defaults come from planning.yaml, not guidance_node.yaml
+PLANNING_PARAMETERS = ("samples_per_node", "propose_concurrently")
 
 
 def descriptor(name: str) -> Any:
@@ -144,7 +151,7 @@ def check_table(defaults: dict[str, Any]) -> None:
     Raises:
         ConfigError: on a missing, unknown or invalid parameter.
     """
-    names = set(defaults) | {"samples_per_node"}
+    names = set(defaults) | set(PLANNING_PARAMETERS)
     if names != set(SPECS):
         raise ConfigError(f"guidance_node.yaml and the parameter specs differ: "
                           f"{sorted(names ^ set(SPECS))}")
@@ -157,8 +164,8 @@ TABLE_BEGIN, TABLE_END = "<!-- parameter-table:begin -->", "<!-- parameter-table
 
 def parameter_table(defaults: dict[str, Any]) -> str:
     """The parameter table of the documentation (markdown), from `SPECS` and the YAML
-    defaults (`config.node_parameter_defaults()`); `samples_per_node` defaults to
-    planning.yaml's value."""
+    defaults (`config.node_parameter_defaults()`); `PLANNING_PARAMETERS` default to
+    planning.yaml's values."""
     lines = ["| parameter | default | run time | meaning |", "|---|---|---|---|"]
     for name, spec in SPECS.items():
         value = defaults.get(name, "planning.yaml")

@@ -77,11 +77,16 @@ def test_a_corrupt_model_leaves_the_node_in_cvx_only_mode(ros_env, python_exe, t
     assert "Traceback" not in out
 
 
-def test_learned_warm_start_is_checked_recorded_and_replayed(ros_env, python_exe, tmp_path):
+@pytest.mark.parametrize("concurrent", [False, True], ids=["in_line", "worker_process"])
+def test_learned_warm_start_is_checked_recorded_and_replayed(ros_env, python_exe, tmp_path,
+                                                             concurrent):
+    """Also with the proposal made in a worker process (`propose_concurrently`): the node
+    starts it at configure, and the log replays in line to the same plans."""
     model, bag = tmp_path / "model.pt", tmp_path / "bag"
     sha = write_untrained_checkpoint(model)
-    with _node(ros_env, python_exe, "learned", f"model_path:={model}", f"record_dir:={bag}",
-               "replan_sigma_threshold:=1e-9") as (proc, client):
+    with _node(ros_env, python_exe, f"learned{int(concurrent)}", f"model_path:={model}",
+               f"record_dir:={bag}", "replan_sigma_threshold:=1e-9",
+               f"propose_concurrently:={str(concurrent).lower()}") as (proc, client):
         plans = []
         for offset in (0.0, 300.0):
             stamp, decision = client.send_nav(NOMINAL_RTN + [0.0, offset, 0, 0, 0, 0])
@@ -96,6 +101,9 @@ def test_learned_warm_start_is_checked_recorded_and_replayed(ros_env, python_exe
             assert diag["model_sha256"] == sha and float(diag["art_ms"]) > 0.0
             assert diag["model"].startswith("loaded model.pt")
     assert proc.returncode == 0
+    out = proc.stdout.read()
+    assert ("made in a worker process" in out) == concurrent, out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
     log = read_log(bag)
     assert log.metadata["model_checksum"] == sha
     records = log.of_type("art_guidance_msgs/msg/SolveRecord")

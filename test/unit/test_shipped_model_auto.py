@@ -61,30 +61,42 @@ def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(mode):
 
 @pytest.mark.parametrize("mode", sorted(DEFAULT_MODELS))
 def test_the_concurrent_proposal_plans_as_the_sequence(mode):
-    """`propose_concurrently` (SCVx* from CVX while the proposal is made; off by default)
-    changes the time only: on 12 held-out scenarios per mode every plan, its warm start, the
-    decision's reason, the post hoc numbers and the discarded attempt equal those of the
-    sequence, bit for bit (including scenarios whose proposal the check accepts)."""
+    """`propose_concurrently` (the proposal made in a worker process while SCVx* from CVX is
+    solved; off by default) changes the time only: on 12 held-out scenarios per mode every
+    plan, its warm start, the decision's reason, the post hoc numbers and the discarded attempt
+    equal those of the sequence, bit for bit (including scenarios whose proposal the check
+    accepts). A worker killed between plans is noticed: the plans are proposed in line (the
+    same plans) while a new worker starts in the background."""
     import dataclasses
 
     config = GuidanceConfig.load()
     provider = ArtWarmStart.load(default_model_path(mode))
     con_config = config.replace(planning=dataclasses.replace(config.planning,
                                                              propose_concurrently=True))
-    concurrent = GuidancePipeline(con_config, provider=provider)
+    concurrent = GuidancePipeline(con_config, provider=ArtWarmStart.load(default_model_path(mode)))
     sequence = GuidancePipeline(config, provider=provider)
+    assert concurrent.start_proposal_worker(), concurrent.proposal_worker_error
     accepted = ran = 0
-    for req in heldout_requests(12, DEFAULT_MODELS[mode]):
-        a, b = concurrent.plan(req), sequence.plan(req)
-        assert a.status == b.status and a.warm_start == b.warm_start, b.warm_start_reason
-        assert np.array_equal(a.dv_rtn_mps, b.dv_rtn_mps) and a.cost_mps == b.cost_mps
-        assert a.warm_start_reason == b.warm_start_reason and a.posthoc == b.posthoc
-        assert (a.discarded is None) == (b.discarded is None)
-        if a.discarded is not None:  # the same attempt, timed apart
-            assert dataclasses.replace(a.discarded, solve_time_ms=0.0) == \
-                dataclasses.replace(b.discarded, solve_time_ms=0.0)
-        ran += a.proposal is not None
-        accepted += a.posthoc is not None and bool(a.posthoc.accepted)
+    try:
+        for i, req in enumerate(heldout_requests(12, DEFAULT_MODELS[mode])):
+            if i == 6:  # the worker dies: proposals in line until its successor is ready
+                concurrent._worker._proc.kill()
+                concurrent._worker._proc.join()
+            a, b = concurrent.plan(req), sequence.plan(req)
+            assert a.status == b.status and a.warm_start == b.warm_start, b.warm_start_reason
+            assert np.array_equal(a.dv_rtn_mps, b.dv_rtn_mps) and a.cost_mps == b.cost_mps
+            assert a.warm_start_reason == b.warm_start_reason and a.posthoc == b.posthoc
+            assert (a.discarded is None) == (b.discarded is None)
+            if a.discarded is not None:  # the same attempt, timed apart
+                assert dataclasses.replace(a.discarded, solve_time_ms=0.0) == \
+                    dataclasses.replace(b.discarded, solve_time_ms=0.0)
+            if a.proposal is not None:
+                ran += 1
+                assert a.proposal.rollout_ms > 0
+            accepted += a.posthoc is not None and bool(a.posthoc.accepted)
+        assert concurrent._worker.alive  # the successor
+    finally:
+        concurrent.close()
     assert ran >= 6, ran
     if mode == "deterministic":
         assert accepted >= 1, accepted

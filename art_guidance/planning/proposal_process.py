@@ -1,0 +1,214 @@
+"""A worker process that makes the learned proposal while the planner solves SCVx* from CVX.
+
+In `warm_start auto`, SCVx* from CVX is solved whenever ART may be run (it is the fallback, the
+retry and the plan ART must beat), so the proposal and that solve need not wait for each
+other. In one process they cannot overlap: both hold Python's lock for most of their time
+(measured with a second thread: CPU time = wall time, no gain). This worker is a second
+process, started once (spawned: it imports torch and loads the model itself) and fed one job
+per plan through a pipe: the plan's configuration, the model's file and checksum, the request,
+the CVX solution and the time left. It rebuilds the same horizon and passive-safety model
+(`GuidancePipeline._setup`) and runs the same `GuidancePipeline._learned` as the planner would
+in line, so the decision is the same bit for bit (tested), only made on another core.
+
+Only a model loaded from a file (`ArtWarmStart` with a path) can be sent this way; any other
+provider, a worker that cannot start, fails or answers too late is reported through
+`ProposalProcess.error` and the planner proposes in line instead.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import threading
+import time
+from typing import Any
+
+STARTUP_TIMEOUT_S = 120.0  # importing torch and loading the model in the spawned process
+GRACE_S = 5.0  # a job's answer may come this long after its deadline before it is abandoned
+NO_DEADLINE_TIMEOUT_S = 120.0  # the longest wait for a job without a deadline
+
+
+def model_key(provider: object) -> tuple | None:
+    """What the worker needs to load the same model: (path, sha256, threads, reward scales),
+    or None when the provider is not a model loaded from a checked file."""
+    path = getattr(provider, "path", "")
+    sha = getattr(provider, "sha256", "")
+    if not path or not sha or not hasattr(provider, "reward_scales"):
+        return None
+    return (str(path), str(sha), int(getattr(provider, "threads", 1)),
+            tuple(float(s) for s in provider.reward_scales))
+
+
+def _serve(conn: Any) -> None:
+    """The worker's loop: one job in, one answer out, until the pipe closes or None comes."""
+    import torch
+
+    state: dict = {}
+    while True:
+        try:
+            job = conn.recv()
+        except (EOFError, OSError):  # the planner's process is gone
+            return
+        if job is None:
+            return
+        try:
+            answer = ("ok", *_run(job, state, torch))
+        except BaseException as exc:  # reported to the planner, which proposes in line
+            answer = ("error", f"{type(exc).__name__}: {exc}")
+        try:
+            conn.send(answer)
+        except (EOFError, OSError):
+            return
+
+
+def _run(job: dict, state: dict, torch: Any) -> tuple:
+    """One job: ("warm_up",) loads the pipeline; a plan job returns (decision, wall ms)."""
+    from art_guidance.art.provider import ArtWarmStart
+    from art_guidance.config import GuidanceConfig
+    from art_guidance.planning.pipeline import GuidancePipeline
+
+    key = (job["config_sha256"], job["model"])
+    if state.get("key") != key:
+        path, sha, threads, scales = job["model"]
+        torch.set_num_threads(threads)
+        provider = ArtWarmStart.load(path, expected_sha256=sha, threads=threads,
+                                     reward_scales=scales)
+        config = GuidanceConfig.from_json(job["config"])
+        state.update(key=key, pipeline=GuidancePipeline(config, provider=provider))
+    if job.get("warm_up"):
+        return (None, 0.0)
+    pipeline = state["pipeline"]
+    request, roe_f, cvx, left_s = job["request"], job["roe_f"], job["cvx"], job["time_left_s"]
+    deadline = None if left_s is None else time.perf_counter() + left_s
+    safety = pipeline._setup(request)[1]
+    return pipeline._timed_learned(request, roe_f, safety, cvx, deadline)
+
+
+class ProposalProcess:
+    """The worker process of one `GuidancePipeline`.
+
+    A plan never waits for the worker to start: `submit` on a worker that is not running
+    starts it (the model loads in the background) and declines the job, and so does every
+    `submit` until the worker is ready; `start` starts it and waits (a node's configure step).
+
+    Attributes:
+        error: why the last job was declined or failed ("" = it was not): the planner then
+            proposes in line; a failed worker is stopped and started anew on the next job.
+    """
+
+    def __init__(self) -> None:
+        self._proc: Any = None
+        self._conn: Any = None
+        self._lock = threading.Lock()  # one job at a time
+        self._warming = False  # a warm-up job was sent and not yet answered
+        self.error = ""
+
+    @property
+    def alive(self) -> bool:
+        """Whether the worker process runs."""
+        return self._proc is not None and self._proc.is_alive()
+
+    def start(self, config_json: dict, config_sha256: str, model: tuple,
+              timeout_s: float = STARTUP_TIMEOUT_S) -> bool:
+        """Start the worker (if needed), load the model in it and wait until it is ready;
+        False (see `error`) if it could not."""
+        with self._lock:
+            if not self.alive:
+                self._launch(_warm_up_job(config_json, config_sha256, model))
+            return self._ready(timeout_s)
+
+    def submit(self, job: dict) -> bool:
+        """Send a plan job if the worker is ready (collect the answer with `collect`, which
+        must follow); False if not (see `error`): the caller proposes in line."""
+        self._lock.acquire()
+        try:
+            if not self.alive:
+                self._launch(_warm_up_job(job["config"], job["config_sha256"], job["model"]))
+                self.error = "the worker process is starting"
+                self._lock.release()
+                return False
+            if not self._ready(0.0):
+                self._lock.release()
+                return False
+            self._conn.send(job)
+            return True
+        except Exception as exc:
+            self._fail(f"could not send the job: {type(exc).__name__}: {exc}")
+            self._lock.release()
+            return False
+
+    def collect(self, timeout_s: float) -> tuple | None:
+        """The answer to the submitted job: (decision, wall ms), or None (see `error`)."""
+        try:
+            return self._receive(timeout_s)
+        finally:
+            self._lock.release()
+
+    def close(self) -> None:
+        """Stop the worker (it also stops by itself when this process ends)."""
+        with self._lock:
+            self._stop(graceful=True)
+
+    # ------------------------------------------------------------------ internals
+    def _ready(self, timeout_s: float) -> bool:
+        """Whether the warm-up has been answered (waiting up to `timeout_s` for it)."""
+        if not self._warming:
+            return True
+        if timeout_s <= 0.0 and not self._conn.poll(0.0):
+            self.error = "the worker process is loading the model"
+            return False
+        if self._receive(timeout_s) is None:
+            return False
+        self._warming = False
+        return True
+
+    def _receive(self, timeout_s: float) -> tuple | None:
+        try:
+            if not self._conn.poll(max(timeout_s, 0.0)):
+                self._fail(f"no answer within {timeout_s:.1f} s")
+                return None
+            answer = self._conn.recv()
+        except Exception as exc:  # the worker died (EOF) or the pipe broke
+            self._fail(f"the worker stopped: {type(exc).__name__}: {exc}")
+            return None
+        if answer[0] != "ok":
+            self._fail(f"the worker failed: {answer[1]}")
+            return None
+        self.error = ""
+        return answer[1:]
+
+    def _launch(self, warm_up: dict) -> None:
+        """Spawn the worker and send it its warm-up job (not waited for)."""
+        self._stop(graceful=False)
+        ctx = multiprocessing.get_context("spawn")  # no fork of a process with threads
+        parent, child = ctx.Pipe()
+        proc = ctx.Process(target=_serve, args=(child,), name="art_proposal", daemon=True)
+        proc.start()
+        child.close()
+        self._proc, self._conn = proc, parent
+        parent.send(warm_up)
+        self._warming = True
+
+    def _fail(self, why: str) -> None:
+        self.error = why
+        self._stop(graceful=False)  # a late or broken worker is not waited for
+
+    def _stop(self, graceful: bool = False) -> None:
+        proc, conn, self._proc, self._conn = self._proc, self._conn, None, None
+        self._warming = False
+        if conn is not None:
+            if graceful:
+                try:
+                    conn.send(None)
+                except Exception:  # already gone
+                    pass
+            conn.close()
+        if proc is not None:
+            if graceful:
+                proc.join(timeout=2.0)
+            if proc.is_alive():
+                proc.kill()
+            proc.join(timeout=2.0)
+
+
+def _warm_up_job(config_json: dict, config_sha256: str, model: tuple) -> dict:
+    return {"config": config_json, "config_sha256": config_sha256, "model": model,
+            "warm_up": True}
