@@ -5,13 +5,17 @@ import argparse
 
 
 def run(args: argparse.Namespace) -> int:
-    """Rebuild every MCAP file of a bag folder that has no summary (a torn end after a crash
-    is dropped, complete chunks are kept) and rewrite metadata.yaml; every change is printed."""
-    from art_guidance.record.reindex import reindex_bag
+    """Check every MCAP file of a bag folder (each chunk's CRC, also in files that have a
+    summary) and rebuild every file that is torn, damaged or has no summary from its intact
+    chunks (a torn end after a crash is dropped, damaged chunks are named and dropped), then
+    rewrite metadata.yaml to what is on disk, noting the repair in its custom_data. What was
+    kept and what could not be recovered (file, chunk, byte offset, messages lost per the
+    file's message index and the old metadata.yaml) is printed."""
+    from art_guidance.record.reindex import repair_bag
 
-    rewritten = reindex_bag(args.dir)
-    print(f"{rewritten} file(s) rewritten in {args.dir}")
-    return 0
+    repair = repair_bag(args.dir)
+    print(f"{len(repair.rewritten)} file(s) rewritten in {args.dir}")
+    return 3 if repair.data_lost else 0
 
 
 def render(args: argparse.Namespace) -> int:
@@ -33,9 +37,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        "crash, render its visualisation topics)",
                        description="Maintain or draw a bag folder written by the guidance node.")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
-    reindex = actions.add_parser("reindex", help="rebuild files without summary and "
-                                 "metadata.yaml", description=run.__doc__ + " Refuses a "
-                                 "folder a running recorder still writes to (exit 2).")
+    reindex = actions.add_parser("reindex", help="check and rebuild torn, damaged or "
+                                 "unsummarised files and metadata.yaml",
+                                 description=run.__doc__ + " Exit codes: 0 nothing lost "
+                                 "(files rebuilt or not); 2 bad input, or a running recorder "
+                                 "still writes to the folder (refused, nothing touched); 3 data "
+                                 "was lost (damaged chunks, or fewer messages on disk than the "
+                                 "old metadata.yaml counted); the folder is repaired all the "
+                                 "same.")
     reindex.add_argument("dir", help="the bag folder (metadata.yaml and <name>_<k>.mcap)")
     reindex.set_defaults(func=run)
     draw = actions.add_parser("render", help="draw the bag's visualisation topics to a PNG",

@@ -23,21 +23,51 @@ def run(args: argparse.Namespace) -> int:
                 extra += f", rollout diff {row['rollout_max_abs_diff_mps']:.1e}"
         print(f"{row['plan_id']:>12} {row['status']:<15} {verdict:<8} {extra}")
     print(f"{report['matched']}/{report['compared']} matched "
-          f"({report['solves']} solves, {len(report['truncated'])} truncated file(s))")
-    if report["truncated"]:  # read as it is; other readers need the files repaired
-        print(f"a file ends torn (crash during a write): `art-guidance bag reindex {args.log}` "
-              "makes the folder readable by rosbag2 and rosbags")
-    return 0 if report["mismatched"] == 0 else 1
+          f"({report['solves']} solves, {len(report['truncated'])} truncated file(s), "
+          f"{len(report['damaged'])} damaged stretch(es))")
+    _print_losses(report)
+    return int(report["exit_code"])
+
+
+def _print_losses(report: dict) -> None:
+    """What could not be read or was lost, and what to do about it."""
+    from art_guidance.record.loss import describe
+
+    for torn in report["truncated"]:
+        print(f"torn: {torn}")
+    for d in report["damaged"]:
+        where = f"chunk {d['chunk']}" if d["chunk"] is not None else "data"
+        held = "" if d["messages"] is None else f"; {d['messages']} message(s) lost"
+        print(f"DAMAGED: {d['file']} {where} at byte offset {d['offset']} "
+              f"({d['length']} bytes skipped): {d['reason']}{held}")
+    for kind, ids in report["unmatched"].items():
+        if ids:
+            print(f"unmatched: {len(ids)} {kind.replace('_', ' ')}: {', '.join(ids)}")
+    print(describe(report["lost"]))
+    if report["lost"]["source"] != "metadata.yaml":
+        print(f"note: {report['lost']['metadata']}")
+    for note in report["lost"]["notes"] + report["notes"]:
+        print(f"note: {note}")
+    for line in report["advice"]:
+        print(f"advice: {line}")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
     p = sub.add_parser("replay", help="re-solve a recorded MCAP log and compare",
-                       description=run.__doc__ + " Exit 0 when every compared solve "
-                       "matches (cost to 1e-6 relative, delta-v to 1e-5 m/s; where ART "
-                       "proposed: its rollout to 1e-6 m/s, the same post hoc decision and "
-                       "warm start), 1 otherwise. A log recorded with another model than the "
-                       "one given is reported as such and its ART solves are skipped.")
+                       description=run.__doc__ + " Every chunk's CRC is checked: a damaged "
+                       "chunk is named (file, chunk, byte offset, what failed) and skipped, the "
+                       "intact chunks after it are read; a torn end (a crash inside a write) "
+                       "keeps the complete chunks before it. What was read is compared with "
+                       "metadata.yaml and the lost messages and solves are reported per type, "
+                       "as are solve records without their plan. A log recorded with another "
+                       "model than the one given is reported as such and its ART solves are "
+                       "skipped. Exit codes: 0 every compared solve matches (cost to 1e-6 "
+                       "relative, delta-v to 1e-5 m/s; where ART proposed: its rollout to 1e-6 "
+                       "m/s, the same post hoc decision and warm start) and nothing was lost "
+                       "or damaged; 1 a compared solve does not match; 2 bad input (no such "
+                       "log, no configuration in it); 3 every compared solve matches but data "
+                       "was lost or damaged.")
     p.add_argument("log", help="an .mcap file or a bag folder of them")
     p.add_argument("--model", default=None,
                    help="ART checkpoint to replay learned warm starts with (default: the "

@@ -1,10 +1,14 @@
-"""Repair a bag folder after a crash: rebuild MCAP files without summary, rewrite metadata.yaml.
+"""Repair a bag folder: rebuild torn, damaged or unsummarised MCAP files, rewrite metadata.yaml.
 
 The recorder seals every file after each solve, so a folder is normally readable after a
 kill -9 as it is. A kill inside a write (or a power cut) can leave a file without a valid
-ending; other readers (rosbags, rosbag2) then refuse the folder. `reindex_bag` rewrites every
-file that lacks a summary from its complete records (a torn chunk at the end is dropped), with
-a summary so readers can seek, and then rewrites `metadata.yaml` from the files' summaries.
+ending, and failing storage or a bad copy can damage a chunk; other readers (rosbags, rosbag2)
+then refuse the folder. `repair_bag` reads every file with `record.scan` (each chunk's CRC
+checked, also in files that have a summary) and rewrites every file that is torn, damaged or
+lacks a summary from its intact chunks, with a summary so readers can seek. It names what it
+kept and what it could not recover (file, chunk, byte offset, messages lost where the file's
+message index or metadata.yaml tells), then rewrites `metadata.yaml` from the files' summaries,
+noting the repair in its custom_data.
 
 Each rewrite is atomic: the new file is written next to the old one and fsync'ed, the original
 is kept as `<name>.mcap.orig` (a hard link) until the new file has replaced it and the
@@ -14,17 +18,14 @@ recorder is never touched.
 from __future__ import annotations
 
 import fcntl
-import io
 import os
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import yaml
 from mcap.reader import make_reader
-from mcap.records import Channel, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from art_guidance.errors import InputError
@@ -32,7 +33,9 @@ from art_guidance.files import fsync_dir
 from art_guidance.record.bag_metadata import (
     METADATA_FILE, FileInfo, TopicInfo, bag_files, write_bag_metadata,
 )
+from art_guidance.record.loss import account, describe
 from art_guidance.record.recorder import MAGIC
+from art_guidance.record.scan import Damage, FileScan, lend_channels, scan_file
 
 FOOTER_BYTES = 9 + 20 + len(MAGIC)  # footer record (opcode, length, 8 + 8 + 4) and the magic
 ORIG_SUFFIX = ".orig"
@@ -69,44 +72,37 @@ class Rebuilt:
     path: Path
     messages: int
     torn: str  # why reading stopped before a clean end ("" = the file ended cleanly)
+    damaged: tuple[Damage, ...] = ()  # what could not be recovered
 
 
-def _copy_records(src: io.BufferedReader, writer: Writer) -> tuple[int, str]:
-    """Copy every complete record of `src` into `writer`; returns (messages, torn reason)."""
-    schemas, channels, messages, started = {}, {}, 0, False
-    try:
-        for record in StreamReader(src).records:
-            if isinstance(record, Header):
-                writer.start(profile=record.profile, library=record.library)
-                started = True
-            elif isinstance(record, Schema):
-                schemas[record.id] = writer.register_schema(record.name, record.encoding,
-                                                            record.data)
-            elif isinstance(record, Channel):
-                channels[record.id] = writer.register_channel(
-                    record.topic, record.message_encoding, schemas.get(record.schema_id, 0),
-                    dict(record.metadata))
-            elif isinstance(record, Metadata):
-                writer.add_metadata(record.name, dict(record.metadata))
-            elif isinstance(record, Message) and record.channel_id in channels:
-                writer.add_message(channels[record.channel_id], record.log_time, record.data,
-                                   record.publish_time, record.sequence)
-                messages += 1
-    except Exception as exc:  # the torn end of a crashed file: keep what was complete
-        if not started:
-            raise InputError("mcap", f"no readable MCAP header ({exc})", str(src.name))
-        return messages, f"{type(exc).__name__}: {exc}"
-    return messages, ""
+def _write(scan: FileScan, writer: Writer) -> int:
+    """Write what `scan` kept through `writer`; returns the number of messages."""
+    header = scan.header
+    writer.start(profile=header.profile if header else "ros2",
+                 library=header.library if header else "art_guidance reindex")
+    schemas = {sid: writer.register_schema(s.name, s.encoding, s.data)
+               for sid, s in sorted(scan.schemas.items())}
+    channels = {cid: writer.register_channel(c.topic, c.message_encoding,
+                                             schemas.get(c.schema_id, 0), dict(c.metadata))
+                for cid, c in sorted(scan.channels.items())}
+    for record in scan.metadata:
+        writer.add_metadata(record.name, dict(record.metadata))
+    for msg in scan.messages:
+        writer.add_message(channels[msg.channel_id], msg.log_time, msg.data, msg.publish_time,
+                           msg.sequence)
+    return len(scan.messages)
 
 
-def rebuild(path: Path) -> Rebuilt:
-    """Rewrite `path` from its complete records, with a summary; atomic (see the module)."""
+def rebuild(path: Path, scan: FileScan | None = None) -> Rebuilt:
+    """Rewrite `path` from its intact chunks (`scan`, read now when not given), with a summary;
+    atomic (see the module)."""
+    scan = scan_file(path) if scan is None else scan
     tmp = path.with_name(f"{path.name}.{os.getpid()}.reindex.tmp")
     orig = path.with_name(path.name + ORIG_SUFFIX)
     try:
-        with open(path, "rb") as src, open(tmp, "wb") as out:
+        with open(tmp, "wb") as out:
             writer = Writer(out, compression=CompressionType.ZSTD)
-            messages, torn = _copy_records(src, writer)
+            messages = _write(scan, writer)
             writer.finish()
             out.flush()
             os.fsync(out.fileno())
@@ -118,7 +114,7 @@ def rebuild(path: Path) -> Rebuilt:
         fsync_dir(path.parent)
     finally:
         tmp.unlink(missing_ok=True)
-    return Rebuilt(path, messages, torn)
+    return Rebuilt(path, messages, scan.torn, tuple(scan.damaged))
 
 
 def _summary_info(path: Path) -> tuple[FileInfo, dict[tuple[str, str], list]]:
@@ -148,8 +144,9 @@ def _custom_data(directory: Path) -> dict[str, str]:
         return {}
 
 
-def rewrite_metadata(directory: Path) -> Path:
-    """metadata.yaml from the summaries of the folder's files (all must have one)."""
+def rewrite_metadata(directory: Path, notes: dict[str, str] | None = None) -> Path:
+    """metadata.yaml from the summaries of the folder's files (all must have one); `notes`
+    go into its custom_data."""
     files, topics = [], {}
     for path in bag_files(directory):
         info, file_topics = _summary_info(path)
@@ -157,17 +154,51 @@ def rewrite_metadata(directory: Path) -> Path:
         for key, (count, type_hash) in file_topics.items():
             entry = topics.setdefault(key, [0, type_hash])
             entry[0] += count
-    custom = {**_custom_data(directory), "art_guidance.state": "reindexed"}
+    custom = {**_custom_data(directory), "art_guidance.state": "reindexed", **(notes or {})}
     return write_bag_metadata(
         directory, files,
         [TopicInfo(name, msg_type, count, type_hash)
          for (name, msg_type), (count, type_hash) in topics.items()], custom)
 
 
-def reindex_bag(directory: str | Path, say: Callable[[str], None] = print) -> int:
-    """Rebuild every file of the bag folder that has no summary, then rewrite metadata.yaml.
+@dataclass
+class Repair:
+    """What `repair_bag` did and found."""
 
-    Every change is reported through `say`. Returns the number of files rewritten.
+    rewritten: list[str] = field(default_factory=list)
+    damaged: list[Damage] = field(default_factory=list)
+    torn: list[str] = field(default_factory=list)
+    lost: dict = field(default_factory=dict)  # `record.loss.account` against the old metadata
+
+    @property
+    def data_lost(self) -> bool:
+        """Damaged chunks, or fewer messages on disk than the old metadata.yaml counted."""
+        return bool(self.damaged or self.lost.get("messages") is None
+                    or self.lost.get("messages"))
+
+
+def _say_rebuilt(done: Rebuilt, say: Callable[[str], None]) -> None:
+    end = f"; dropped a torn end ({done.torn})" if done.torn else ""
+    say(f"rewrote {done.path.name} with a summary: {done.messages} messages kept{end}")
+    for damage in done.damaged:
+        say(f"  could not recover: {damage}")
+
+
+def _repair_notes(repair: Repair) -> dict[str, str]:
+    if not repair.rewritten:
+        return {}
+    what = [f"rebuilt {', '.join(repair.rewritten)}"]
+    if repair.damaged:
+        what.append(f"{len(repair.damaged)} damaged stretch(es) dropped")
+    if repair.torn:
+        what.append(f"{len(repair.torn)} torn end(s) dropped")
+    return {"art_guidance.repair": "; ".join(what),
+            "art_guidance.lost_messages": str(repair.lost.get("messages"))}
+
+
+def repair_bag(directory: str | Path, say: Callable[[str], None] = print) -> Repair:
+    """Rebuild every file of the bag folder that is torn, damaged or has no summary, then
+    rewrite metadata.yaml; every change and every loss is reported through `say`.
 
     Raises:
         InputError: not a folder of MCAP files, or a recorder is still writing to it.
@@ -179,13 +210,36 @@ def reindex_bag(directory: str | Path, say: Callable[[str], None] = print) -> in
     locked = [p.name for p in files if is_locked(p)]
     if locked:
         raise InputError("bag", "a running recorder is writing to this bag", locked)
-    rewritten = 0
-    for path in files:
-        if has_summary(path):
-            continue
-        done = rebuild(path)
-        rewritten += 1
-        end = f"; dropped a torn end ({done.torn})" if done.torn else ""
-        say(f"rewrote {path.name} with a summary: {done.messages} messages kept{end}")
-    say(f"rewrote {rewrite_metadata(directory)}")
-    return rewritten
+    scans = [scan_file(path) for path in files]
+    lend_channels(scans)
+    repair, read_topics, read_files, types = Repair(), {}, {}, {}
+    for scan in scans:
+        for note in scan.notes:
+            say(note)
+        repair.damaged += scan.damaged
+        if scan.torn:
+            repair.torn.append(f"{scan.path.name}: {scan.torn}")
+        topics = {cid: c.topic for cid, c in scan.channels.items()}
+        types.update({c.topic: scan.schemas[c.schema_id].name
+                      for c in scan.channels.values() if c.schema_id in scan.schemas})
+        for msg in scan.messages:
+            read_topics[topics[msg.channel_id]] = read_topics.get(topics[msg.channel_id], 0) + 1
+        read_files[scan.path.name] = len(scan.messages)
+        if scan.damaged or scan.torn or not scan.summary:
+            _say_rebuilt(rebuild(scan.path, scan), say)
+            repair.rewritten.append(scan.path.name)
+        scan.messages = []
+    repair.lost = account(directory, read_topics, read_files, types, repair.damaged)
+    if repair.data_lost or repair.lost["files"]:
+        say(describe(repair.lost))
+    if repair.lost["source"] != METADATA_FILE:
+        say(f"note: {repair.lost['metadata']}")
+    for note in repair.lost["notes"]:
+        say(f"note: {note}")
+    say(f"rewrote {rewrite_metadata(directory, _repair_notes(repair))}")
+    return repair
+
+
+def reindex_bag(directory: str | Path, say: Callable[[str], None] = print) -> int:
+    """`repair_bag`; returns the number of files rewritten."""
+    return len(repair_bag(directory, say).rewritten)

@@ -1,12 +1,15 @@
-"""Read recorded solves back (also from files cut short by a crash) and re-solve them.
+"""Read recorded solves back (also from damaged or crash-truncated files) and re-solve them.
 
-`read_log` walks the MCAP records sequentially, so a file whose writer was killed (no summary,
-a torn last record) yields every solve whose chunk was completed; it never modifies the files.
-Messages are found by their type (the schema name), not by topic, so a node started in a
-namespace or with remapped topics replays the same. `replay` rebuilds the pipeline from the
-recorded configuration (and the learned model, checked against the recorded checksum), solves
-each recorded request again (the request JSON in the SolveRecord) and compares the ART rollout,
-the post hoc decision and the plan.
+`read_log` reads every file with `record.scan`: each chunk's CRC is checked, a damaged chunk is
+named and skipped and the intact chunks after it are read; a file whose writer was killed inside
+a write (a torn end) yields every solve whose chunk was completed. What was read is compared
+with `metadata.yaml` (`record.loss`), and SolveRecords without their ManeuverPlan (and plans
+without their record) are listed; the files are never modified. Messages are found by their
+type (the schema name), not by topic, so a node started in a namespace or with remapped topics
+replays the same. `replay` rebuilds the pipeline from the recorded configuration (and the
+learned model, checked against the recorded checksum), solves each recorded request again (the
+request JSON in the SolveRecord) and compares the ART rollout, the post hoc decision and the
+plan.
 """
 from __future__ import annotations
 
@@ -15,19 +18,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.records import Message, Metadata
-from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 from art_guidance.config import mode_name
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, PlanRequest
 from art_guidance.record.bag_metadata import bag_files
+from art_guidance.record.loss import account
 from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE
+from art_guidance.record.scan import Damage, FileScan, lend_channels, scan_file
 
 COST_REL_TOL = 1e-6     # relative cost agreement of a re-solve
 DV_ABS_TOL_MPS = 1e-5   # largest delta-v component difference [m/s]
 ROLLOUT_ABS_TOL_MPS = 1e-6  # largest ART rollout control difference [m/s] (same model, CPU)
+EXIT_OK = 0        # every compared solve matches, nothing lost or damaged
+EXIT_MISMATCH = 1  # a compared solve does not match (whatever else)
+EXIT_LOST = 3      # all compared solves match, but data was lost or damaged
 
 
 def _stamp_ns(stamp: object) -> int:
@@ -42,22 +48,42 @@ def request_stamp_ns(record: object) -> int:
 
 @dataclass
 class RecordedLog:
-    """Messages of one or more MCAP files, in file order."""
+    """Messages of one or more MCAP files, in file order, and what could not be read."""
 
     metadata: dict = field(default_factory=dict)
     messages: list[tuple[str, object, int]] = field(default_factory=list)  # topic, msg, t_ns
     types: dict[str, str] = field(default_factory=dict)  # topic -> 'pkg/msg/Type'
-    truncated: list[str] = field(default_factory=list)
+    truncated: list[str] = field(default_factory=list)  # torn ends ("<file>: <why>")
+    damaged: list[Damage] = field(default_factory=list)
+    files: dict[str, int] = field(default_factory=dict)  # file name -> messages read
+    notes: list[str] = field(default_factory=list)
+    lost: dict = field(default_factory=dict)  # `record.loss.account`
+
+    @property
+    def data_lost(self) -> bool:
+        """Damage was found, messages are missing against metadata.yaml (or the damaged
+        chunks' index), or a SolveRecord or plan lacks its partner."""
+        unmatched = self.unmatched()
+        return bool(self.damaged or self.lost.get("messages") is None
+                    or self.lost.get("messages") or any(unmatched.values()))
 
     def of_type(self, msg_type: str) -> list[object]:
         """Every message of `msg_type` ('pkg/msg/Type'), whatever its topic, in file order."""
         return [msg for topic, msg, _ in self.messages if self.types.get(topic) == msg_type]
 
     def solves(self) -> list[tuple[object, object]]:
-        """(SolveRecord, ManeuverPlan) pairs matched by plan id."""
+        """(SolveRecord, ManeuverPlan) pairs matched by plan id (see `unmatched`)."""
         plans = {msg.plan_id: msg for msg in self.of_type(PLAN_TYPE)}
         records = {msg.plan_id: msg for msg in self.of_type(SOLVE_RECORD_TYPE)}
         return [(records[k], plans[k]) for k in records if k in plans]
+
+    def unmatched(self) -> dict[str, list[str]]:
+        """Plan ids of SolveRecords without their ManeuverPlan and of plans without their
+        SolveRecord (the recorder writes both with every solve)."""
+        plans = {msg.plan_id for msg in self.of_type(PLAN_TYPE)}
+        records = {msg.plan_id for msg in self.of_type(SOLVE_RECORD_TYPE)}
+        return {"records_without_plan": sorted(records - plans),
+                "plans_without_record": sorted(plans - records)}
 
     def request_for(self, record: object) -> object | None:
         """The ReplanRequest in force for a SolveRecord (matched by its header stamp), if any.
@@ -87,36 +113,56 @@ def _files(path: Path) -> list[Path]:
     return [path]
 
 
-def read_log(path: str | Path) -> RecordedLog:
-    """Read every complete message of an MCAP file or bag folder (crash-truncated files too).
+def _decode(log: RecordedLog, scan: FileScan) -> None:
+    """Append a file's messages (decoded with its embedded schemas) to `log`."""
+    channels, factory = {}, DecoderFactory()
+    for cid, channel in scan.channels.items():
+        schema = scan.schemas.get(channel.schema_id)
+        channels[cid] = (channel.topic, factory.decoder_for(channel.message_encoding, schema))
+        if schema is not None:
+            log.types[channel.topic] = schema.name
+    for record in scan.metadata:
+        if record.name == "art_guidance":
+            log.metadata = dict(record.metadata)
+    count = 0
+    for record in scan.messages:
+        topic, decoder = channels[record.channel_id]
+        if decoder is None:
+            continue  # not a cdr/ros2msg channel: not ours
+        try:
+            msg = decoder(record.data)
+        except Exception as exc:  # intact chunk, undecodable payload: damage all the same
+            log.damaged.append(Damage(scan.path.name, None, -1, 0, f"a message on {topic} "
+                                      f"(log time {record.log_time}) does not decode: "
+                                      f"{type(exc).__name__}: {exc}", 1, {topic: 1}))
+            continue
+        log.messages.append((topic, msg, record.log_time))
+        count += 1
+    log.files[scan.path.name] = count
 
-    Messages are decoded with the schemas embedded in the file, not the installed types.
+
+def read_log(path: str | Path) -> RecordedLog:
+    """Read every intact message of an MCAP file or bag folder (see the module docstring).
+
+    Messages are decoded with the schemas embedded in the file, not the installed types. The
+    log's `damaged`, `truncated` (torn ends), `notes`, `lost` and `unmatched()` say what could
+    not be read.
     """
+    path = Path(path)
+    scans = [scan_file(file) for file in _files(path)]
+    lend_channels(scans)
     log = RecordedLog()
-    for file in _files(Path(path)):
-        channels, schemas, factory = {}, {}, DecoderFactory()
-        with open(file, "rb") as fh:
-            try:
-                for record in StreamReader(fh).records:
-                    kind = type(record).__name__
-                    if kind == "Schema":
-                        schemas[record.id] = record
-                    elif kind == "Channel":
-                        schema = schemas.get(record.schema_id)
-                        decoder = factory.decoder_for(record.message_encoding, schema)
-                        channels[record.id] = (record.topic, decoder)
-                        if schema is not None:
-                            log.types[record.topic] = schema.name
-                    elif isinstance(record, Metadata) and record.name == "art_guidance":
-                        log.metadata = dict(record.metadata)
-                    elif isinstance(record, Message) and record.channel_id in channels:
-                        topic, decoder = channels[record.channel_id]
-                        if decoder is None:
-                            continue  # not a cdr/ros2msg channel: not ours
-                        msg = decoder(record.data)
-                        log.messages.append((topic, msg, record.log_time))
-            except Exception as exc:  # torn tail after a crash: keep what was complete
-                log.truncated.append(f"{file.name}: {type(exc).__name__}: {exc}")
+    for scan in scans:
+        _decode(log, scan)
+        log.damaged += scan.damaged
+        log.notes += scan.notes
+        if scan.torn:
+            log.truncated.append(f"{scan.path.name}: {scan.torn}")
+        scan.messages = []  # decoded: the raw copies are not needed any more
+    read_topics: dict[str, int] = {}
+    for topic, _, _ in log.messages:
+        read_topics[topic] = read_topics.get(topic, 0) + 1
+    log.lost = account(path, read_topics, log.files, log.types, log.damaged)
     return log
 
 
@@ -190,6 +236,27 @@ def _art_rows(record: object, result: object) -> dict:
     return row
 
 
+def advice(path: str | Path, log: RecordedLog) -> list[str]:
+    """What to do about what `read_log` found; `bag reindex` only where it helps."""
+    out, folder = [], Path(path).is_dir()
+    target = path if folder else Path(path).parent
+    repairable = log.truncated or log.damaged or log.lost.get("files")
+    if repairable and (folder or (target / "metadata.yaml").is_file()):
+        out.append(f"`art-guidance bag reindex {target}` rebuilds the torn or damaged files "
+                   "from their intact chunks and rewrites metadata.yaml to what is on disk, so "
+                   "rosbag2 and rosbags read the folder; it cannot bring back lost data")
+    elif repairable:
+        out.append("a torn or damaged file outside a bag folder: put it in a folder of its own "
+                   "for `art-guidance bag reindex` to rebuild it")
+    if log.damaged:
+        out.append("damaged chunks mean failing storage or a bad copy: check the medium, and "
+                   "keep a copy of the folder as it is before repairing it")
+    elif log.lost.get("messages") and not repairable:
+        out.append("the files are intact but hold fewer messages than metadata.yaml counts: "
+                   "files were cut or replaced after recording; no repair brings them back")
+    return out
+
+
 def replay(path: str | Path, model: str | Path | None = None) -> dict:
     """Re-solve every recorded request; returns a JSON-ready report with a per-solve verdict.
 
@@ -197,6 +264,11 @@ def replay(path: str | Path, model: str | Path | None = None) -> dict:
     component to DV_ABS_TOL_MPS, and, where a learned warm start was proposed, the rollout
     agrees to ROLLOUT_ABS_TOL_MPS and the post hoc decision and the warm start kept are the
     same.
+
+    The report also says what could not be read (`damaged`, `truncated`: torn ends), what was
+    lost against metadata.yaml (`lost`), which records or plans lack their partner
+    (`unmatched`), `advice`, and `exit_code`: EXIT_MISMATCH if a compared solve differs, else
+    EXIT_LOST if anything was lost or damaged, else EXIT_OK.
 
     Args:
         path: an .mcap file or a bag folder.
@@ -236,11 +308,16 @@ def replay(path: str | Path, model: str | Path | None = None) -> dict:
                             and row["decision_match"])
         rows.append(row)
     compared = [r for r in rows if r["match"] is not None]
+    mismatched = sum(not r["match"] for r in compared)
     return {"log": str(path), "solves": len(rows), "compared": len(compared),
-            "matched": sum(r["match"] for r in compared),
-            "mismatched": sum(not r["match"] for r in compared),
+            "matched": sum(r["match"] for r in compared), "mismatched": mismatched,
+            "exit_code": (EXIT_MISMATCH if mismatched else
+                          EXIT_LOST if log.data_lost else EXIT_OK),
             "model": model_note, "model_checksum": log.metadata.get("model_checksum", "none"),
             "truncated": log.truncated,
+            "damaged": [d.as_dict() for d in log.damaged],
+            "lost": log.lost, "unmatched": log.unmatched(), "notes": log.notes,
+            "advice": advice(path, log),
             "tolerances": {"cost_rel": COST_REL_TOL, "dv_abs_mps": DV_ABS_TOL_MPS,
                            "rollout_abs_mps": ROLLOUT_ABS_TOL_MPS},
             "per_solve": rows}
