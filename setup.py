@@ -24,8 +24,10 @@ setup(
         "clarabel>=0.9",
         "osqp>=1.0",
         "torch==2.13.0",
-        "mcap>=1.2",
-        "mcap-ros2-support>=0.5",
+        # the recorder uses Writer.flush() and the private mcap_ros2._dynamic encoder: bounded
+        # to the minor versions tested (.ci/constraints.txt pins mcap 1.6.0, support 0.6.0)
+        "mcap>=1.6,<1.7",
+        "mcap-ros2-support>=0.6,<0.7",
         "tqdm>=4.66",
         "matplotlib>=3.8",
     ],

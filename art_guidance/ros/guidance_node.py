@@ -38,8 +38,8 @@ from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
 from art_guidance.planning.guidance import GuidanceCore, Job
 from art_guidance.planning.replan import Action, ReplanSettings
 from art_guidance.record.recorder import (
-    NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE, McapRecorder,
-    default_log_dir,
+    NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE, McapRecorder, check_cap,
+    check_record_dir, default_log_dir,
 )
 from art_guidance.ros.parameters import PLANNING_PARAMETERS, SPECS, check_table, descriptor
 from art_guidance.ros import visualization as viz
@@ -212,7 +212,8 @@ class GuidanceNodeBase:
         self._recorded_request: ReplanRequest | None = None  # last one written (worker only)
         if not self.p["record"]:
             return None
-        directory = self.p["record_dir"] or str(default_log_dir())
+        check_cap(int(self.p["record_max_total_bytes"]), int(self.p["record_max_bytes"]))
+        directory = check_record_dir(self.p["record_dir"] or str(default_log_dir()))
         meta = {"config": self.pipeline.config_json(), "versions": _versions(),
                 "model_checksum": self.provider.sha256 if self.provider else "none",
                 "model": self.model_status, "parameters": self.p}
@@ -220,7 +221,8 @@ class GuidanceNodeBase:
         recorded = {t: msg_type for msg_type, t in self._record_topics.items()}
         recorded.update({self._viz_topics[t]: VIZ_TYPE_NAMES[t] for t in self._viz_topics})
         return McapRecorder(directory, meta, max_bytes=int(self.p["record_max_bytes"]),
-                            topics=recorded)
+                            topics=recorded,
+                            max_total_bytes=int(self.p["record_max_total_bytes"]))
 
     def _on_set_parameters(self, params: list) -> SetParametersResult:
         """Validate and apply run-time parameter changes (all or none)."""

@@ -123,6 +123,10 @@ SPECS: dict[str, ParamSpec] = {
     "record_dir": ParamSpec("bag folder ('' = <ROS_HOME>/art_guidance_logs/<run>)", "str"),
     "record_max_bytes": ParamSpec("rotate MCAP files at this size [bytes]", "int",
                                   minimum=4096),
+    "record_max_total_bytes": ParamSpec("cap on the size of the bag's files [bytes]: at a "
+                                        "rotation the oldest closed files are deleted so that "
+                                        "they and a new file fit; 0 = no cap, else at least "
+                                        "3 * record_max_bytes", "int", minimum=0),
     "samples_per_node": ParamSpec("drift samples linearised per node in SCP (default: "
                                   "planning.yaml)", "int", minimum=1),
     "propose_concurrently": ParamSpec("warm_start auto: make the learned proposal in a worker "

@@ -146,11 +146,33 @@ def test_namespaced_node_records_resolved_topics_and_each_request_once(
     # past its deadline by a busy machine is skipped, not compared
 
 
-def test_unwritable_log_directory_does_not_stop_guidance(ros_env, python_exe):
-    with _node_with_client(ros_env, python_exe, "/proc/art_guidance_cannot_write_here",
-                           "recording_client3") as (proc, client):
-        ids = _plan_ids(client, 2, np.random.default_rng(7))
-        assert len(ids) == 2  # plans still arrive
+@pytest.mark.parametrize("where", ["under_a_file", "proc"])
+def test_an_unusable_record_dir_is_refused_at_start_up(ros_env, python_exe, tmp_path, where):
+    """A record_dir under a regular file, or where no file can be created (/proc stands in for
+    a read-only folder: the tests may run as root, whom chmod does not stop), stops the node at
+    start-up with a message naming the path and why."""
+    (tmp_path / "file").write_text("in the way")
+    record_dir = (tmp_path / "file" / "bag" if where == "under_a_file"
+                  else "/proc/art_guidance_cannot_write_here")
+    out = subprocess.run([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
+                          "-p", f"record_dir:={record_dir}"], env=ros_env, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 2, out.stdout + out.stderr
+    why = "is a file, not a folder" if where == "under_a_file" else "files cannot be created"
+    assert f"record_dir {record_dir} cannot be used" in out.stderr and why in out.stderr
+
+
+def test_a_record_dir_lost_mid_run_does_not_stop_guidance(ros_env, python_exe, tmp_path):
+    """The bag folder replaced by a regular file mid-run: plans keep coming, each failed solve
+    is reported on /diagnostics, and the folder as it was (moved away) stays consistent: no
+    stub file, metadata.yaml describes exactly the solves recorded before."""
+    bag, moved = tmp_path / "bag", tmp_path / "moved"
+    with _node_with_client(ros_env, python_exe, bag, "recording_client3") as (proc, client):
+        before = _plan_ids(client, 2, np.random.default_rng(7))
+        bag.rename(moved)
+        bag.write_text("in the way")
+        after = _plan_ids(client, 2, np.random.default_rng(8))
+        assert len(after) == 2  # plans still arrive
         errors = client.wait_for(lambda _, diags: [v for _, v, n in diags
                                                    if n == "art_guidance/recorder"], 10.0)
         assert errors, "no recorder error on /diagnostics"
@@ -158,3 +180,6 @@ def test_unwritable_log_directory_does_not_stop_guidance(ros_env, python_exe):
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=30)
     assert proc.returncode == 0
+    assert [p.plan_id for p in _rosbags_plans(moved)] == before
+    assert _metadata(moved)["message_count"] == len(read_log(moved).messages)
+    assert [p.name for p in moved.iterdir() if p.suffix != ".yaml"] == ["guidance_0.mcap"]

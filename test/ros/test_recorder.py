@@ -20,7 +20,8 @@ from art_guidance.planning import GuidancePipeline, PlanRequest
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.record.bag_metadata import METADATA_VERSION
 from art_guidance.record.recorder import (
-    PLAN_TYPE, REQUEST_TYPE, TOPICS, McapRecorder, ros2msg_schema,
+    PLAN_TYPE, REQUEST_TYPE, TAIL, TOPICS, McapRecorder, _plain, check_cap, check_record_dir,
+    ros2msg_schema,
 )
 from art_guidance.record.reindex import has_summary, reindex_bag
 from art_guidance.record.replay import read_log, replay
@@ -358,3 +359,269 @@ def test_replay_of_an_unknown_model_falls_back_to_the_default_of_the_log_mode(tm
     report = replay(bag)
     assert f"replayed with {DEFAULT_MODELS[mode]}" in report["model"], report["model"]
     assert report["compared"] == 1 and report["matched"] == 1, report
+
+
+# ---------------------------------------------------------------- crash safety and disk trouble
+def _plain_writer_bytes(rec: McapRecorder, solves) -> list[bytes]:
+    """The same solves written by mcap's plain Writer (flushed after each solve, finished at
+    the end): the byte-for-byte oracle of the single-write recorder."""
+    import io
+
+    from mcap.writer import CompressionType, Writer
+
+    out = io.BytesIO()
+    writer = Writer(out, compression=CompressionType.ZSTD)
+    writer.start(profile="ros2", library="art_guidance")
+    ids = {t: writer.register_schema(name=t, encoding="ros2msg", data=ros2msg_schema(t).encode())
+           for t in rec._schemas}
+    channels = {topic: writer.register_channel(
+        topic=topic, message_encoding="cdr", schema_id=ids[t],
+        metadata={"offered_qos_profiles": "", "topic_type_hash": rec._hashes[t]})
+        for topic, t in rec.topics.items()}
+    writer.add_metadata("art_guidance", rec.metadata)
+    prefixes = []
+    for stamp, msgs in solves:
+        for topic, msg in msgs:
+            data = bytes(rec._encoders[topic](_plain(msg)))
+            writer.add_message(channels[topic], stamp, data, stamp)
+        writer.flush()
+        prefixes.append(out.getvalue())
+    writer.finish()
+    return prefixes + [out.getvalue()]
+
+
+def test_single_write_files_are_the_plain_writer_bytes(tmp_path, solves):
+    """After each solve the file is the plain Writer's bytes plus a provisional ending; after
+    finish it is the plain Writer's finished file, byte for byte (summary included)."""
+    pipeline, data = solves
+    rec = McapRecorder(tmp_path / "bag", {"config": pipeline.config_json()})
+    expected = _plain_writer_bytes(rec, data)
+    for k, (stamp, msgs) in enumerate(data):
+        assert rec.record_solve(msgs, stamp)
+        assert rec.files[0].read_bytes() == expected[k] + TAIL
+    rec.finish()
+    assert rec.files[0].read_bytes() == expected[-1] and has_summary(rec.files[0])
+    assert len(rec.torn_window_ns) == len(data) - 1  # the first solve creates the file
+
+
+def test_a_write_cut_at_any_page_boundary_loses_only_that_solve(tmp_path, solves):
+    """Linux may end a large write early at a page boundary on SIGKILL: for every such cut of
+    the third solve's write, read_log keeps the first two solves and `bag reindex` repairs."""
+    pipeline, data = solves
+    bag = tmp_path / "bag"
+    rec = McapRecorder(bag, {"config": pipeline.config_json()})
+    for stamp, msgs in data[:2]:
+        assert rec.record_solve(msgs, stamp)
+    path, start = rec.files[0], rec._file.data_end
+    before, metadata = path.read_bytes(), (bag / "metadata.yaml").read_bytes()
+    assert rec.record_solve(data[2][1], data[2][0])
+    after = path.read_bytes()
+    rec.finish()
+    page = 4096
+    cuts = [start] + list(range((start // page + 1) * page, len(after), page))
+    assert len(cuts) >= 3
+    for cut in cuts:
+        torn = after[:cut] + before[cut:]
+        path.write_bytes(torn)
+        (bag / "metadata.yaml").write_bytes(metadata)
+        for p in bag.glob("*.orig"):
+            p.unlink()
+        ids = [r.plan_id for r, _ in read_log(bag).solves()]
+        assert ids[:2] == ["plan-0", "plan-1"] and len(ids) <= 3, cut
+        reindex_bag(bag, say=lambda _: None)
+        assert _plan_ids(bag)[:2] == ["plan-0", "plan-1"], cut
+        assert consistency_problems(bag) == []
+
+
+def _no_stubs(bag: Path) -> None:
+    assert not list(bag.glob(".*.part")) and all(p.stat().st_size > 0 for p in bag.glob("*.mcap"))
+
+
+def _full_disk_after(monkeypatch, n_bytes: int) -> list[int]:
+    """os.pwrite and os.write write `n_bytes` more bytes, then fail with ENOSPC (a short write
+    first, as on a filling disk); rewriting bytes inside a file still works, as on a full
+    ext4 disk. Returns the budget cell (set [0] to reset)."""
+    import errno
+    import os as os_module
+
+    budget = [n_bytes]
+    real_pwrite, real_write = os_module.pwrite, os_module.write
+
+    def limited(real):
+        def call(fd, data, *args):
+            if args and args[0] + len(data) <= os_module.fstat(fd).st_size:
+                return real(fd, data, *args)  # over allocated blocks: needs no space
+            if budget[0] <= 0:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            n = real(fd, bytes(data)[:budget[0]], *args)
+            budget[0] -= n
+            return n
+        return call
+    monkeypatch.setattr(os_module, "pwrite", limited(real_pwrite))
+    monkeypatch.setattr(os_module, "write", limited(real_write))
+    return budget
+
+
+def test_full_disk_keeps_the_folder_consistent(tmp_path, solves, monkeypatch):
+    """ENOSPC in the middle of the third solve's write: the solve is reported, the file is cut
+    back to two whole solves with a valid ending, metadata.yaml says so; once space is back the
+    next solve goes to a new file and finish gives a state 'finished' bag."""
+    pipeline, data = solves
+    bag = tmp_path / "bag"
+    rec = McapRecorder(bag, {"config": pipeline.config_json()})
+    for stamp, msgs in data[:2]:
+        assert rec.record_solve(msgs, stamp)
+    budget = _full_disk_after(monkeypatch, 5000)  # part of the chunk, then a full disk
+    assert rec.record_solve(data[2][1], data[2][0]) is False
+    assert "No space left" in rec.last_error and rec.errors == 1
+    monkeypatch.undo()
+    _no_stubs(bag)
+    assert _plan_ids(bag) == ["plan-0", "plan-1"]  # as it is, with rosbags
+    info = _info(bag)
+    assert info["custom_data"]["art_guidance.state"] == "write_failed"
+    assert "No space left" in info["custom_data"]["art_guidance.last_error"]
+    assert consistency_problems(bag) == [] and info["message_count"] == 6
+    budget[0] = 0
+    assert rec.record_solve(data[2][1], data[2][0])  # space again: a new file
+    assert [p.name for p in rec.files] == ["guidance_0.mcap", "guidance_1.mcap"]
+    rec.finish()
+    info = _info(bag)
+    assert info["custom_data"]["art_guidance.state"] == "finished"
+    assert info["custom_data"]["art_guidance.write_errors"] == "1"
+    assert consistency_problems(bag) == [] and info["message_count"] == 9
+    assert _plan_ids(bag) == ["plan-0", "plan-1", "plan-2"]
+    assert [r.plan_id for r, _ in read_log(bag).solves()] == ["plan-0", "plan-1", "plan-2"]
+
+
+def test_a_full_disk_from_the_start_leaves_no_file(tmp_path, solves, monkeypatch):
+    pipeline, data = solves
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    rec = McapRecorder(bag, {"config": pipeline.config_json()})
+    _full_disk_after(monkeypatch, 3000)
+    assert rec.record_solve(data[0][1], data[0][0]) is False
+    assert rec.record_solve(data[1][1], data[1][0]) is False
+    rec.finish()
+    monkeypatch.undo()
+    assert sorted(p.name for p in bag.iterdir()) == ["metadata.yaml"] and rec.files == []
+    info = _info(bag)  # says what happened: no file, two errors
+    assert info["relative_file_paths"] == [] and info["message_count"] == 0
+    assert info["custom_data"]["art_guidance.write_errors"] == "2"
+
+
+def test_a_failed_metadata_write_undoes_the_solve(tmp_path, solves, monkeypatch):
+    """metadata.yaml never lags the data: when it cannot be written the solve's data is
+    taken back (here the second solve, then the first solve of a new file)."""
+    import art_guidance.record.recorder as recorder_module
+
+    pipeline, data = solves
+    bag = tmp_path / "bag"
+    rec = McapRecorder(bag, {"config": pipeline.config_json()})
+    assert rec.record_solve(data[0][1], data[0][0])
+    one_solve = rec.files[0].read_bytes()
+    real = recorder_module.write_bag_metadata
+
+    def unwritable(directory, files, topics, custom):
+        if custom["art_guidance.state"] == "recording":
+            raise OSError(28, "No space left on device")
+        return real(directory, files, topics, custom)
+    monkeypatch.setattr(recorder_module, "write_bag_metadata", unwritable)
+    assert rec.record_solve(data[1][1], data[1][0]) is False
+    assert rec.files[0].read_bytes() == one_solve  # taken back
+    info = _info(bag)
+    assert info["custom_data"]["art_guidance.state"] == "write_failed"
+    assert "No space left" in info["custom_data"]["art_guidance.last_error"]
+    assert consistency_problems(bag) == [] and info["message_count"] == 3
+    assert rec.record_solve(data[1][1], data[1][0]) is False  # a new file, removed again
+    assert [p.name for p in bag.glob("*.mcap")] == ["guidance_0.mcap"]
+    monkeypatch.undo()
+    assert rec.record_solve(data[2][1], data[2][0])
+    rec.finish()
+    assert _plan_ids(bag) == ["plan-0", "plan-2"] and consistency_problems(bag) == []
+    _no_stubs(bag)
+
+
+_FSIZE_CHILD = """
+import json, resource, signal, sys
+from pathlib import Path
+from helpers.ros_client import nav_msg
+from art_guidance.record.recorder import NAV_TYPE, McapRecorder
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+rec = McapRecorder(sys.argv[1], topics={"/nav": NAV_TYPE}, max_bytes=1 << 20)
+ok = [rec.record_solve([("/nav", nav_msg(10**18 + k, [float(k)] * 6))], 10**18 + k)
+      for k in range(300)]
+rec.finish()
+print(json.dumps({"ok": sum(ok), "failed": len(ok) - sum(ok), "error": rec.last_error}))
+"""
+
+
+def test_file_size_limit_in_a_real_process(tmp_path):
+    """A real EFBIG (RLIMIT_FSIZE, SIGXFSZ ignored) in a child process: every solve past the
+    limit is reported, no stub file, and the folder opens as it is with a finished summary."""
+    import os
+    import subprocess
+    import sys
+
+    bag = tmp_path / "bag"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    out = subprocess.run([sys.executable, "-c", _FSIZE_CHILD, str(bag)], env=env,
+                         capture_output=True, text=True, timeout=60, check=True)
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["ok"] > 10 and result["failed"] > 0 and "File too large" in result["error"]
+    _no_stubs(bag)
+    info = _info(bag)
+    assert consistency_problems(bag) == [] and metadata_problems(
+        {"rosbag2_bagfile_information": info}) == []
+    with AnyReader([bag]) as reader:
+        assert sum(1 for _ in reader.messages()) == info["message_count"] == result["ok"]
+    assert len(read_log(bag).messages) == result["ok"]
+
+
+def test_recording_cap_deletes_the_oldest_closed_files(tmp_path, solves):
+    pipeline, data = solves
+    bag = tmp_path / "bag"
+    repeated = [(stamp + 10**9 * 3 * k, msgs) for k in range(4) for stamp, msgs in data]
+    with pytest.raises(ConfigError, match="record_max_total_bytes must be 0"):
+        McapRecorder(bag, max_bytes=20_000, max_total_bytes=59_999)
+    rec = McapRecorder(bag, {"config": pipeline.config_json()}, max_bytes=20_000,
+                       max_total_bytes=60_000)
+    sizes = []
+    for stamp, msgs in repeated:
+        assert rec.record_solve(msgs, stamp)
+        sizes.append(sum(p.stat().st_size for p in bag.glob("*.mcap")))
+        assert consistency_problems(bag) == []
+    rec.finish()
+    info = _info(bag)
+    on_disk = [p.name for p in sorted(bag.glob("*.mcap"), key=lambda p: len(p.name))]
+    assert info["relative_file_paths"] == on_disk and on_disk[0] != "guidance_0.mcap"
+    assert max(sizes) <= 60_000 + 20_000  # the cap plus one solve and a summary
+    custom = info["custom_data"]
+    kept = info["message_count"]
+    assert int(custom["art_guidance.dropped_messages"]) + kept == 3 * len(repeated)
+    assert int(custom["art_guidance.dropped_files"]) == len(rec.files) - len(on_disk)
+    with AnyReader([bag]) as reader:
+        stamps = [t for _, t, _ in reader.messages()]
+    assert len(stamps) == kept and min(stamps) == info["starting_time"][
+        "nanoseconds_since_epoch"]
+    assert metadata_problems({"rosbag2_bagfile_information": info}) == []
+
+
+def test_record_dir_is_checked_at_start_up(tmp_path):
+    import os
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    with pytest.raises(ConfigError, match=f"{blocker} is a file, not a folder"):
+        check_record_dir(blocker / "bag")
+    with pytest.raises(ConfigError, match="cannot be used: files cannot be created"):
+        check_record_dir("/proc/art_guidance_bag")
+    assert check_record_dir(tmp_path / "a" / "bag").is_dir()
+    assert list((tmp_path / "a" / "bag").iterdir()) == []  # the probe is gone
+    if os.geteuid() != 0:  # root writes to a read-only folder: the /proc case stands in
+        ro = tmp_path / "ro"
+        ro.mkdir(mode=0o500)
+        with pytest.raises(ConfigError, match="Permission denied"):
+            check_record_dir(ro / "bag")
+    with pytest.raises(ConfigError, match=">= 3 \\* record_max_bytes"):
+        check_cap(10, 4096)
