@@ -44,7 +44,7 @@ def _print_losses(report: dict) -> None:
         if ids:
             print(f"unmatched: {len(ids)} {kind.replace('_', ' ')}: {', '.join(ids)}")
     print(describe(report["lost"]))
-    if report["lost"]["source"] != "metadata.yaml":
+    if report["lost"]["source"] != "metadata.yaml" or "retention" in report["lost"]["metadata"]:
         print(f"note: {report['lost']['metadata']}")
     for note in report["lost"]["notes"] + report["notes"]:
         print(f"note: {note}")

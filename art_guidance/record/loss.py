@@ -38,11 +38,16 @@ def recorded_counts(directory: Path) -> tuple[dict | None, str]:
         return None, (f"{METADATA_FILE} unreadable ({type(exc).__name__}: {exc}): the loss is "
                       "known only from the damaged chunks")
     total = sum(n for _, n in topics.values())
+    dropped = int(custom.get("art_guidance.dropped_files", 0) or 0)
+    retention = (f"; the retention cap dropped the {dropped} oldest file(s) "
+                 f"({custom.get('art_guidance.dropped_messages', '?')} messages) by design"
+                 if dropped else "")
     if repair:  # written by `bag reindex`: the loss it found is before these counts
         repair = (f"{METADATA_FILE} was rewritten by a repair ({repair}; "
                   f"{custom.get('art_guidance.lost_messages', '?')} message(s) lost then)")
     return ({"topics": topics, "files": files, "state": state, "repair": repair or ""},
-            f"{METADATA_FILE} ({state}) counts {total} messages in {len(files)} file(s)")
+            f"{METADATA_FILE} ({state}) counts {total} messages in {len(files)} file(s)"
+            f"{retention}")
 
 
 def _from_damage(damaged: list[Damage]) -> dict[str, int]:

@@ -605,6 +605,9 @@ def test_recording_cap_deletes_the_oldest_closed_files(tmp_path, solves):
     assert len(stamps) == kept and min(stamps) == info["starting_time"][
         "nanoseconds_since_epoch"]
     assert metadata_problems({"rosbag2_bagfile_information": info}) == []
+    log = read_log(bag)  # files dropped by the retention rule are not reported as lost
+    assert not log.data_lost and len(log.solves()) == kept // 3, (log.lost, log.notes)
+    assert "retention cap dropped" in log.lost["metadata"], log.lost
 
 
 def test_record_dir_is_checked_at_start_up(tmp_path):
