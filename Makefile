@@ -12,6 +12,10 @@ MSG_SRC := $(wildcard msg_schemas/msg/*.msg) msg_schemas/CMakeLists.txt msg_sche
 ROS_ENV := VIRTUAL_ENV=$(abspath $(VENV)) AMENT_PREFIX_PATH=$(abspath $(VENV)) \
 	PATH=$(abspath $(VENV))/bin:$$PATH
 PYTEST_ARGS ?=
+# Test worker processes (pytest-xdist); 0 runs every test in this one process. A file whose
+# fixtures outlive a test stays on one worker (test/conftest.py), hence --dist loadgroup.
+TEST_JOBS ?= 2
+XDIST := $(if $(filter 0,$(TEST_JOBS)),,-n $(TEST_JOBS) --dist loadgroup)
 
 .PHONY: all setup test test-fast demo lint bench lock clean distclean
 
@@ -49,10 +53,10 @@ setup: $(VENV)/.stamp-pkg
 
 test: setup
 	$(PY) -m flake8 art_guidance test benchmarks .ci setup.py
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 test-fast: setup
-	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -q -m "not slow" $(XDIST) $(PYTEST_ARGS)
 
 lint: setup
 	$(PY) -m flake8 art_guidance test benchmarks .ci setup.py

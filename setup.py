@@ -32,7 +32,7 @@ setup(
         "matplotlib>=3.8",
     ],
     extras_require={
-        "test": ["pytest>=8", "cvxpy>=1.5", "rosbags>=0.10", "flake8>=7"],
+        "test": ["pytest>=8", "pytest-xdist>=3.6", "cvxpy>=1.5", "rosbags>=0.10", "flake8>=7"],
         "distributed": ["ray[default]>=2.9"],
     },
     zip_safe=True,

@@ -15,9 +15,13 @@ from art_guidance.record.replay import read_log, replay  # noqa: E402
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 
-def test_demo_reaches_the_waypoint_and_its_log_replays(ros_env, python_exe, tmp_path):
+def test_demo_reaches_the_waypoint_and_its_log_replays(ros_env, second_ros_env, python_exe,
+                                                       tmp_path):
+    # on this process's second domain: no other run of the tests uses it (a demo's own default
+    # domain comes from its process id, which another demo running at the same time may share)
     out = subprocess.run([python_exe, "-m", "art_guidance.cli", "demo", "--out", str(tmp_path),
-                          "--seed", "1", "--timeout", "400"],
+                          "--seed", "1", "--timeout", "400",
+                          "--domain-id", second_ros_env["ROS_DOMAIN_ID"]],
                          env=ros_env, capture_output=True, text=True, timeout=500)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     run = next(tmp_path.glob("run_*"))

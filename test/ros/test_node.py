@@ -200,7 +200,7 @@ def test_burst_keeps_node_responsive_and_plans_newest(client, node_proc):
     assert node_proc.poll() is None
 
 
-def test_params_file_is_honoured(ros_env, python_exe, tmp_path):
+def test_params_file_is_honoured(second_ros_env, python_exe, tmp_path):
     """--params-file with the packaged layout; a changed waypoint reaches the plan."""
     from art_guidance.config import default_config_dir
 
@@ -208,7 +208,7 @@ def test_params_file_is_honoured(ros_env, python_exe, tmp_path):
     params = tmp_path / "params.yaml"
     params.write_text(text.replace("default_waypoint: plus_vbar", "default_waypoint: minus_rbar")
                       .replace("record: true", "record: false"))
-    env = dict(ros_env, ROS_DOMAIN_ID=str(int(ros_env["ROS_DOMAIN_ID"]) + 1))
+    env = second_ros_env  # a node apart from the module's
     proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "--params-file", str(params)], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import subprocess
 import time
@@ -28,6 +29,9 @@ from art_guidance.sim.closed_loop import (  # noqa: E402
 
 pytestmark = pytest.mark.ros
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+# Wall-clock budget of a run (a few seconds on a quiet 2-core machine): a stalled loop fails it.
+# It is meant for a test that has the cores to itself; pytest-xdist workers share them.
+WALL_BUDGET_S = 30.0 * max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
 SUMMARY_KEYS = {"miss_m", "velocity_error_mps", "total_dv_mps", "min_safety_margin_m",
                 "n_replans", "n_burns", "final_t_s", "outcome", "reached", "waypoint"}
 
@@ -48,7 +52,8 @@ def _stop(proc: subprocess.Popen) -> str:
     return out
 
 
-def _run_sim(ros_env, python_exe, tmp_path, params: dict[str, str], timeout_s: float = 60.0):
+def _run_sim(ros_env, python_exe, tmp_path, params: dict[str, str],
+             timeout_s: float = 2 * WALL_BUDGET_S):
     png, summary = tmp_path / "run.png", tmp_path / "summary.json"
     argv = [python_exe, "-m", "art_guidance.ros.sim_node", "--ros-args",
             "-p", f"png_path:={png}", "-p", f"summary_path:={summary}"]
@@ -87,7 +92,7 @@ def test_sim_flies_a_handmade_plan(ros_env, python_exe, tmp_path):
     assert abs(s["total_dv_mps"] - 3e-3) < 3e-3  # Gates errors: sigma 0.3 mm/s per axis
     assert s["min_safety_margin_m"] < 0  # a 750 m hold is inside the 1000 m approach ellipsoid
     assert png.read_bytes()[:8] == PNG_MAGIC
-    assert wall < 30.0
+    assert wall < WALL_BUDGET_S
     assert fake.returncode == 0, fake_out
 
 
@@ -106,7 +111,7 @@ def test_lost_first_fix_is_sent_again(ros_env, python_exe, tmp_path):
     s = _summary_line(out.stdout)
     assert s["outcome"] == "final_epoch" and s["n_steps"] == 3 and s["n_replans"] == 1
     assert s["total_dv_mps"] == pytest.approx(3e-3, rel=1e-12)  # errors off: as commanded
-    assert wall < 30.0
+    assert wall < WALL_BUDGET_S
 
 
 @pytest.mark.slow
@@ -128,7 +133,7 @@ def test_closed_loop_reaches_the_waypoint(ros_env, python_exe, tmp_path):
     assert s["min_safety_margin_m"] is not None and np.isfinite(s["min_safety_margin_m"])
     assert s["final_t_s"] == pytest.approx(1.29 * 5509.0, rel=0.01)
     assert png.read_bytes()[:8] == PNG_MAGIC
-    assert wall < 30.0
+    assert wall < WALL_BUDGET_S
 
 
 def test_loss_fault_over_dds_reports_the_post_fault_drift(ros_env, python_exe, tmp_path):

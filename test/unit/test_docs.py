@@ -98,45 +98,26 @@ def test_parameter_table_is_rendered_from_the_specs():
         "regenerate with art_guidance.ros.parameters.parameter_table"
 
 
-def _run_briefly(command: str, cwd: Path, env: dict, timeout_s: float) -> tuple[int | None, str]:
-    """Run `art-guidance <command>` in `cwd`; kill its process group after `timeout_s` (a
-    server, a long job). Returns (exit code or None when it was still running, stderr)."""
-    import signal
-    import subprocess
-    import sys
-
-    proc = subprocess.Popen([sys.executable, "-m", "art_guidance.cli", *shlex.split(command)],
-                            cwd=cwd, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        _, err = proc.communicate(timeout=timeout_s)
-        return proc.returncode, err
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        _, err = proc.communicate()
-        return None, err
-
-
 @pytest.mark.slow
 def test_every_example_runs_without_a_usage_error(tmp_path, ros_env):
     """Every distinct example command, run for real in an empty directory (its own ROS 2
     domain): it may fail on missing data (exit 2 with a JSON error) or still be running after
     a few seconds (a server, a long job: then it is killed), but argparse must never reject
     it (its "usage:" line and exit 2). Ray examples are parsed only (a Ray instance outlives a
-    killed driver)."""
-    from concurrent.futures import ThreadPoolExecutor
+    killed driver). The commands are forked from one process that has imported the package
+    and its dependencies once (helpers/cli_runs.py), six at a time: most are killed at their
+    timeout, which is wall-clock time, so running more at once spends less of it."""
+    from helpers.cli_runs import run_briefly
 
     commands = sorted({c for _, c in EXAMPLES if "--engine ray" not in c})
     env = dict(ros_env, PYTHONPATH=os.pathsep.join([str(ROOT), ros_env.get("PYTHONPATH", "")]))
-
-    def one(item):
-        k, command = item
+    jobs = []
+    for k, command in enumerate(commands):
         cwd = tmp_path / f"run{k}"
         cwd.mkdir()
-        return command, *_run_briefly(command, cwd, env, 4.0)
+        jobs.append((command, cwd))
 
-    with ThreadPoolExecutor(3) as pool:
-        outcomes = list(pool.map(one, enumerate(commands)))
+    outcomes = [(c, *outcome) for c, outcome in zip(commands, run_briefly(jobs, env, 4.0, 6))]
     bad = [f"{c}: {err.strip()[-300:]}" for c, code, err in outcomes
            if code == 2 and "usage:" in err]
     assert bad == []
