@@ -15,6 +15,7 @@ PYTEST_ARGS ?=
 # Test worker processes (pytest-xdist); 0 runs every test in this one process. A file whose
 # fixtures outlive a test stays on one worker (test/conftest.py), hence --dist loadgroup.
 TEST_JOBS ?= 2
+# one BLAS and torch thread per process (unless OMP_NUM_THREADS is set): the workers share the cores
 XDIST := $(if $(filter 0,$(TEST_JOBS)),,-n $(TEST_JOBS) --dist loadgroup)
 
 .PHONY: all setup test test-fast demo lint bench lock clean distclean
@@ -53,10 +54,10 @@ setup: $(VENV)/.stamp-pkg
 
 test: setup
 	$(PY) -m flake8 art_guidance test benchmarks .ci setup.py
-	$(PY) -m pytest -q $(XDIST) $(PYTEST_ARGS)
+	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 test-fast: setup
-	$(PY) -m pytest -q -m "not slow" $(XDIST) $(PYTEST_ARGS)
+	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q -m "not slow" $(XDIST) $(PYTEST_ARGS)
 
 lint: setup
 	$(PY) -m flake8 art_guidance test benchmarks .ci setup.py
