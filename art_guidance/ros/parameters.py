@@ -1,8 +1,7 @@
 """The guidance node's ROS parameters: what each means, its constraints, whether it may change.
 
 Defaults come from `config/guidance_node.yaml` (`config.node_parameter_defaults`), plus
-`samples_per_node` and `propose_concurrently` from `planning.yaml`; this module adds the
-descriptors. Importing it loads no
+`samples_per_node` from `planning.yaml`; this module adds the descriptors. Importing it loads no
 ROS module (the CLI's `node --help` lists the parameters from here); `descriptor` imports
 rcl_interfaces when the node asks for one.
 
@@ -112,6 +111,11 @@ SPECS: dict[str, ParamSpec] = {
                                   "every SCVx* run; recording not included): on expiry the "
                                   "best feasible plan at hand is returned [s]", "float",
                                   minimum=0.0, exclusive_minimum=True, dynamic=True),
+    "propose_concurrently": ParamSpec("warm_start auto: make the learned proposal in a worker "
+                                      "process (started at configure, ~300 MB more memory) "
+                                      "while SCVx* from CVX is solved: the same plans, sooner "
+                                      "where a core is free; false: one after the other",
+                                      "bool"),
     "min_remaining_nodes": ParamSpec("below this many nodes left the plan in force is flown "
                                      "out, not replanned", "int", minimum=2, dynamic=True),
     "nav_qos_reliability": ParamSpec("reliability of the nav subscription: best_effort matches "
@@ -129,13 +133,9 @@ SPECS: dict[str, ParamSpec] = {
                                         "3 * record_max_bytes", "int", minimum=0),
     "samples_per_node": ParamSpec("drift samples linearised per node in SCP (default: "
                                   "planning.yaml)", "int", minimum=1),
-    "propose_concurrently": ParamSpec("warm_start auto: make the learned proposal in a worker "
-                                      "process (started at configure, ~300 MB) while SCVx* "
-                                      "from CVX is solved; the same plans, sooner where a core "
-                                      "is free (default: planning.yaml)", "bool"),
 }
 # parameters whose defaults come from planning.yaml, not guidance_node.yaml
-PLANNING_PARAMETERS = ("samples_per_node", "propose_concurrently")
+PLANNING_PARAMETERS = ("samples_per_node",)
 
 
 def descriptor(name: str) -> Any:
