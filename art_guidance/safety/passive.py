@@ -37,6 +37,7 @@ conservative, and exact (tangent) at the reference since ``d`` is homogeneous of
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -109,9 +110,9 @@ class PassiveSafety:
         arcs: the closed-form drift arcs (`drift.DriftArcs`).
         ellipsoid_p: (N, 3, 3) ellipsoid matrices Diag(1/r^2) [1/m^2].
         semi_axes_m: (N, 3) active ellipsoid semi-axes [m].
-        drift_stms: (N, S, 6, 6) Phi(t_i + tau_j, t_i).
+        drift_stms: (N, S, 6, 6) Phi(t_i + tau_j, t_i) (built on first use).
         drift_pos_maps: (N, S, 3, 6) D Psi(t_i + tau_j) Phi(t_i + tau_j, t_i) [-] (ROE -> RTN
-            position).
+            position; built on first use).
     """
 
     def __init__(self, horizon: Horizon, scenario: ScenarioConfig,
@@ -154,7 +155,6 @@ class PassiveSafety:
         if switch < 0:
             raise InputError("koz_switch_node", "must be >= 0", koz_switch_node)
         self._build_ellipsoids(scenario, switch)
-        self._build_drift_maps()
         self.arcs = DriftArcs(horizon.chief_oe, self.semi_axes_m, t_safe, n_s)
         self._cache: tuple | None = None
 
@@ -169,7 +169,10 @@ class PassiveSafety:
         self.ellipsoid_p[:, np.arange(3), np.arange(3)] = self._p_diag
         self._min_axis_m = axes.min(axis=1)  # (N,)
 
-    def _build_drift_maps(self) -> None:
+    @cached_property
+    def _drift_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """(drift_stms, drift_pos_maps), built on first use: the planner's margins come from
+        `DriftArcs`, so only the sampled checks read these (half the construction time)."""
         n, s = self.n_nodes, self.n_samples
         stms = np.empty((n, s, 6, 6))
         pos = np.empty((n, s, 3, 6))
@@ -180,8 +183,18 @@ class PassiveSafety:
             stms[i] = stm_j2(oe_i, self.tau_s)  # (S, 6, 6)
             psi_pos = psi_from_latitude(mean_arg_latitude(drifted), n_mot)[:, :3]  # (S, 3, 6)
             pos[i] = psi_pos @ stms[i]
-        self.drift_stms = stms
-        self.drift_pos_maps = pos
+        return stms, pos
+
+    @property
+    def drift_stms(self) -> np.ndarray:
+        """(N, S, 6, 6) Phi(t_i + tau_j, t_i) at the drift samples (built on first use)."""
+        return self._drift_maps[0]
+
+    @property
+    def drift_pos_maps(self) -> np.ndarray:
+        """(N, S, 3, 6) D Psi(t_i + tau_j) Phi(t_i + tau_j, t_i), ROE -> RTN position at the
+        drift samples (built on first use)."""
+        return self._drift_maps[1]
 
     # ------------------------------------------------------------------ public API
     def post_burn(self, roe_m: object, dv_rtn_mps: object) -> np.ndarray:

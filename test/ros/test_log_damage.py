@@ -10,18 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers.plans import seed_plans
 from helpers.ros_client import nav_msg
 from mcap.reader import make_reader
 
 from art_guidance.cli import main as cli_main
-from art_guidance.config import GuidanceConfig, ScenarioConfig
-from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.planning import GuidancePipeline, PlanRequest
 from art_guidance.record.recorder import PLAN_TYPE, SOLVE_RECORD_TYPE, McapRecorder
 from art_guidance.record.reindex import has_summary, repair_bag
 from art_guidance.record.replay import EXIT_LOST, EXIT_OK, read_log, replay
 from art_guidance.ros.adapters import plan_to_msg, solve_record_msg
-from art_guidance.scenarios import sample_scenario
 
 AnyReader = pytest.importorskip("rosbags.highlevel").AnyReader
 N_SOLVES = 45
@@ -31,15 +28,7 @@ STAMP0 = 1_800_000_000_000_000_000
 @pytest.fixture(scope="module")
 def results():
     """Three real plans; the bags repeat them under new plan ids."""
-    scenario = ScenarioConfig.from_yaml()
-    pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario))
-    chief = np.array(scenario.chief_oe)
-    out = []
-    for seed in range(3):
-        s = sample_scenario(scenario, seed)
-        out.append((s, pipeline.plan(PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0),
-                                                 s.target_rtn))))
-    return pipeline, out
+    return seed_plans(range(3))
 
 
 def _solve(results, k: int, parts=("nav", "record", "plan")) -> tuple[int, list]:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import yaml
 from art_guidance_msgs.msg import ReplanRequest
+from helpers.plans import seed_plans
 from helpers.ros_client import nav_msg
 from helpers.rosbag2_metadata import consistency_problems, metadata_problems
 
@@ -34,14 +35,9 @@ AnyReaderError = pytest.importorskip("rosbags.highlevel").AnyReaderError
 @pytest.fixture(scope="module")
 def solves():
     """Three real plans with the messages the node records for them."""
-    scenario = ScenarioConfig.from_yaml()
-    pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario))
-    chief = np.array(scenario.chief_oe)
+    pipeline, plans = seed_plans(range(3), chance_constrained=lambda seed: seed != 1)
     out = []
-    for seed in range(3):
-        s = sample_scenario(scenario, seed)
-        result = pipeline.plan(PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0),
-                                           s.target_rtn, chance_constrained=seed != 1))
+    for seed, (s, result) in enumerate(plans):
         stamp = 1_800_000_000_000_000_000 + seed * 1_000_000_000
         out.append((stamp, [("/nav/relative_state", nav_msg(stamp, s.rtn0)),
                             ("/guidance/solve_record",
