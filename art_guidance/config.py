@@ -270,6 +270,7 @@ class PlanningConfig:
     posthoc: PosthocThresholds = field(default_factory=PosthocThresholds)
     art_deadline_share: float = 0.6
     also_solve_from_cvx: bool = True
+    also_solve_from_art: bool = False
     posthoc_subject: str = "warm_start"
     art_min_gain_mps: float = 0.001
     skip_art_when_cvx_safe: bool = True
@@ -283,9 +284,10 @@ class PlanningConfig:
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ConfigError(f"samples_per_node must be an integer >= 1, "
                               f"got {self.samples_per_node!r}")
-        if not isinstance(self.also_solve_from_cvx, bool):
-            raise ConfigError(f"also_solve_from_cvx must be true or false, got "
-                              f"{self.also_solve_from_cvx!r}")
+        for name in ("also_solve_from_cvx", "also_solve_from_art"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name} must be true or false, got "
+                                  f"{getattr(self, name)!r}")
         if not isinstance(self.propose_concurrently, bool):
             raise ConfigError(f"propose_concurrently must be true or false, got "
                               f"{self.propose_concurrently!r}")
@@ -315,14 +317,14 @@ class PlanningConfig:
 # Planning fields that the dataset generator does not use (the post hoc check and the
 # in-flight choices between warm starts); `samples_per_node` shapes SCVx* and does matter.
 FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
-                        "posthoc_subject", "art_min_gain_mps", "skip_art_when_cvx_safe",
-                        "propose_concurrently")
+                        "also_solve_from_art", "posthoc_subject", "art_min_gain_mps",
+                        "skip_art_when_cvx_safe", "propose_concurrently")
 
 
 # What the pipeline did before these planning fields existed: fly the cheaper plan whatever
 # the gap, and run ART even when the CVX plan is passively safe.
 _BEFORE = {"art_min_gain_mps": 0.0, "skip_art_when_cvx_safe": False,
-           "propose_concurrently": False}
+           "propose_concurrently": False, "also_solve_from_art": False}
 
 
 @dataclass(frozen=True)

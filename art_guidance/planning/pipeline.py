@@ -145,10 +145,10 @@ class GuidancePipeline:
         if warm[other] is not None and budget is not None:
             budget *= self.config.planning.art_deadline_share  # leave time for the retry
         res = solve(source, budget)
+        auto = request.warm_start == WarmStart.AUTO.value and self._time_left(t0) != 0.0
         second = second_run(res, source, warm[other] is not None,
-                            request.warm_start == WarmStart.AUTO.value
-                            and self.config.planning.also_solve_from_cvx
-                            and self._time_left(t0) != 0.0)
+                            auto and self.config.planning.also_solve_from_cvx,
+                            auto and self.config.planning.also_solve_from_art)
         if second is not None:
             alt_source, why = second
             alt = solve(alt_source, self._time_left(t0))
@@ -343,13 +343,15 @@ def cvx_is_safe(cvx: ConvexSolution, safety: PassiveSafety) -> bool:
 
 
 def second_run(first: ScpResult, source: str, other_exists: bool,
-               also_from_cvx: bool) -> tuple[str, str] | None:
+               also_from_cvx: bool, also_from_art: bool = False) -> tuple[str, str] | None:
     """Whether SCVx* runs a second time after `first` (warm-started from `source`, "cvx" or
     "art"): (the other warm start, why), or None.
 
     A run that did not converge is retried from the other warm start when there is one
     (`other_exists`); a converged run from ART is also solved from CVX when `also_from_cvx`
-    (the caller's `also_solve_from_cvx` conditions: warm start "auto", time left).
+    (the caller's `also_solve_from_cvx` conditions: warm start "auto", time left); a converged
+    run from CVX is also solved from a valid ART proposal the check rejected when
+    `also_from_art` (`also_solve_from_art`, the same conditions).
     """
     other = "cvx" if source == "art" else "art"
     if first.status is not ScpStatus.CONVERGED and other_exists:
@@ -357,6 +359,8 @@ def second_run(first: ScpResult, source: str, other_exists: bool,
                        f"{other.upper()}")
     if source == "art" and also_from_cvx:
         return "cvx", "also solved from CVX"
+    if source == "cvx" and other_exists and also_from_art:
+        return "art", "also solved from ART"
     return None
 
 
