@@ -45,7 +45,7 @@ def _fake(ros_env, python_exe, *args: str) -> subprocess.Popen:
 def _stop(proc: subprocess.Popen) -> str:
     proc.send_signal(signal.SIGINT)
     try:
-        out, _ = proc.communicate(timeout=10)
+        out, _ = proc.communicate(timeout=30)  # DDS teardown is slow on a busy machine
     except subprocess.TimeoutExpired:
         proc.kill()
         out, _ = proc.communicate()
