@@ -24,6 +24,7 @@ from typing import Any
 STARTUP_TIMEOUT_S = 120.0  # importing torch and loading the model in the spawned process
 GRACE_S = 5.0  # a job's answer may come this long after its deadline before it is abandoned
 NO_DEADLINE_TIMEOUT_S = 120.0  # the longest wait for a job without a deadline
+RESTART_AFTER_S = 30.0  # a worker that failed to start is not started again before this [s]
 
 
 def model_key(provider: object) -> tuple | None:
@@ -88,6 +89,8 @@ class ProposalProcess:
     A plan never waits for the worker to start: `submit` on a worker that is not running
     starts it (the model loads in the background) and declines the job, and so does every
     `submit` until the worker is ready; `start` starts it and waits (a node's configure step).
+    A worker that failed to start (its model did not load, it died loading) is not started
+    again for `RESTART_AFTER_S`: meanwhile jobs are declined with the reason.
 
     Attributes:
         error: why the last job was declined or failed ("" = it was not): the planner then
@@ -99,6 +102,7 @@ class ProposalProcess:
         self._conn: Any = None
         self._lock = threading.Lock()  # one job at a time
         self._warming = False  # a warm-up job was sent and not yet answered
+        self._start_failed_at: float | None = None  # time.monotonic() of a failed start
         self.error = ""
 
     @property
@@ -121,8 +125,11 @@ class ProposalProcess:
         self._lock.acquire()
         try:
             if not self.alive:
-                self._launch(_warm_up_job(job["config"], job["config_sha256"], job["model"]))
-                self.error = "the worker process is starting"
+                failed = self._start_failed_at
+                if failed is None or time.monotonic() - failed >= RESTART_AFTER_S:
+                    self._launch(_warm_up_job(job["config"], job["config_sha256"],
+                                              job["model"]))
+                    self.error = "the worker process is starting"
                 self._lock.release()
                 return False
             if not self._ready(0.0):
@@ -156,8 +163,10 @@ class ProposalProcess:
             self.error = "the worker process is loading the model"
             return False
         if self._receive(timeout_s) is None:
+            self._start_failed_at = time.monotonic()  # not started again at once
             return False
         self._warming = False
+        self._start_failed_at = None
         return True
 
     def _receive(self, timeout_s: float) -> tuple | None:
