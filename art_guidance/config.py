@@ -284,16 +284,11 @@ class PlanningConfig:
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ConfigError(f"samples_per_node must be an integer >= 1, "
                               f"got {self.samples_per_node!r}")
-        for name in ("also_solve_from_cvx", "also_solve_from_art"):
+        for name in ("also_solve_from_cvx", "also_solve_from_art", "propose_concurrently",
+                     "skip_art_when_cvx_safe"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
-        if not isinstance(self.propose_concurrently, bool):
-            raise ConfigError(f"propose_concurrently must be true or false, got "
-                              f"{self.propose_concurrently!r}")
-        if not isinstance(self.skip_art_when_cvx_safe, bool):
-            raise ConfigError(f"skip_art_when_cvx_safe must be true or false, got "
-                              f"{self.skip_art_when_cvx_safe!r}")
         gain = self.art_min_gain_mps
         if isinstance(gain, bool) or not isinstance(gain, (int, float)) \
                 or not 0.0 <= gain < float("inf"):

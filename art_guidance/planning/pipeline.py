@@ -193,7 +193,7 @@ class GuidancePipeline:
         late is stopped and the proposal is made here instead (`proposal_worker_error` says
         why).
         """
-        planning = self.config.planning
+        planning, early = self.config.planning, None
         model = model_key(self.provider)
         if planning.propose_concurrently and planning.also_solve_from_cvx and model \
                 and request.warm_start == WarmStart.AUTO.value and cvx.status.feasible \
@@ -211,12 +211,8 @@ class GuidancePipeline:
                     else max(deadline - time.perf_counter(), 0.0) + GRACE_S
                 answer = worker.collect(wait)
                 if answer is not None:
-                    learned, art_ms = answer
-                    return early, learned, art_ms
-                learned, art_ms = self._timed_learned(request, roe_f, safety, cvx, deadline)
-                return early, learned, art_ms
-        learned, art_ms = self._timed_learned(request, roe_f, safety, cvx, deadline)
-        return None, learned, art_ms
+                    return (early, *answer)
+        return (early, *self._timed_learned(request, roe_f, safety, cvx, deadline))
 
     def _timed_learned(self, *args: object) -> tuple["_Learned", float]:
         """`_learned` and its wall time [ms]."""

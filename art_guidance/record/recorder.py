@@ -310,7 +310,6 @@ class McapRecorder:
         self.name = name
         self.topics = dict(topics or TOPICS)
         self.files: list[Path] = []  # every file created, in order (deleted ones included)
-        self.counts = {topic: 0 for topic in self.topics}
         self.solves = 0
         self.errors = 0
         self.last_error = ""
@@ -490,7 +489,6 @@ class McapRecorder:
         """Count a written solve; returns the function that takes it back."""
         before = (handle.start_ns, handle.end_ns, handle.count, self.solves)
         for topic in topics:
-            self.counts[topic] += 1
             handle.topic_counts[topic] += 1
         handle.start_ns = min(handle.start_ns, log_time_ns) if handle.count else log_time_ns
         handle.end_ns = max(handle.end_ns, log_time_ns)
@@ -500,7 +498,6 @@ class McapRecorder:
         def undo() -> None:
             handle.start_ns, handle.end_ns, handle.count, self.solves = before
             for topic in topics:
-                self.counts[topic] -= 1
                 handle.topic_counts[topic] -= 1
         return undo
 
@@ -515,7 +512,6 @@ class McapRecorder:
         if not dropped:
             return
         for gone in dropped:
-            self._add_counts(gone.topic_counts, -1)
             self.dropped_messages += gone.info.message_count
         self.dropped_files += len(dropped)
         try:
@@ -524,7 +520,6 @@ class McapRecorder:
             self._fail(exc)
             self._closed_files[:0] = dropped
             for gone in dropped:
-                self._add_counts(gone.topic_counts, 1)
                 self.dropped_messages -= gone.info.message_count
             self.dropped_files -= len(dropped)
             return
@@ -534,9 +529,15 @@ class McapRecorder:
         LOG.info("recording cap %d bytes: deleted %s", self.max_total_bytes,
                  ", ".join(f.info.path for f in dropped))
 
-    def _add_counts(self, counts: Counter, sign: int) -> None:
-        for topic, n in counts.items():
-            self.counts[topic] += sign * n
+    @property
+    def counts(self) -> dict[str, int]:
+        """Messages per topic in the bag's files: the closed ones kept and the current one."""
+        total: Counter = Counter()
+        for closed in self._closed_files:
+            total.update(closed.topic_counts)
+        if self._file is not None:
+            total.update(self._file.topic_counts)
+        return {topic: total[topic] for topic in self.topics}
 
     def _fail(self, exc: Exception) -> None:
         self.errors += 1
@@ -550,7 +551,8 @@ class McapRecorder:
             files.append(self._file.info())
         if not files and not self.errors:
             return
-        topics = [TopicInfo(topic, t, self.counts[topic], self._hashes[t])
+        counts = self.counts
+        topics = [TopicInfo(topic, t, counts[topic], self._hashes[t])
                   for topic, t in self.topics.items()]
         custom = {"art_guidance.writer": "McapRecorder", "art_guidance.state": state}
         if self.errors:
