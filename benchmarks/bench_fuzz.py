@@ -13,7 +13,6 @@ decision, the median nav -> answer time, and the node's memory before and after.
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -27,14 +26,6 @@ from art_guidance.ros.env import isolated_ros_env
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as fh:
-        for line in fh:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
-
-
 def run(repeats: int = 900, first_seed: int = 0) -> dict:
     """`repeats` cases from `first_seed` against one node process."""
     ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_fuzz_"),
@@ -42,6 +33,7 @@ def run(repeats: int = 900, first_seed: int = 0) -> dict:
     os.environ.update(ros)
     sys.path.insert(0, str(REPO / "test"))
     from helpers.fuzz_messages import run_campaign
+    from helpers.processes import interrupt, process_stats
     from helpers.ros_client import Client
 
     record_dir = tempfile.mkdtemp(prefix="art_guidance_fuzz_bag_")
@@ -55,22 +47,17 @@ def run(repeats: int = 900, first_seed: int = 0) -> dict:
     try:
         if not client.wait_matched(60.0):
             raise RuntimeError("the guidance node did not match within 60 s")
-        rss0 = _rss_mb(proc.pid)
+        rss0 = process_stats(proc.pid)[0]
         t0 = time.perf_counter()
         bar = tqdm(total=int(repeats), desc="fuzz cases")
         counts = run_campaign(client, proc, int(first_seed), int(repeats),
                               progress=lambda c: bar.update(1))
         bar.close()
         wall = time.perf_counter() - t0
-        rss1 = _rss_mb(proc.pid)
+        rss1 = process_stats(proc.pid)[0]
     finally:
         client.close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        interrupt(proc, 60)
         log.close()
     text = (Path(record_dir) / "node.log").read_text()
     return {**counts, "first_seed": int(first_seed), "wall_s": wall,

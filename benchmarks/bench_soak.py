@@ -20,7 +20,6 @@ code and tracebacks in its log.
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -37,18 +36,6 @@ REPO = Path(__file__).resolve().parents[1]
 MAX_BYTES = 1 << 20
 CAP_BYTES = 8 << 20
 SAMPLE_S = 5.0
-
-
-def _proc_stats(pid: int) -> tuple[float, int, int]:
-    """(resident memory [MB], open descriptors, threads) of a process."""
-    rss, threads = float("nan"), -1
-    with open(f"/proc/{pid}/status") as fh:
-        for line in fh:
-            if line.startswith("VmRSS:"):
-                rss = int(line.split()[1]) / 1024.0
-            elif line.startswith("Threads:"):
-                threads = int(line.split()[1])
-    return rss, len(os.listdir(f"/proc/{pid}/fd")), threads
 
 
 class _Listener:
@@ -110,6 +97,9 @@ def run(repeats: int = 150, first_seed: int = 0) -> dict:
     ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_soak_"),
                            100 + (os.getpid() + 53) % 100)
     os.environ.update(ros)
+    sys.path.insert(0, str(REPO / "test"))
+    from helpers.processes import interrupt, process_stats
+
     work = Path(tempfile.mkdtemp(prefix="art_guidance_soak_run_"))
     bag = work / "bag"
     env = {**os.environ, **ros, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
@@ -126,7 +116,7 @@ def run(repeats: int = 150, first_seed: int = 0) -> dict:
     def sample() -> None:
         while not stop.is_set() and node.poll() is None:
             try:
-                samples.append((time.perf_counter(), *_proc_stats(node.pid), _bag_bytes(bag)))
+                samples.append((time.perf_counter(), *process_stats(node.pid), _bag_bytes(bag)))
             except OSError:
                 return
             stop.wait(SAMPLE_S)
@@ -152,12 +142,7 @@ def run(repeats: int = 150, first_seed: int = 0) -> dict:
         wall = time.perf_counter() - t0
         stop.set()
         listener.close()
-        if node.poll() is None:
-            node.send_signal(signal.SIGINT)
-            try:
-                node.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                node.kill()
+        interrupt(node, 60)
         node_log.close()
     from art_guidance.record.replay import read_log
 

@@ -11,6 +11,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 from helpers.fuzz_messages import run_campaign  # noqa: E402
+from helpers.processes import interrupt  # noqa: E402
 from helpers.ros_client import Client  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -28,12 +29,7 @@ def node_proc(ros_env, python_exe):
                             env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     yield proc
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+    interrupt(proc, 20)
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,6 @@ model's rollouts go through the post hoc check, are recorded, and the log replay
 from __future__ import annotations
 
 import math
-import signal
 import subprocess
 from contextlib import contextmanager
 
@@ -14,6 +13,7 @@ import pytest
 pytest.importorskip("rclpy")
 from art_guidance_msgs.msg import ManeuverPlan  # noqa: E402
 from helpers.art_models import write_untrained_checkpoint  # noqa: E402
+from helpers.processes import interrupt  # noqa: E402
 from helpers.ros_client import Client  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
@@ -37,12 +37,7 @@ def _node(ros_env, python_exe, namespace: str, *params: str):
         yield proc, client
     finally:
         client.close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        interrupt(proc, 30)
 
 
 def _plan_diag(client: Client, plan_id: str) -> dict:
