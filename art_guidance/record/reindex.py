@@ -238,8 +238,3 @@ def repair_bag(directory: str | Path, say: Callable[[str], None] = print) -> Rep
         say(f"note: {note}")
     say(f"rewrote {rewrite_metadata(directory, _repair_notes(repair))}")
     return repair
-
-
-def reindex_bag(directory: str | Path, say: Callable[[str], None] = print) -> int:
-    """`repair_bag`; returns the number of files rewritten."""
-    return len(repair_bag(directory, say).rewritten)

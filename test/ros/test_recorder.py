@@ -24,7 +24,7 @@ from art_guidance.record.recorder import (
     PLAN_TYPE, REQUEST_TYPE, TAIL, TOPICS, McapRecorder, _plain, check_cap, check_record_dir,
     ros2msg_schema,
 )
-from art_guidance.record.reindex import has_summary, reindex_bag
+from art_guidance.record.reindex import has_summary, repair_bag
 from art_guidance.record.replay import read_log, replay
 from art_guidance.ros.adapters import plan_to_msg, solve_record_msg
 
@@ -231,7 +231,7 @@ def test_torn_write_keeps_complete_solves_and_reindex_repairs(tmp_path, solves, 
     assert metadata_problems(yaml.safe_load((bag / "metadata.yaml").read_text())) == []
     assert consistency_problems(bag) == [] and _info(bag)["message_count"] == 6
     assert sorted(p.name for p in bag.iterdir()) == ["guidance_0.mcap", "metadata.yaml"]
-    assert reindex_bag(bag, say=lambda _: None) == 0  # nothing left to rebuild
+    assert repair_bag(bag, say=lambda _: None).rewritten == []  # nothing left to rebuild
 
 
 def test_reindex_leaves_a_live_recording_alone(tmp_path, solves, capsys):
@@ -240,7 +240,7 @@ def test_reindex_leaves_a_live_recording_alone(tmp_path, solves, capsys):
         assert rec.record_solve(data[0][1], data[0][0])
         before = rec.files[0].read_bytes()
         with pytest.raises(InputError, match="running recorder"):
-            reindex_bag(tmp_path / "bag")
+            repair_bag(tmp_path / "bag")
         assert cli_main(["bag", "reindex", str(tmp_path / "bag")]) == 2
         assert rec.files[0].read_bytes() == before
     assert capsys.readouterr().out == ""
@@ -424,7 +424,7 @@ def test_a_write_cut_at_any_page_boundary_loses_only_that_solve(tmp_path, solves
             p.unlink()
         ids = [r.plan_id for r, _ in read_log(bag).solves()]
         assert ids[:2] == ["plan-0", "plan-1"] and len(ids) <= 3, cut
-        reindex_bag(bag, say=lambda _: None)
+        repair_bag(bag, say=lambda _: None)
         assert _plan_ids(bag)[:2] == ["plan-0", "plan-1"], cut
         assert consistency_problems(bag) == []
 
