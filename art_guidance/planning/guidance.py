@@ -19,6 +19,7 @@ Thread-safe: every method takes the core's lock except the planning itself.
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import itertools
 import threading
@@ -31,6 +32,37 @@ from art_guidance.planning.replan import (
     unusable_text,
 )
 from art_guidance.planning.types import NavState, PlanRequest, PlanResult, Target
+
+
+class ReplanBudget:
+    """How a replan's wall-clock budget (`solve_deadline_s`) is shared between planning and
+    what follows it before the plan is published (the plan and view messages, the recorded
+    and fsync'ed solve).
+
+    The pipeline's deadline is the budget less the longest of the last `WINDOW` post-solve
+    times (at most `MAX_SHARE` of the budget, so a stalled disk never leaves planning nothing):
+    a node whose recording slows down plans a little less long instead of publishing late.
+    """
+
+    WINDOW = 20
+    MAX_SHARE = 0.5
+
+    def __init__(self) -> None:
+        self._recent: collections.deque[float] = collections.deque(maxlen=self.WINDOW)
+
+    def add_post_solve_s(self, seconds: float) -> None:
+        """Record how long one solve's messages and recording took [s]."""
+        if seconds >= 0.0:
+            self._recent.append(float(seconds))
+
+    @property
+    def allowance_s(self) -> float:
+        """The longest recent post-solve time [s] (0 before the first solve)."""
+        return max(self._recent, default=0.0)
+
+    def planning_s(self, budget_s: float) -> float:
+        """The pipeline's deadline out of a replan budget of `budget_s` [s]."""
+        return budget_s - min(self.allowance_s, self.MAX_SHARE * budget_s)
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ from art_guidance.config import GuidanceConfig, node_parameter_defaults
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.plan_view import nav_position, plan_view
 from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
-from art_guidance.planning.guidance import GuidanceCore, Job
+from art_guidance.planning.guidance import GuidanceCore, Job, ReplanBudget
 from art_guidance.planning.replan import Action, ReplanSettings
 from art_guidance.record.recorder import (
     NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE, McapRecorder, check_cap,
@@ -117,6 +117,7 @@ class GuidanceNodeBase:
         self.core = GuidanceCore(self.pipeline, ReplanSettings(
             **settings, ae_to_koz_node=self.scenario.ae_to_koz_node), target)
         self._worker: threading.Thread | None = None
+        self.budget = ReplanBudget()
         self.recorder = self._make_recorder()
 
     def _load_model(self) -> tuple[object | None, str]:
@@ -240,7 +241,6 @@ class GuidanceNodeBase:
         self.p = new
         if self.core is not None:  # not configured yet: the values are used at configure
             self.core.update_settings(settings)
-            self.pipeline.deadline_s = new["solve_deadline_s"]
         changed = ", ".join(f"{p.name}={new[p.name]!r}" for p in params)
         self.get_logger().info(f"parameters changed: {changed}")
         return SetParametersResult(successful=True)
@@ -292,7 +292,11 @@ class GuidanceNodeBase:
                 self.core.job_done()
 
     def _solve(self, job: Job) -> None:
+        # solve_deadline_s bounds the replan up to its publication: the pipeline gets what the
+        # recent messages and recordings leave of it
+        self.pipeline.deadline_s = self.budget.planning_s(self.p["solve_deadline_s"])
         solved = self.core.solve(job)
+        t_solved = time.perf_counter()
         result, plan_id, action, active_id = (solved.result, solved.plan_id, solved.action,
                                               solved.active_id)
         plan_msg = plan_to_msg(result, job.nav.stamp_ns, plan_id)
@@ -304,6 +308,7 @@ class GuidanceNodeBase:
                  if action is Action.ACTIVATED and not self.core.job_queued() else [])
         # recorded (and fsync'ed) before it is published: a crash never loses a published plan
         self._record(job, result, plan_id, plan_msg, views)
+        self.budget.add_post_solve_s(time.perf_counter() - t_solved)
         self.plan_pub.publish(plan_msg)
         for topic, msg in views:
             self.viz_pubs[topic].publish(msg)

@@ -107,9 +107,11 @@ SPECS: dict[str, ParamSpec] = {
                                   "would otherwise become the floor every later fix is "
                                   "refused against) [s]", "float", minimum=0.0,
                                   exclusive_minimum=True, dynamic=True),
-    "solve_deadline_s": ParamSpec("wall-clock budget of a whole replan (CVX, ART proposal, "
-                                  "every SCVx* run; recording not included): on expiry the "
-                                  "best feasible plan at hand is returned [s]", "float",
+    "solve_deadline_s": ParamSpec("wall-clock budget of a whole replan up to its "
+                                  "publication (CVX, ART proposal, every SCVx* run; the "
+                                  "longest of the last 20 recordings, at most half of it, is "
+                                  "kept for recording): on expiry the best feasible plan at "
+                                  "hand is published [s]", "float",
                                   minimum=0.0, exclusive_minimum=True, dynamic=True),
     "propose_concurrently": ParamSpec("warm_start auto: make the learned proposal in a worker "
                                       "process (started at configure, ~300 MB more memory) "

@@ -12,7 +12,7 @@ from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, NavState, Target
-from art_guidance.planning.guidance import GuidanceCore
+from art_guidance.planning.guidance import GuidanceCore, ReplanBudget
 from art_guidance.planning.replan import Action, Decision, ReplanSettings
 
 SC = ScenarioConfig()
@@ -97,3 +97,29 @@ def test_a_refused_target_or_fix_changes_nothing(pipeline):
     core.on_target(_target("minus_rbar"), "request")  # replans from the last good fix
     job = core.take_job(wait=False)
     assert job.nav.stamp_ns == T0 + 10**9 and job.nav_payload == "good"
+
+
+def test_replan_budget_keeps_the_recent_recording_time_out_of_planning(pipeline):
+    """solve_deadline_s bounds the replan up to its publication: the pipeline's deadline is the
+    budget less the longest of the last 20 post-solve times, never less than half of it; the
+    pipeline then ends within its own deadline (one SCVx* iteration of overrun allowed)."""
+    budget = ReplanBudget()
+    assert budget.planning_s(1.0) == 1.0  # nothing recorded yet
+    for s in (0.01, 0.2, 0.05):
+        budget.add_post_solve_s(s)
+    assert budget.planning_s(1.0) == pytest.approx(0.8)
+    assert budget.planning_s(0.3) == pytest.approx(0.15)  # at most half the budget
+    budget.add_post_solve_s(-1.0)  # a clock step backwards is ignored
+    for _ in range(ReplanBudget.WINDOW):
+        budget.add_post_solve_s(0.02)
+    assert budget.allowance_s == pytest.approx(0.02)  # the 0.2 s slow write has aged out
+    core = GuidanceCore(pipeline, ReplanSettings(stamp_check="off"), _target())
+    core.on_nav(_nav(1), 0)
+    job = core.take_job(wait=False)
+    budget.add_post_solve_s(0.15)
+    pipeline.deadline_s = budget.planning_s(0.3)
+    try:
+        solved = core.solve(job)
+    finally:
+        pipeline.deadline_s = None
+    assert solved.result.timings_ms["total"] <= 1e3 * 0.15 + 100.0
