@@ -145,6 +145,8 @@ class TrainConfig:
             node on than this many times the scenario's J_CVX (-R(t_k) / J_CVX; 0: keep all):
             the late takeovers of a rollout that drifted off need recovery burns far outside
             the plans' range, whose squared errors would dominate the loss.
+        dagger_reward: reward-to-go of the DAgger rows, "hindsight" (as stored) or "fed"
+            (as the rollout was fed, `art.data.fed_reward_to_go`).
     """
 
     batch_size: int = 32
@@ -163,8 +165,12 @@ class TrainConfig:
     max_train: int = 0
     precision: str = "fp32"
     dagger_max_cost_ratio: float = 0.0
+    dagger_reward: str = "hindsight"
 
     def __post_init__(self) -> None:
+        if self.dagger_reward not in ("hindsight", "fed"):
+            raise ConfigError(f"train.dagger_reward must be hindsight or fed, got "
+                              f"{self.dagger_reward!r}")
         if self.precision not in ("fp32", "bf16"):
             raise ConfigError(f"train.precision must be fp32 or bf16, got {self.precision!r}")
         ratio = self.dagger_max_cost_ratio

@@ -119,7 +119,20 @@ def _init(meta: dict | None) -> dict:
     return ((meta or {}).get("training") or {}).get("init") or {}
 
 
-def _read_dir(root: str, dagger_max_cost_ratio: float = 0.0
+DAGGER_REWARDS = ("hindsight", "fed")
+
+
+def fed_reward_to_go(dv_rtn_mps: np.ndarray, cvx_cost_mps: np.ndarray) -> np.ndarray:
+    """(M, N) R(t_i) as a rollout conditioned on R(t_1) = -J_CVX is fed along controls
+    (M, N, 3) [m/s]: R(t_1) = -J_CVX, R(t_{i+1}) = R(t_i) + ||u_i|| [m/s] (the rollout's own
+    update; `rollout.replay` gives the same)."""
+    norms = np.linalg.norm(np.asarray(dv_rtn_mps, float), axis=-1)  # (M, N)
+    spent = np.concatenate([np.zeros_like(norms[:, :1]), np.cumsum(norms, axis=1)[:, :-1]],
+                           axis=1)
+    return spent - np.asarray(cvx_cost_mps, float).reshape(-1, 1)
+
+
+def _read_dir(root: str, dagger_max_cost_ratio: float = 0.0, dagger_reward: str = "hindsight"
               ) -> tuple[dict, dict[str, np.ndarray], dict]:
     header, _, _ = read_manifest(root)
     digest = manifest_digest(root)
@@ -133,6 +146,11 @@ def _read_dir(root: str, dagger_max_cost_ratio: float = 0.0
             ratio = -data["reward_to_go_mps"][rows, train_from] / data["cvx_cost_mps"]
         over = keep & (train_from > 0) & ~(ratio <= dagger_max_cost_ratio)
         dropped, keep = int(over.sum()), keep & ~over
+    if dagger_reward == "fed" and (train_from > 0).any():
+        rows = np.flatnonzero(keep & (train_from > 0))
+        reward = np.array(data["reward_to_go_mps"], float)
+        reward[rows] = fed_reward_to_go(data["dv_rtn_mps"][rows], data["cvx_cost_mps"][rows])
+        data = {**data, "reward_to_go_mps": reward}
     info = {"dir": str(root), "manifest_sha256": digest, "n": int(header["n"]),
             "train_feasible": int(keep.sum()), "test_skipped": int(data["is_test"].sum()),
             "dagger_rows": int((train_from > 0)[keep].sum()),
@@ -144,7 +162,8 @@ def _read_dir(root: str, dagger_max_cost_ratio: float = 0.0
 def load_training_data(dirs: list[str], representation: str, val_fraction: float,
                        seed: int, normalization: str = "feature", context: int | None = None,
                        max_train: int = 0, normalizer: Normalizer | None = None,
-                       dagger_max_cost_ratio: float = 0.0) -> TrainingData:
+                       dagger_max_cost_ratio: float = 0.0,
+                       dagger_reward: str = "hindsight") -> TrainingData:
     """Read dataset directories, keep their feasible train-split samples, split, normalise.
 
     Args:
@@ -158,6 +177,12 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
             validation rows do not change with it.
         normalizer: normalise with these statistics instead of fitting them to the training
             rows (fine-tuning keeps the initial model's; its scheme must be `normalization`).
+        dagger_max_cost_ratio: leave out DAgger rows whose expert costs more than this many
+            times J_CVX from the takeover node on (0: keep all).
+        dagger_reward: the reward-to-go of the DAgger rows: "hindsight" (as stored:
+            -sum_{j >= i} ||u_j|| of the stitched row) or "fed" (as the rollout was fed:
+            -J_CVX plus what the row spent before node i, `fed_reward_to_go`; the prefix is
+            then exactly the context the model saw, and the expert's suffix follows it).
 
     Raises:
         InputError: no directory, directories of different modes or configurations, or fewer
@@ -168,7 +193,7 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
         raise InputError("--data", "at least one dataset directory is required")
     parts, train_from, infos, first = [], [], [], None
     for root in dirs:
-        header, data, info = _read_dir(root, dagger_max_cost_ratio)
+        header, data, info = _read_dir(root, dagger_max_cost_ratio, dagger_reward)
         if first is None:
             first = header
         elif (header["mode"], header["config_sha256"]) != (first["mode"],
@@ -208,7 +233,8 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
                   "n_train": int(train_rows.size), "n_val": int(val_rows.size),
                   "representation": representation, "normalization": normalization,
                   "max_train": int(max_train),
-                  "dagger_max_cost_ratio": float(dagger_max_cost_ratio)}
+                  "dagger_max_cost_ratio": float(dagger_max_cost_ratio),
+                  "dagger_reward": dagger_reward}
     return TrainingData(tensors, train_rows.astype(np.int64), val_rows.astype(np.int64),
                         normalizer, int(raw["state"].shape[1]), provenance)
 

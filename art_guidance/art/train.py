@@ -196,7 +196,8 @@ class _Trainer:
                                        self.cfg.normalization, self.cfg.context,
                                        self.tcfg.max_train,
                                        None if self.init is None else self.init.normalizer,
-                                       self.tcfg.dagger_max_cost_ratio)
+                                       self.tcfg.dagger_max_cost_ratio,
+                                       self.tcfg.dagger_reward)
         if self.init is not None:
             _check_init_data(opts.init, self.init, self.data.provenance)
         self.autocast = (self.tcfg.precision == "bf16" and ctx.device.type == "cuda")

@@ -65,6 +65,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="skip DAgger rows whose expert costs more from its takeover node on "
                    "than this many times the scenario's J_CVX (default 0: keep all; the late "
                    "takeovers of a drifted rollout need recovery burns far outside the plans')")
+    p.add_argument("--dagger-reward", choices=("hindsight", "fed"), default=None,
+                   help="reward-to-go of the DAgger rows: hindsight (default: -the stitched "
+                   "row's cost from each node on) or fed (-J_CVX plus what the row spent "
+                   "before each node: the context the rollout was fed, the expert's suffix "
+                   "following it)")
     p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
                    help="bf16: autocast the forward pass on CUDA (default fp32)")
     p.add_argument("--device", choices=("cpu", "cuda"), default=None,
@@ -101,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     overrides = {k: getattr(args, k) for k in (
         "max_epochs", "batch_size", "lr", "eval_every", "patience", "min_lr_ratio",
         "warmup_steps", "burn_threshold_mps", "gate_weight", "max_train", "precision",
-        "dagger_max_cost_ratio")}
+        "dagger_max_cost_ratio", "dagger_reward")}
     model_overrides = {"normalization": args.normalization, "burn_gate": args.burn_gate}
     opts = TrainOptions(data=tuple(args.data), out=args.out, preset=args.preset,
                         representation=args.representation, seed=args.seed,

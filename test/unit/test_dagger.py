@@ -22,7 +22,7 @@ from art_guidance.data.dagger import (
 )
 from art_guidance.art.data import load_training_data, make_batch, manifest_digest, valid_mask
 from art_guidance.art.model import loss_counts, loss_terms
-from art_guidance.art.rollout import rollout
+from art_guidance.art.rollout import replay, rollout
 from art_guidance.art.train import TrainOptions, train
 from art_guidance.cli import main
 from art_guidance.data.generate import generate
@@ -301,6 +301,33 @@ def test_training_on_src_and_dagger_data(src, dag_dir, dag, tmp_path):
     assert cut.provenance["dagger_max_cost_ratio"] == r
     with pytest.raises(ConfigError, match="dagger_max_cost_ratio"):
         TrainConfig(dagger_max_cost_ratio=-1.0)
+
+
+def test_fed_reward_relabels_dagger_rows_as_their_rollout_was_fed(src, model, dag_dir, dag):
+    """--dagger-reward fed: a DAgger row's R is the rollout's own update from R(t_1) = -J_CVX
+    along the row's controls (`rollout.replay`, the oracle; float32 tensors); the source's rows
+    keep their hindsight R; the choice is in the provenance and checked."""
+    hind = load_training_data([str(src), str(dag_dir)], "roe", 0.1, seed=0)
+    fed = load_training_data([str(src), str(dag_dir)], "roe", 0.1, seed=0,
+                             dagger_reward="fed")
+    n_src = int((fed.tensors["train_from"] == 0).sum())
+    r_hind, r = (d.normalizer.denormalize("reward", d.tensors["reward"].double().numpy())
+                 for d in (hind, fed))  # [m/s] (each fits its own statistics)
+    np.testing.assert_allclose(r[:n_src], r_hind[:n_src], rtol=0, atol=1e-5)  # float32
+    r = r[n_src:]
+    safety = build_safety(checkpoint.load(model))
+    rows = np.flatnonzero(dag["feasible"])
+    assert len(rows) == r.shape[0] > 0
+    for j, i in enumerate(rows):
+        oracle = replay(safety, dag["roe_m"][i, 0], dag["dv_rtn_mps"][i],
+                        -dag["cvx_cost_mps"][i]).reward_to_go_mps[0]
+        np.testing.assert_allclose(r[j], oracle, rtol=0, atol=1e-5)  # float32 tensors
+        k = int(dag["train_from"][i])  # hindsight and fed differ by a constant from k on
+        diff = oracle - dag["reward_to_go_mps"][i]
+        np.testing.assert_allclose(diff[k:], diff[k], rtol=0, atol=1e-9)
+    assert fed.provenance["dagger_reward"] == "fed"
+    with pytest.raises(ConfigError, match="dagger_reward"):
+        TrainConfig(dagger_reward="oracle")
 
 
 def test_cli(src, model, dag_dir, capsys):
