@@ -341,6 +341,7 @@ def summarize(rows: Sequence[WarmStartRow] | Mapping[str, np.ndarray]) -> dict:
     d = data["j_auto"][both] - data["j_scp_cvx"][both]
     out["auto_minus_scp_cvx_mps"] = {
         "min": _stat(d, "min"), "median": _stat(d, "median"), "max": _stat(d, "max"),
+        "mean": _stat(d, "mean"), "n": int(d.size),
         "n_better_by_1mm": int(np.sum(d < -1e-3)), "n_worse_by_1mm": int(np.sum(d > 1e-3))}
     out["accepted"] = int(data["accepted"].sum())
     out["frac_accepted"] = float(np.mean(data["accepted"]))
