@@ -202,7 +202,7 @@ class GuidancePipeline:
             left = None if deadline is None else max(deadline - time.perf_counter(), 0.0)
             job = {"config": self.config.to_json(), "config_sha256": self.config.sha256(),
                    "model": model, "request": request, "roe_f": roe_f, "cvx": cvx,
-                   "time_left_s": left}
+                   "time_left_s": left, "cvx_unsafe": planning.skip_art_when_cvx_safe}
             if worker.submit(job):
                 budget = self._time_left(t0)
                 early = scvx.solve(cvx_dv, deadline_s=None if budget is None
@@ -212,6 +212,9 @@ class GuidancePipeline:
                 answer = worker.collect(wait)
                 if answer is not None:
                     return (early, *answer)
+            # CVX was found not passively safe above: the in-line proposal does not ask again
+            return (early, *self._timed_learned(request, roe_f, safety, cvx, deadline,
+                                                planning.skip_art_when_cvx_safe))
         return (early, *self._timed_learned(request, roe_f, safety, cvx, deadline))
 
     def _timed_learned(self, *args: object) -> tuple["_Learned", float]:
@@ -254,9 +257,11 @@ class GuidancePipeline:
         return max(self.deadline_s - (time.perf_counter() - t_start), 0.0)
 
     def _learned(self, request: PlanRequest, roe_f: np.ndarray, safety: PassiveSafety,
-                 cvx: ConvexSolution, deadline: float | None = None) -> "_Learned":
+                 cvx: ConvexSolution, deadline: float | None = None,
+                 cvx_unsafe: bool = False) -> "_Learned":
         """Ask the provider for a learned warm start and check it post hoc (`deadline`: the
-        plan's, a `time.perf_counter()` instant, or None)."""
+        plan's, a `time.perf_counter()` instant, or None; `cvx_unsafe`: the caller found the
+        CVX plan not passively safe already, so it is not evaluated again)."""
         if request.warm_start == WarmStart.CVX.value:
             return _Learned("cvx", "CVX warm start requested")
         if self.provider is None:
@@ -265,7 +270,7 @@ class GuidancePipeline:
         if not cvx.status.feasible:
             return _Learned("cvx", f"CVX ended {cvx.status.name}: no reference for the post hoc "
                             "check, CVX warm start")
-        if request.warm_start == WarmStart.AUTO.value \
+        if request.warm_start == WarmStart.AUTO.value and not cvx_unsafe \
                 and self.config.planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety):
             return _Learned("cvx", CVX_SAFE_REASON)
         t0 = time.perf_counter()

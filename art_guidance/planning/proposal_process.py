@@ -80,7 +80,8 @@ def _run(job: dict, state: dict, torch: Any) -> tuple:
     request, roe_f, cvx, left_s = job["request"], job["roe_f"], job["cvx"], job["time_left_s"]
     deadline = None if left_s is None else time.perf_counter() + left_s
     safety = pipeline._setup(request)[1]
-    return pipeline._timed_learned(request, roe_f, safety, cvx, deadline)
+    return pipeline._timed_learned(request, roe_f, safety, cvx, deadline,
+                                   bool(job.get("cvx_unsafe", False)))
 
 
 class ProposalProcess:
