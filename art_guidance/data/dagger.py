@@ -294,10 +294,15 @@ def _check_model(art: object, generation: GenerationSpec, model: str) -> None:
         raise InputError("--model", "records no training data mode and configuration; "
                          "DAgger needs a model trained with `art-guidance train`", model)
     trained = GenerationSpec.build(data["mode"], 0, config).config_sha256
-    if trained != generation.config_sha256:
+    # the same rule as `train --init`: the planning choices only flight uses may differ (a
+    # model's bundle written before such an option existed records none of it)
+    have, want = config.data_json(), generation.config.data_json()
+    if data["mode"] != generation.mode or have != want:
+        diff = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
         raise InputError("--model", f"was trained on {data['mode']} data of config "
                          f"{trained[:12]}; --data is {generation.mode} data of config "
-                         f"{generation.config_sha256[:12]}: roll out a model of SRC's kind",
+                         f"{generation.config_sha256[:12]} (differing: "
+                         f"{', '.join(diff) or 'mode'}): roll out a model of SRC's kind",
                          model)
     if art.config.context < generation.scenario.n_nodes:
         raise InputError("--model", f"context K = {art.config.context} is shorter than the "

@@ -17,8 +17,9 @@ import torch
 
 from art_guidance.art import build_safety, checkpoint
 from art_guidance.art.config import TrainConfig
+from art_guidance.config import GuidanceConfig
 from art_guidance.data.dagger import (
-    DAGGER_STREAM, FIELDS, dagger, dagger_node, expert_from, scenario_pool,
+    DAGGER_STREAM, FIELDS, _check_model, dagger, dagger_node, expert_from, scenario_pool,
 )
 from art_guidance.art.data import load_training_data, make_batch, manifest_digest, valid_mask
 from art_guidance.art.model import loss_counts, loss_terms
@@ -204,6 +205,19 @@ def test_bad_inputs_and_foreign_directories(src, model, dag_dir, tmp_path):
     with pytest.raises(InputError, match="trained on deterministic data") as exc:
         _run(tmp_path / "x", det, src)
     assert exc.value.field == "--model"
+    # a model whose bundle predates a flight-only planning option describes the same data
+    # (the rule of `train --init`); another scenario does not, and the difference is named
+    bundle = checkpoint.load(model).meta["dataset"]["guidance_config"]
+    planning = {k: v for k, v in bundle["planning"].items()
+                if k not in ("propose_concurrently", "skip_art_when_cvx_safe")}
+    older = _variant(model, tmp_path / "older.pt",
+                     guidance_config={**bundle, "planning": planning})
+    generation = GenerationSpec.build("chance", 0, GuidanceConfig.from_json(bundle))
+    _check_model(checkpoint.load(older), generation, "older.pt")
+    koz = {**bundle, "scenario": {**bundle["scenario"], "koz_semi_axes_m": [150.0] * 3}}
+    with pytest.raises(InputError, match="differing: scenario") as exc:
+        _check_model(checkpoint.load(_variant(model, tmp_path / "koz.pt",
+                                              guidance_config=koz)), generation, "koz.pt")
     # resuming with another model, batch or seed is refused, and nothing is written
     copy = tmp_path / "copy"
     shutil.copytree(dag_dir, copy)
