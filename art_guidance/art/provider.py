@@ -43,8 +43,10 @@ from art_guidance.planning.posthoc import judged_trajectory
 from art_guidance.planning.types import PlanRequest, WarmStartProposal
 from art_guidance.safety import PassiveSafety
 
-DEFAULT_MODEL = "art_small_chance_roe.pt"
-# The shipped default per passive-safety mode (the mode of the model's training data).
+# The shipped default per passive-safety mode (the mode of the model's training data), chosen
+# by what the node flies on 2,000 fresh scenarios per mode (benchmarks/default_models.py,
+# docs/results.md "Shipped defaults"), not by the rollout metrics.
+DEFAULT_MODEL = "art_small_chance_rtn.pt"
 DEFAULT_MODELS = {"chance": DEFAULT_MODEL, "deterministic": "art_small_det_roe.pt"}
 SPACING_REL_TOL = 0.01  # node spacing of a request vs the training horizon's [-]
 DEFAULT_REWARD_SCALES = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.2)  # R(t_1) = -s J_CVX
@@ -57,7 +59,7 @@ def models_dir() -> Path:
 
 def default_model_path(mode: str = "chance") -> Path:
     """The shipped default model of a passive-safety mode ("chance" or "deterministic"):
-    small preset, ROE representation, trained on data of that mode.
+    small preset, trained on data of that mode (`DEFAULT_MODELS`).
 
     Raises:
         ValueError: an unknown mode.
