@@ -20,8 +20,13 @@ FLOOR_MPS = 0.010  # the paper's post hoc floor: auto never worse than CVX by mo
 # deterministic models were measured on the test split of their own (other) dataset: the
 # CPU-trained gated one 8, 0.496 m/s, the ungated one 3, 0.323. On the same 1,000 fresh
 # scenarios (docs/results.md) the current model's `auto` is cheaper on 109 against 48.
+# The chance-constrained default is now the RTN model (chosen on 2,000 fresh scenarios by what
+# is flown: 15.0 mm/s a scenario on average, better on 8.5 % of them, a few by up to 1.6 m/s):
+# on these 50 it is flown from ART on 1 scenario (2 accepted), 9.7 mm/s cheaper; the ROE
+# model's 2.1 m/s here came from the one scenario where only its retry converged. Fifty
+# scenarios hold ~4 of the scenarios where ART pays, so the chance threshold guards the sign.
 MIN_ACCEPTED = {"chance": 1, "deterministic": 8}
-MIN_TOTAL_GAIN_MPS = {"chance": 0.3, "deterministic": 0.08}
+MIN_TOTAL_GAIN_MPS = {"chance": 0.005, "deterministic": 0.08}
 
 
 @pytest.mark.slow
