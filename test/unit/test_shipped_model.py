@@ -1,10 +1,10 @@
 """The shipped models (`art_guidance/models/`), on scenarios they never saw in training.
 
 Per passive-safety mode (chance-constrained and deterministic) an ROE and an RTN model are
-shipped (the defaults: the chance-constrained RTN and the deterministic ROE model), each trained on the train split of `generate --n N
---mode MODE --seed S` (S recorded in models.json). The held-out scenarios here are that
-dataset's own test split (`train_test_split(S, N)`; the training never reads it), drawn again
-from their seeds.
+shipped (the defaults: the chance-constrained RTN and the deterministic ROE model), each
+trained on the train split of `generate --n N --mode MODE --seed S` (S recorded in
+models.json). The held-out scenarios here are that dataset's own test split
+(`train_test_split(S, N)`; the training never reads it), drawn again from their seeds.
 """
 from __future__ import annotations
 
