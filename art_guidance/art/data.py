@@ -196,11 +196,12 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
         header, data, info = _read_dir(root, dagger_max_cost_ratio, dagger_reward)
         if first is None:
             first = header
-        elif (header["mode"], header["config_sha256"]) != (first["mode"],
-                                                           first["config_sha256"]):
+        elif not same_data(header, first):
             raise InputError("--data", f"{root} holds a {header['mode']} dataset of config "
                              f"{header['config_sha256'][:12]}, the first a {first['mode']} one"
-                             f" of {first['config_sha256'][:12]}; train on one kind at a time")
+                             f" of {first['config_sha256'][:12]} (differing: "
+                             f"{', '.join(data_differences(header, first))}); train on one "
+                             "kind at a time")
         parts.append(_raw_arrays(data, representation))
         train_from.append(_train_from(data))
         infos.append(info)
@@ -237,6 +238,26 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
                   "dagger_reward": dagger_reward}
     return TrainingData(tensors, train_rows.astype(np.int64), val_rows.astype(np.int64),
                         normalizer, int(raw["state"].shape[1]), provenance)
+
+
+def data_differences(a: dict, b: dict) -> list[str]:
+    """What makes the data of two dataset headers differ: "mode", "pipeline_version" and the
+    parts of `GuidanceConfig.data_json` (scenario, uncertainty, SCVx*, samples per node); the
+    planning choices only flight uses do not count (a header written before one existed
+    records none of it). [] for the same data."""
+    if a["config_sha256"] == b["config_sha256"] and a["mode"] == b["mode"]:
+        return []
+    out = [k for k in ("mode",) if a["mode"] != b["mode"]]
+    ca, cb = a.get("config", {}), b.get("config", {})
+    if ca.get("pipeline_version") != cb.get("pipeline_version"):
+        out.append("pipeline_version")
+    have, want = (GuidanceConfig.from_json(_guidance_config(c)).data_json() for c in (ca, cb))
+    return out + sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
+
+
+def same_data(a: dict, b: dict) -> bool:
+    """Whether two dataset headers describe data of one kind (`data_differences` is empty)."""
+    return not data_differences(a, b)
 
 
 def _guidance_config(config: dict) -> dict:

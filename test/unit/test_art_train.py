@@ -9,6 +9,7 @@ import argparse
 import fcntl
 import hashlib
 import json
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from art_guidance.art.model import ArtModel, loss_counts, loss_terms
 from art_guidance.art.train import TrainOptions, _check_init_data, state_path, train
 from art_guidance.cli import train as cli_train
 from art_guidance.data.generate import generate
-from art_guidance.data.storage import load_dataset
+from art_guidance.data.storage import MANIFEST, load_dataset
 from art_guidance.eval.inputs import dataset_info, model_info
 from art_guidance.errors import ConfigError, GuidanceError, InputError
 
@@ -234,3 +235,44 @@ def test_building_the_parser_does_not_import_torch(python_exe):
             "print('torch' in sys.modules)")
     out = subprocess.run([python_exe, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def _with_header(src: Path, out: Path, change) -> Path:
+    """A copy of dataset `src` whose manifest header is changed by `change(header)`."""
+    shutil.copytree(src, out)
+    lines = (out / MANIFEST).read_text().splitlines(keepends=True)
+    header = json.loads(lines[0])
+    change(header)
+    lines[0] = json.dumps(header) + "\n"
+    (out / MANIFEST).write_text("".join(lines))
+    return out
+
+
+def test_directories_of_one_kind_mix_whatever_their_flight_only_options(dataset, tmp_path):
+    """Two directories train together when they describe the same data: a header written
+    before a flight-only planning option existed (another fingerprint) mixes with a new one;
+    another scenario or pipeline version does not, and the error names the difference."""
+    def older(h):
+        planning = h["config"]["guidance_config"]["planning"]
+        for key in ("propose_concurrently", "skip_art_when_cvx_safe", "also_solve_from_art"):
+            planning.pop(key, None)
+        h["config_sha256"] = "0" * 64
+
+    old = _with_header(dataset, tmp_path / "old", older)
+    both = load_training_data([str(dataset), str(old)], "roe", 0.1, seed=0)
+    one = load_training_data([str(dataset)], "roe", 0.1, seed=0)
+    n_one = one.train_rows.size + one.val_rows.size
+    assert both.train_rows.size + both.val_rows.size == 2 * n_one
+
+    def koz(h):
+        h["config"]["guidance_config"]["scenario"]["koz_semi_axes_m"] = [150.0] * 3
+        h["config_sha256"] = "1" * 64
+
+    def pipeline(h):
+        h["config"]["pipeline_version"] = -1
+        h["config_sha256"] = "2" * 64
+
+    for change, name in ((koz, "scenario"), (pipeline, "pipeline_version")):
+        other = _with_header(dataset, tmp_path / name, change)
+        with pytest.raises(InputError, match=f"differing: {name}"):
+            load_training_data([str(dataset), str(other)], "roe", 0.1, seed=0)
