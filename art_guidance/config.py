@@ -378,6 +378,12 @@ class GuidanceConfig:
                            if k not in FLIGHT_ONLY_PLANNING}
         return out
 
+    def data_differences(self, other: "GuidanceConfig") -> list[str]:
+        """The parts of `data_json` (scenario, uncertainty, scp, planning) in which two bundles
+        describe different data, sorted ([]: the same data)."""
+        have, want = self.data_json(), other.data_json()
+        return sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
+
     def replace(self, **changes: Any) -> "GuidanceConfig":
         """A copy with some parts replaced."""
         return dataclasses.replace(self, **changes)

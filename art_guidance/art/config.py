@@ -114,6 +114,10 @@ class ArtConfig:
         return cls(**data)
 
 
+# The reward-to-go labels of DAgger rows (`TrainConfig.dagger_reward`, `art.data`).
+DAGGER_REWARDS = ("hindsight", "fed")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimisation settings (AdamW, warm-up then cosine decay, gradient-norm clipping).
@@ -168,7 +172,7 @@ class TrainConfig:
     dagger_reward: str = "hindsight"
 
     def __post_init__(self) -> None:
-        if self.dagger_reward not in ("hindsight", "fed"):
+        if self.dagger_reward not in DAGGER_REWARDS:
             raise ConfigError(f"train.dagger_reward must be hindsight or fed, got "
                               f"{self.dagger_reward!r}")
         if self.precision not in ("fp32", "bf16"):

@@ -119,9 +119,6 @@ def _init(meta: dict | None) -> dict:
     return ((meta or {}).get("training") or {}).get("init") or {}
 
 
-DAGGER_REWARDS = ("hindsight", "fed")
-
-
 def fed_reward_to_go(dv_rtn_mps: np.ndarray, cvx_cost_mps: np.ndarray) -> np.ndarray:
     """(M, N) R(t_i) as a rollout conditioned on R(t_1) = -J_CVX is fed along controls
     (M, N, 3) [m/s]: R(t_1) = -J_CVX, R(t_{i+1}) = R(t_i) + ||u_i|| [m/s] (the rollout's own
@@ -194,14 +191,13 @@ def load_training_data(dirs: list[str], representation: str, val_fraction: float
     parts, train_from, infos, first = [], [], [], None
     for root in dirs:
         header, data, info = _read_dir(root, dagger_max_cost_ratio, dagger_reward)
-        if first is None:
-            first = header
-        elif not same_data(header, first):
+        first = first or header
+        diff = data_differences(header, first)
+        if diff:
             raise InputError("--data", f"{root} holds a {header['mode']} dataset of config "
                              f"{header['config_sha256'][:12]}, the first a {first['mode']} one"
                              f" of {first['config_sha256'][:12]} (differing: "
-                             f"{', '.join(data_differences(header, first))}); train on one "
-                             "kind at a time")
+                             f"{', '.join(diff)}); train on one kind at a time")
         parts.append(_raw_arrays(data, representation))
         train_from.append(_train_from(data))
         infos.append(info)
@@ -251,13 +247,8 @@ def data_differences(a: dict, b: dict) -> list[str]:
     ca, cb = a.get("config", {}), b.get("config", {})
     if ca.get("pipeline_version") != cb.get("pipeline_version"):
         out.append("pipeline_version")
-    have, want = (GuidanceConfig.from_json(_guidance_config(c)).data_json() for c in (ca, cb))
-    return out + sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
-
-
-def same_data(a: dict, b: dict) -> bool:
-    """Whether two dataset headers describe data of one kind (`data_differences` is empty)."""
-    return not data_differences(a, b)
+    have, want = (GuidanceConfig.from_json(_guidance_config(c)) for c in (ca, cb))
+    return out + have.data_differences(want)
 
 
 def _guidance_config(config: dict) -> dict:

@@ -488,9 +488,7 @@ def _check_init_data(path: str, init: checkpoint.TrainedArt, provenance: dict) -
                          f"unusable ({exc})", path) from exc
     if config is None:
         raise InputError("--init", "the model records no configuration of its data", path)
-    have = config.data_json()
-    want = GuidanceConfig.from_json(provenance["guidance_config"]).data_json()
-    diff = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
+    diff = config.data_differences(GuidanceConfig.from_json(provenance["guidance_config"]))
     if diff:
         raise InputError("--init", f"the model's data and --data differ in configuration "
                          f"({', '.join(diff)}: config {str(data.get('config_sha256'))[:12]} "

@@ -6,6 +6,7 @@ import shlex
 import sys
 
 _PRESETS = ("small", "medium", "paper", "tiny")  # art_guidance.art.config.PRESETS (import-free)
+_DAGGER_REWARDS = ("hindsight", "fed")  # art_guidance.art.config.DAGGER_REWARDS (import-free)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -65,7 +66,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="skip DAgger rows whose expert costs more from its takeover node on "
                    "than this many times the scenario's J_CVX (default 0: keep all; the late "
                    "takeovers of a drifted rollout need recovery burns far outside the plans')")
-    p.add_argument("--dagger-reward", choices=("hindsight", "fed"), default=None,
+    p.add_argument("--dagger-reward", choices=_DAGGER_REWARDS, default=None,
                    help="reward-to-go of the DAgger rows: hindsight (default: -the stitched "
                    "row's cost from each node on) or fed (-J_CVX plus what the row spent "
                    "before each node: the context the rollout was fed, the expert's suffix "

@@ -296,9 +296,8 @@ def _check_model(art: object, generation: GenerationSpec, model: str) -> None:
     trained = GenerationSpec.build(data["mode"], 0, config).config_sha256
     # the same rule as `train --init`: the planning choices only flight uses may differ (a
     # model's bundle written before such an option existed records none of it)
-    have, want = config.data_json(), generation.config.data_json()
-    if data["mode"] != generation.mode or have != want:
-        diff = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
+    diff = config.data_differences(generation.config)
+    if data["mode"] != generation.mode or diff:
         raise InputError("--model", f"was trained on {data['mode']} data of config "
                          f"{trained[:12]}; --data is {generation.mode} data of config "
                          f"{generation.config_sha256[:12]} (differing: "

@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from art_guidance.art import build_safety, checkpoint
-from art_guidance.art.config import MODALITIES, preset
+from art_guidance.art.config import DAGGER_REWARDS, MODALITIES, PRESETS, preset
 from art_guidance.art.data import (
     load_training_data, make_batch, manifest_digest, trained_manifests,
 )
@@ -276,3 +276,9 @@ def test_directories_of_one_kind_mix_whatever_their_flight_only_options(dataset,
         other = _with_header(dataset, tmp_path / name, change)
         with pytest.raises(InputError, match=f"differing: {name}"):
             load_training_data([str(dataset), str(other)], "roe", 0.1, seed=0)
+
+
+def test_the_cli_import_free_choices_are_the_configs():
+    """`art-guidance train --help` imports no torch, so its choices are copies: kept equal."""
+    assert set(cli_train._PRESETS) == set(PRESETS)
+    assert cli_train._DAGGER_REWARDS == DAGGER_REWARDS
