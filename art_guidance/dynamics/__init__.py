@@ -15,9 +15,9 @@ elements they are given as osculating Keplerian elements. Models and constants:
 docs/design.md.
 """
 from art_guidance.dynamics.elements import (  # noqa: F401
-    J2, MU_M3PS2, R_EARTH_M, check_chief, check_oe, eci_from_oe, j2_secular_rates,
-    mean_arg_latitude, mean_motion, oe_from_eci, oe_from_roe, orbital_period_s, propagate_mean_oe,
-    roe_from_oe, solve_kepler,
+    J2, MU_M3PS2, R_EARTH_M, check_chief, check_deputy_inclination, check_oe, eci_from_oe,
+    j2_secular_rates, mean_arg_latitude, mean_motion, oe_from_eci, oe_from_roe, orbital_period_s,
+    propagate_mean_oe, roe_from_oe, solve_kepler,
 )
 from art_guidance.dynamics.frames import (  # noqa: F401
     eci_from_rtn, psi_from_latitude, psi_matrix, roe_from_rtn_exact, roe_from_rtn_linear,

@@ -86,7 +86,8 @@ class GuidancePipeline:
         switch = self.scenario.ae_to_koz_node
         if request.koz_switch_node is not None:
             switch = int(min(request.koz_switch_node, n_nodes))
-        key = (tuple(request.chief_oe.round(12)), n_nodes, n_orbits, switch,
+        # the exact elements (rounding a huge finite angle overflowed: 1e300 and 2e300 met)
+        key = (tuple(request.chief_oe.tolist()), n_nodes, n_orbits, switch,
                request.chance_constrained)
         if key not in self._cache:
             if len(self._cache) > 8:
@@ -205,8 +206,12 @@ class GuidancePipeline:
                    "time_left_s": left, "cvx_unsafe": planning.skip_art_when_cvx_safe}
             if worker.submit(job):
                 budget = self._time_left(t0)
-                early = scvx.solve(cvx_dv, deadline_s=None if budget is None
-                                   else budget * planning.art_deadline_share)
+                try:
+                    early = scvx.solve(cvx_dv, deadline_s=None if budget is None
+                                       else budget * planning.art_deadline_share)
+                except BaseException as exc:  # the worker is freed on every path
+                    worker.abandon(f"SCVx* from CVX failed meanwhile ({_short(exc)})")
+                    raise
                 wait = NO_DEADLINE_TIMEOUT_S if deadline is None \
                     else max(deadline - time.perf_counter(), 0.0) + GRACE_S
                 answer = worker.collect(wait)
@@ -232,6 +237,14 @@ class GuidancePipeline:
     def proposal_worker_error(self) -> str:
         """Why the worker process last failed ("" = it did not, or there is none)."""
         return "" if self._worker is None else self._worker.error
+
+    @property
+    def proposal_worker_state(self) -> tuple[str, int]:
+        """The worker process in words (running, loading, stopped and when it starts again;
+        "" = there is none) and how many times it was found dead."""
+        if self._worker is None:
+            return "", 0
+        return self._worker.state, self._worker.deaths
 
     def start_proposal_worker(self) -> bool:
         """Start the worker process and load the model in it now, not in the first plan

@@ -24,7 +24,18 @@ from typing import Any
 STARTUP_TIMEOUT_S = 120.0  # importing torch and loading the model in the spawned process
 GRACE_S = 5.0  # a job's answer may come this long after its deadline before it is abandoned
 NO_DEADLINE_TIMEOUT_S = 120.0  # the longest wait for a job without a deadline
-RESTART_AFTER_S = 30.0  # a worker that failed to start is not started again before this [s]
+# A worker that failed to start is started again after RESTART_AFTER_S, doubled after every
+# further failed start up to RESTART_MAX_S (reset by a start that succeeds) [s].
+RESTART_AFTER_S = 5.0
+RESTART_MAX_S = 300.0
+LOCK_WAIT_S = 1.0  # a job waits this long for the one before it to be collected [s]
+CLOSE_WAIT_S = 5.0  # `close` waits this long for a job in flight, then stops the worker [s]
+
+
+def restart_delay_s(failed_starts: int) -> float:
+    """How long after its `failed_starts`-th failed start in a row (>= 1) the worker is
+    started again [s]: exponential backoff, RESTART_AFTER_S doubled up to RESTART_MAX_S."""
+    return min(RESTART_AFTER_S * 2.0 ** max(failed_starts - 1, 0), RESTART_MAX_S)
 
 
 def model_key(provider: object) -> tuple | None:
@@ -90,12 +101,17 @@ class ProposalProcess:
     A plan never waits for the worker to start: `submit` on a worker that is not running
     starts it (the model loads in the background) and declines the job, and so does every
     `submit` until the worker is ready; `start` starts it and waits (a node's configure step).
-    A worker that failed to start (its model did not load, it died loading) is not started
-    again for `RESTART_AFTER_S`: meanwhile jobs are declined with the reason.
+    A worker that failed to start (its model did not load, it died loading) is started again
+    with exponential backoff (`restart_delay_s`): meanwhile jobs are declined with the reason.
+
+    Every `submit` that returns True must be followed by `collect` or `abandon` (the job holds
+    the worker until then); `close` stops the worker within `CLOSE_WAIT_S` whatever a plan does.
 
     Attributes:
         error: why the last job was declined or failed ("" = it was not): the planner then
             proposes in line; a failed worker is stopped and started anew on the next job.
+        deaths: how many times a running worker was found dead or broken (it is started
+            again on the next job).
     """
 
     def __init__(self) -> None:
@@ -104,7 +120,9 @@ class ProposalProcess:
         self._lock = threading.Lock()  # one job at a time
         self._warming = False  # a warm-up job was sent and not yet answered
         self._start_failed_at: float | None = None  # time.monotonic() of a failed start
+        self._failed_starts = 0  # failed starts in a row
         self.error = ""
+        self.deaths = 0
 
     @property
     def alive(self) -> bool:
@@ -120,28 +138,60 @@ class ProposalProcess:
                 self._launch(_warm_up_job(config_json, config_sha256, model))
             return self._ready(timeout_s)
 
+    @property
+    def state(self) -> str:
+        """The worker in words, for the diagnostics: running, loading, or stopped and when it
+        is started again."""
+        if self.alive:
+            return "loading the model" if self._warming else "running"
+        if self._start_failed_at is not None:
+            left = self._restart_in_s()
+            return (f"stopped after {self._failed_starts} failed start(s) in a row ("
+                    f"{self.error}); started again " +
+                    (f"in {left:.0f} s" if left > 0 else "on the next job"))
+        return "stopped" + (f" ({self.error})" if self.error else "") + \
+            "; started on the next job"
+
+    def _restart_in_s(self) -> float:
+        if self._start_failed_at is None:
+            return 0.0
+        due = self._start_failed_at + restart_delay_s(self._failed_starts)
+        return max(due - time.monotonic(), 0.0)
+
     def submit(self, job: dict) -> bool:
-        """Send a plan job if the worker is ready (collect the answer with `collect`, which
-        must follow); False if not (see `error`): the caller proposes in line."""
-        self._lock.acquire()
+        """Send a plan job if the worker is ready; False if not (see `error`): the caller
+        proposes in line. After True the caller must `collect` the answer (or `abandon` the
+        job): the worker serves one job at a time."""
+        if not self._lock.acquire(timeout=LOCK_WAIT_S):
+            self.error = "the worker is still held by an earlier job"
+            return False
+        sent = False
         try:
-            if not self.alive:
-                failed = self._start_failed_at
-                if failed is None or time.monotonic() - failed >= RESTART_AFTER_S:
-                    self._launch(_warm_up_job(job["config"], job["config_sha256"],
-                                              job["model"]))
-                    self.error = "the worker process is starting"
-                self._lock.release()
-                return False
-            if not self._ready(0.0):
-                self._lock.release()
-                return False
-            self._conn.send(job)
-            return True
+            sent = self._send(job)
         except Exception as exc:
             self._fail(f"could not send the job: {type(exc).__name__}: {exc}")
-            self._lock.release()
+        finally:
+            if not sent:
+                self._lock.release()
+        return sent
+
+    def _send(self, job: dict) -> bool:
+        """`submit` with the lock held: True once the job is sent."""
+        if not self.alive:
+            if self._proc is not None:  # it stopped by itself since the last job
+                if self._warming:
+                    self._fail("the worker process died loading the model")
+                    self._start_failed()
+                else:
+                    self._died("the worker process died")
+            if self._restart_in_s() <= 0.0:
+                self._launch(_warm_up_job(job["config"], job["config_sha256"], job["model"]))
+                self.error = "the worker process is starting"
             return False
+        if not self._ready(0.0):
+            return False
+        self._conn.send(job)
+        return True
 
     def collect(self, timeout_s: float) -> tuple | None:
         """The answer to the submitted job: (decision, wall ms), or None (see `error`)."""
@@ -150,10 +200,23 @@ class ProposalProcess:
         finally:
             self._lock.release()
 
+    def abandon(self, why: str) -> None:
+        """Give up the submitted job (the caller failed before collecting it): the worker,
+        busy with it, is stopped and started anew on the next job."""
+        try:
+            self._fail(f"job abandoned: {why}")
+        finally:
+            self._lock.release()
+
     def close(self) -> None:
-        """Stop the worker (it also stops by itself when this process ends)."""
-        with self._lock:
-            self._stop(graceful=True)
+        """Stop the worker (it also stops by itself when this process ends). A job still in
+        flight after `CLOSE_WAIT_S` does not hold the shutdown: the worker is killed."""
+        held = self._lock.acquire(timeout=CLOSE_WAIT_S)
+        try:
+            self._stop(graceful=held)
+        finally:
+            if held:
+                self._lock.release()
 
     # ------------------------------------------------------------------ internals
     def _ready(self, timeout_s: float) -> bool:
@@ -163,21 +226,32 @@ class ProposalProcess:
         if timeout_s <= 0.0 and not self._conn.poll(0.0):
             self.error = "the worker process is loading the model"
             return False
-        if self._receive(timeout_s) is None:
-            self._start_failed_at = time.monotonic()  # not started again at once
+        if self._receive(timeout_s, dying=False) is None:
+            self._start_failed()
             return False
         self._warming = False
-        self._start_failed_at = None
+        self._start_failed_at, self._failed_starts = None, 0
         return True
 
-    def _receive(self, timeout_s: float) -> tuple | None:
+    def _start_failed(self) -> None:
+        """Count a failed start: the worker is not started again before `restart_delay_s`."""
+        self._start_failed_at = time.monotonic()
+        self._failed_starts += 1
+
+    def _receive(self, timeout_s: float, dying: bool = True) -> tuple | None:
+        """The worker's answer within `timeout_s`, or None (see `error`); a worker found dead
+        counts in `deaths` when `dying` (not while it loads: that is a failed start)."""
         try:
             if not self._conn.poll(max(timeout_s, 0.0)):
                 self._fail(f"no answer within {timeout_s:.1f} s")
                 return None
             answer = self._conn.recv()
         except Exception as exc:  # the worker died (EOF) or the pipe broke
-            self._fail(f"the worker stopped: {type(exc).__name__}: {exc}")
+            why = f"the worker stopped: {type(exc).__name__}: {exc}"
+            if dying:
+                self._died(why)
+            else:
+                self._fail(why)
             return None
         if answer[0] != "ok":
             self._fail(f"the worker failed: {answer[1]}")
@@ -200,6 +274,10 @@ class ProposalProcess:
     def _fail(self, why: str) -> None:
         self.error = why
         self._stop(graceful=False)  # a late or broken worker is not waited for
+
+    def _died(self, why: str) -> None:
+        self.deaths += 1
+        self._fail(why)
 
     def _stop(self, graceful: bool = False) -> None:
         proc, conn, self._proc, self._conn = self._proc, self._conn, None, None

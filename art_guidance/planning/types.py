@@ -11,7 +11,7 @@ from typing import Protocol
 import numpy as np
 
 from art_guidance.checks import as_finite_array
-from art_guidance.dynamics import check_chief
+from art_guidance.dynamics import check_chief, check_deputy_inclination, mean_motion
 from art_guidance.errors import InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus
 from art_guidance.safety import PassiveSafety
@@ -62,6 +62,12 @@ class PlanRequest:
         object.__setattr__(self, "roe0_m", as_finite_array("roe0_m", self.roe0_m, (6,)))
         object.__setattr__(self, "target_rtn",
                            as_finite_array("target_rtn", self.target_rtn, (6,)))
+        # the deputy at both ends stays inside the ROE's domain too (|dix| <= |(r_N, v_N / n)|)
+        check_deputy_inclination(self.chief_oe, abs(float(self.roe0_m[4])), "roe0_m")
+        n = mean_motion(float(self.chief_oe[0]))
+        check_deputy_inclination(self.chief_oe, float(np.hypot(self.target_rtn[2],
+                                                               self.target_rtn[5] / n)),
+                                 "target_rtn")
         if self.warm_start not in WARM_STARTS:
             raise InputError("warm_start", f"must be one of {WARM_STARTS}", self.warm_start)
         if self.n_nodes is not None and not 3 <= int(self.n_nodes) <= 1000:

@@ -117,6 +117,7 @@ class GuidanceNodeBase:
         self.core = GuidanceCore(self.pipeline, ReplanSettings(
             **settings, ae_to_koz_node=self.scenario.ae_to_koz_node), target)
         self._worker: threading.Thread | None = None
+        self._worker_deaths = 0  # proposal worker deaths logged so far
         self.budget = ReplanBudget()
         self.recorder = self._make_recorder()
 
@@ -326,7 +327,21 @@ class GuidanceNodeBase:
                             "warm_start_reason": result.warm_start_reason,
                             "solve_time_ms": t["total"], "cvx_ms": round(t["cvx"], 2),
                             "art_ms": round(t["art"], 2), "scp_ms": round(t["scp"], 2),
-                            **self._model_values()})
+                            **self._model_values(), **self._proposal_worker_values()})
+
+    def _proposal_worker_values(self) -> dict:
+        """The proposal worker process for the plan diagnostic (none: no values); a death
+        since the last plan is logged once."""
+        state, deaths = self.pipeline.proposal_worker_state
+        if not state:
+            return {}
+        if deaths > self._worker_deaths:
+            self._log().warning(f"the proposal worker process died ({deaths} in all): "
+                                f"{self.pipeline.proposal_worker_error}; proposals are made "
+                                f"in line until it runs again")
+            self._worker_deaths = deaths
+        return {"proposal_worker": state, "proposal_worker_deaths": deaths,
+                "proposal_worker_error": self.pipeline.proposal_worker_error}
 
     def _plan_views(self, job: Job, result: PlanResult, plan_id: str) -> list[tuple[str, object]]:
         """The visualisation messages of a plan put in force, [(topic, msg)] (none when off;

@@ -1,12 +1,12 @@
 """Seeded field-level mutations of the node's inputs, and a campaign that sends them over DDS.
 
 A case is a seed: `case(seed, now_ns)` draws a short message sequence (navigation fixes and
-replan requests, 85 / 15 %) in which about half of the messages have one to three fields
-mutated to values a bus or a broken filter can carry: NaN, +-inf, +-1e308, zero, huge and
-negative numbers, out-of-domain orbit elements, unknown enums and frames, long and non-ASCII
-strings, stamps from the past and the future and at the edges of their types. Valid fixes
-follow each other in stamp order, so the sequences also hold what fuzzing found fatal before:
-a bad fix then a good request, a future stamp then good fixes, resets by a request.
+replan requests, 85 / 15 %) in which about half of the messages have one to three fields mutated
+to values a bus or a broken filter can carry: NaN, +-inf, +-1e308, zero, huge and negative
+numbers, orbit elements at and beyond the planner's limits, unknown enums and frames, long and
+non-ASCII strings, stamps from the past and the future and at the edges of their types. Valid
+fixes follow each other in stamp order, so the sequences also hold what fuzzing found fatal
+before: a bad fix then a good request, a future stamp then good fixes, resets by a request.
 
 `run_campaign` publishes every message of `n_cases` cases to a running guidance node, paced
 (each fix waits for its `art_guidance/nav` diagnostic, each request for its
@@ -25,6 +25,9 @@ from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
 
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
+from art_guidance.dynamics.elements import (
+    MAX_ECCENTRICITY, MAX_SEMI_MAJOR_AXIS_M, MIN_INCLINATION_RAD,
+)
 from helpers.ros_client import nav_msg
 
 SC = ScenarioConfig()
@@ -33,6 +36,10 @@ NAV_COV = np.diag([25.0, 400.0, 25.0, 1e-4, 1e-4, 1e-4])
 FLOATS = (math.nan, math.inf, -math.inf, 1e308, -1e308, 0.0, -1.0, 1e12, -1e12, 1e-300, 5e-324)
 STRINGS = ("", "map", "chief_roe", "chief_rtn", "x" * 2000, "ünïcødé", "plus_vbar ", "custom")
 INT32_MAX, UINT32_MAX = 2**31 - 1, 2**32 - 1
+# chief elements at and beyond the limits of docs/node.md (inclination, eccentricity, a)
+CHIEF_EDGES = (0.95, 1.0, 1.2, -0.1, 1e12, 6.0e6, 0.0, 1e-300, MIN_INCLINATION_RAD,
+               0.999 * MIN_INCLINATION_RAD, math.pi - MIN_INCLINATION_RAD, math.pi,
+               MAX_ECCENTRICITY, MAX_SEMI_MAJOR_AXIS_M)
 
 
 @dataclass
@@ -88,8 +95,7 @@ def _mutate_nav(rng: np.random.Generator, msg: RelativeNavState, now_ns: int) ->
         elif what == "chief_oe":
             oe = list(msg.chief_oe)
             i = int(rng.integers(6))
-            oe[i] = float(rng.choice([_float(rng, oe[i]), 0.95, 1.0, 1.2, -0.1, 1e12,
-                                      6.0e6]))
+            oe[i] = float(rng.choice([_float(rng, oe[i]), *CHIEF_EDGES]))
             msg.chief_oe = oe
         elif what == "representation":
             msg.representation = int(rng.choice([0, 1, 2, 255]))

@@ -107,3 +107,39 @@ def test_learned_warm_start_is_checked_recorded_and_replayed(ros_env, python_exe
     assert all(r.timing_model_load_ms > 0.0 and r.timing_art_ms > 0.0 for r in records)
     report = replay(bag, model)
     assert report["compared"] == 2 and report["matched"] == 2, report
+
+
+def test_an_equatorial_chief_is_refused_and_planning_goes_on(ros_env, python_exe):
+    """The sequence that once stopped the node for good (shipped model, proposal worker): a
+    valid fix, a fix whose chief inclination is 1e-300 rad (its plan overflowed to NaN in SCVx*
+    while the proposal was out, and the worker stayed held), then valid fixes and a replan
+    request. The bad fix is refused at validation with the reason; every later fix is planned
+    and published; SIGINT stops the node (exit 0)."""
+    from art_guidance_msgs.msg import ReplanRequest
+
+    with _node(ros_env, python_exe, "equatorial", "record:=false",
+               "replan_sigma_threshold:=1e-9", "propose_concurrently:=true") as (proc, client):
+        stamp, decision = client.send_nav(NOMINAL_RTN)
+        assert decision == "replanning"
+        assert client.plan_for(stamp, 60.0) is not None
+        chief = np.array(ScenarioConfig().chief_oe)
+        chief[2] = 1e-300
+        stamp, decision = client.send_nav(NOMINAL_RTN + [0, 100.0, 0, 0, 0, 0], chief_oe=chief)
+        assert decision == "rejected"
+        plan = client.plan_for(stamp, 10.0)
+        assert plan.status == ManeuverPlan.STATUS_REJECTED_INPUT
+        assert "inclination" in plan.status_text, plan.status_text
+        for offset in (200.0, 300.0):
+            stamp, decision = client.send_nav(NOMINAL_RTN + [0, offset, 0, 0, 0, 0])
+            assert decision == "replanning"
+            plan = client.plan_for(stamp, 60.0)
+            assert plan is not None and plan.status == ManeuverPlan.STATUS_CONVERGED
+            diag = _plan_diag(client, plan.plan_id)
+            assert diag["proposal_worker"] in ("running", "loading the model"), diag
+        client.req_pub.publish(ReplanRequest(waypoint="minus_vbar", chance_constrained=True))
+        assert client.plan_for(stamp, 60.0) is not None
+        assert client.wait_for(lambda plans, _: sum(
+            p.status == ManeuverPlan.STATUS_CONVERGED for _, p in plans) >= 4, 60.0)
+    assert proc.returncode == 0
+    out = proc.stdout.read()
+    assert "Traceback" not in out, out[-3000:]

@@ -1,31 +1,106 @@
-"""The proposal worker process: a worker that cannot start is reported and not restarted at
-every plan (the plans meanwhile propose in line)."""
+"""The proposal worker process: a worker that cannot start is reported and started again with
+exponential backoff (the plans meanwhile propose in line); a plan that fails while its proposal
+is out frees the worker; `close` is bounded whatever a job does."""
 from __future__ import annotations
 
+import dataclasses
+import re
 import time
 
+import pytest
+
+from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart, default_model_path
 from art_guidance.config import GuidanceConfig
-from art_guidance.planning import proposal_process
-from art_guidance.planning.proposal_process import ProposalProcess
+from art_guidance.optim import Scvx
+from art_guidance.planning import GuidancePipeline, proposal_process
+from art_guidance.planning.proposal_process import ProposalProcess, restart_delay_s
+from helpers.shipped import heldout_requests
 
 
-def test_a_worker_that_cannot_load_its_model_is_not_restarted_at_once(tmp_path, monkeypatch):
+def test_restart_delay_doubles_up_to_its_cap():
+    delays = [restart_delay_s(n) for n in range(1, 10)]
+    assert delays[:4] == [5.0, 10.0, 20.0, 40.0]
+    assert delays[-1] == proposal_process.RESTART_MAX_S
+    assert all(b >= a for a, b in zip(delays, delays[1:]))
+
+
+def test_a_failed_worker_is_started_again_with_backoff(tmp_path, monkeypatch):
     config = GuidanceConfig.load()
     model = (str(tmp_path / "missing.pt"), "0" * 64, 1, (1.0,))
     worker = ProposalProcess()
     try:
         assert worker.start(config.to_json(), config.sha256(), model) is False
         assert "missing.pt" in worker.error and not worker.alive
+        assert "1 failed start(s)" in worker.state and "started again in 5 s" in worker.state
         job = {"config": config.to_json(), "config_sha256": config.sha256(), "model": model}
         assert worker.submit(job) is False and not worker.alive  # declined, nothing spawned
         assert "missing.pt" in worker.error  # the reason stays
         monkeypatch.setattr(proposal_process, "RESTART_AFTER_S", 0.0)
         assert worker.submit(job) is False and worker.alive  # started again, in the background
         assert worker.error == "the worker process is starting"
+        assert worker.state == "loading the model"
         deadline = time.monotonic() + 60.0
         while worker.alive and time.monotonic() < deadline:  # it fails again
             assert worker.submit(job) is False
             time.sleep(0.2)
-        assert "missing.pt" in worker.error
+        monkeypatch.setattr(proposal_process, "RESTART_AFTER_S", 5.0)
+        assert worker.submit(job) is False and not worker.alive  # noticed, not restarted
+        assert "missing.pt" in worker.error or "died loading" in worker.error
+        assert "2 failed start(s)" in worker.state, worker.state
+        assert re.search(r"started again in (8|9|10) s", worker.state), worker.state  # 2 x 5 s
+        assert worker.deaths == 0  # failed starts are not deaths
     finally:
         worker.close()
+
+
+@pytest.fixture(scope="module")
+def concurrent() -> GuidancePipeline:
+    config = GuidanceConfig.load()
+    config = config.replace(planning=dataclasses.replace(config.planning,
+                                                         propose_concurrently=True))
+    pipeline = GuidancePipeline(config, provider=ArtWarmStart.load(default_model_path("chance")),
+                                deadline_s=4.0)
+    assert pipeline.start_proposal_worker(), pipeline.proposal_worker_error
+    yield pipeline
+    pipeline.close()
+
+
+def test_a_plan_that_fails_while_the_proposal_is_out_frees_the_worker(concurrent, monkeypatch):
+    """SCVx* from CVX raises while the worker makes the proposal: the exception reaches the
+    caller, the worker is given up (and stopped), and the next plan completes within its
+    deadline (4 s; slack 2 s, for the overrun of one SCVx* iteration on a slow machine)
+    instead of waiting for the worker forever."""
+    requests = heldout_requests(12, DEFAULT_MODELS["chance"])
+    request = next(r for r in requests if concurrent.plan(r).proposal is not None)
+    assert concurrent.proposal_worker_error == ""  # the worker made that proposal
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("injected solver failure")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(Scvx, "solve", fail)
+        with pytest.raises(RuntimeError, match="injected"):
+            concurrent.plan(request)
+    assert "job abandoned" in concurrent.proposal_worker_error
+    t0 = time.perf_counter()
+    result = concurrent.plan(request)
+    assert time.perf_counter() - t0 <= 4.0 + 2.0
+    assert result.scp.feasible and result.proposal is not None, result.warm_start_reason
+
+
+def test_close_is_bounded_while_a_job_is_out(concurrent, monkeypatch):
+    """A job never collected (a caller stuck elsewhere) does not hold the shutdown: `close`
+    kills the worker after CLOSE_WAIT_S."""
+    monkeypatch.setattr(proposal_process, "CLOSE_WAIT_S", 0.5)
+    worker = ProposalProcess()
+    config = concurrent.config
+    from art_guidance.planning.proposal_process import model_key
+
+    assert worker.start(config.to_json(), config.sha256(), model_key(concurrent.provider))
+    request = heldout_requests(1, DEFAULT_MODELS["chance"])[0]
+    assert worker.submit({"config": config.to_json(), "config_sha256": config.sha256(),
+                          "model": model_key(concurrent.provider), "warm_up": True,
+                          "request": request})
+    t0 = time.perf_counter()
+    worker.close()  # this thread holds the job: close waits 0.5 s, then kills
+    assert time.perf_counter() - t0 < 5.0 and not worker.alive
