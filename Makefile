@@ -53,14 +53,14 @@ $(VENV)/.stamp-pkg: $(VENV)/.stamp-msgs setup.py setup.cfg Makefile $(CONSTRAINT
 setup: $(VENV)/.stamp-pkg
 
 test: setup
-	$(PY) -m flake8 art_guidance test benchmarks .ci setup.py
+	$(PY) -m flake8 art_guidance test benchmarks launch .ci setup.py
 	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 test-fast: setup
 	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q -m "not slow" $(XDIST) $(PYTEST_ARGS)
 
 lint: setup
-	$(PY) -m flake8 art_guidance test benchmarks .ci setup.py
+	$(PY) -m flake8 art_guidance test benchmarks launch .ci setup.py
 
 demo: setup
 	$(VENV)/bin/art-guidance demo

@@ -50,7 +50,14 @@ def model_key(provider: object) -> tuple | None:
 
 
 def _serve(conn: Any) -> None:
-    """The worker's loop: one job in, one answer out, until the pipe closes or None comes."""
+    """The worker's loop: one job in, one answer out, until the pipe closes or None comes.
+
+    SIGINT is ignored: a Ctrl-C in a terminal (or `ros2 launch`'s) reaches the whole process
+    group, and the worker is stopped by its planner (`close`) or when the pipe closes, not with
+    a KeyboardInterrupt traceback in the node's output."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     import torch
 
     state: dict = {}

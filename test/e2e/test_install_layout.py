@@ -1,6 +1,7 @@
 """The package installs the way `ros2 run art_guidance guidance_node` expects (colcon-style)."""
 from __future__ import annotations
 
+import ast
 import os
 import shutil
 import subprocess
@@ -42,6 +43,28 @@ def test_ament_index_marker_and_share(prefix):
     for name in ("scenario.yaml", "uncertainty.yaml", "scp.yaml", "planning.yaml",
                  "guidance_node.yaml", "fastdds_localhost.xml"):
         assert (prefix / "share/art_guidance/config" / name).is_file(), name
+
+
+def test_launch_file_is_installed_with_its_arguments(prefix):
+    """`ros2 launch art_guidance guidance.launch.py` finds the file in share/art_guidance/launch.
+    ros2/launch is not installable here, so the file is checked by its syntax tree: the
+    arguments Nav2's launch files take, plus `managed` and `record_dir`, and the entry point
+    (it was run with launch and launch_ros built from their Jazzy sources: docs/node.md)."""
+    path = prefix / "share/art_guidance/launch/guidance.launch.py"
+    assert path.is_file()
+    tree = ast.parse(path.read_text())
+    declared = {node.args[0].value for node in ast.walk(tree)
+                if isinstance(node, ast.Call) and getattr(node.func, "id", "") ==
+                "DeclareLaunchArgument"}
+    assert declared == {"params_file", "namespace", "use_sim_time", "log_level", "autostart",
+                        "use_respawn", "managed", "record_dir"}
+    functions = {node.name for node in tree.body if isinstance(node, ast.FunctionDef)}
+    assert "generate_launch_description" in functions
+    executables = {node.value.value for node in ast.walk(tree)
+                   if isinstance(node, ast.keyword) and node.arg == "executable"}
+    assert executables == {"guidance_node", "guidance_managed_node"}
+    for script in executables:
+        assert (prefix / "lib/art_guidance" / script).is_file()
 
 
 def test_installed_cli_runs_from_prefix(prefix):

@@ -104,3 +104,19 @@ def test_close_is_bounded_while_a_job_is_out(concurrent, monkeypatch):
     t0 = time.perf_counter()
     worker.close()  # this thread holds the job: close waits 0.5 s, then kills
     assert time.perf_counter() - t0 < 5.0 and not worker.alive
+
+
+def test_the_worker_ignores_sigint(concurrent):
+    """Ctrl-C reaches the node's whole process group: the worker keeps serving (its planner
+    stops it), so no KeyboardInterrupt traceback reaches the node's output."""
+    import os
+    import signal
+
+    worker = concurrent._worker
+    assert worker.alive or concurrent.start_proposal_worker(), concurrent.proposal_worker_error
+    os.kill(worker._proc.pid, signal.SIGINT)
+    time.sleep(1.0)
+    assert worker.alive
+    request = heldout_requests(12, DEFAULT_MODELS["chance"])
+    assert any(concurrent.plan(r).proposal is not None for r in request)
+    assert concurrent.proposal_worker_error == ""
