@@ -16,23 +16,20 @@ validation loss the same on a seeded share of the training split (the dataset's 
 never read); both run over the steps of `data.valid_mask` (for DAgger rows, the nodes from
 their `train_from` on), which also gives the counts they are divided by. Learning rate:
 linear warm-up, then cosine decay to ``min_lr_ratio * lr`` over ``max_epochs``; gradient-norm
-clipping 1.0. Data parallel under torchrun (`distributed`).
+clipping 1.0. Data parallel under torchrun (`distributed`). The lock and the signals are
+`train_control`, the checks of a fine-tuning's initial model `finetune`.
 """
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import fcntl
 import hashlib
 import json
 import math
-import os
-import signal
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -40,16 +37,18 @@ from tqdm import tqdm
 
 from art_guidance import __version__
 from art_guidance.art import checkpoint
-from art_guidance.art.config import ArtConfig, preset
+from art_guidance.art.config import preset
 from art_guidance.art.data import (
     epoch_order, load_training_data, make_batch, suffix_starts, trained_manifests,
     trained_seed_bases, valid_mask, validation_starts,
 )
 from art_guidance.art.distributed import DistContext, init_distributed, shutdown_distributed
+from art_guidance.art.finetune import (
+    check_init_data as _check_init_data, initial_model as _initial_model,
+)
 from art_guidance.art.model import ArtModel, combined_loss, loss_counts, loss_terms
-from art_guidance.art.rollout import training_config
-from art_guidance.config import GuidanceConfig
-from art_guidance.errors import ConfigError, GuidanceError, InputError
+from art_guidance.art.train_control import StopOnSignal, exclusive
+from art_guidance.errors import InputError
 
 STATE_SUFFIX = ".state"
 
@@ -124,63 +123,15 @@ def train(opts: TrainOptions, log: Callable[[str], None] = print) -> dict[str, A
     """
     ctx = init_distributed(opts.device)
     try:
-        with _exclusive(opts.out, ctx.is_main), _StopOnSignal() as stop:
+        with exclusive(opts.out, ctx.is_main), StopOnSignal() as stop:
             return _Trainer(opts, ctx, log, stop).run()
     finally:
         shutdown_distributed()
 
 
-class _StopOnSignal:
-    """SIGINT/SIGTERM ask the loop to stop at the next step boundary (a second one aborts)."""
-
-    def __init__(self) -> None:
-        self.requested = False
-        self._previous: dict[int, Any] = {}
-
-    def _handle(self, signum: int, frame: object) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-
-    def __enter__(self) -> "_StopOnSignal":
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-
-@contextlib.contextmanager
-def _exclusive(out: str, take: bool) -> Iterator[None]:
-    """Hold an exclusive lock on ``OUT.lock`` (one training run per checkpoint path)."""
-    if not take:
-        yield
-        return
-    path = Path(str(out) + ".lock")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as exc:
-        raise InputError("--out", f"cannot create {path} ({exc})", out) from exc
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError as exc:
-        os.close(fd)
-        raise InputError("--out", "another training run is writing this checkpoint",
-                         out) from exc
-    try:
-        yield
-    finally:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        os.close(fd)
-
-
 class _Trainer:
     def __init__(self, opts: TrainOptions, ctx: DistContext, log: Callable[[str], None],
-                 stop: _StopOnSignal) -> None:
+                 stop: StopOnSignal) -> None:
         self.opts, self.ctx, self.signals = opts, ctx, stop
         self.log = log if ctx.is_main else (lambda _: None)
         self.cfg, tcfg = preset(opts.preset, opts.representation, **opts.model_overrides)
@@ -448,51 +399,6 @@ class _Trainer:
                 "wall_time_s": p.wall_time_s,
                 "trajectories_per_s": p.step * self.tcfg.batch_size / max(p.wall_time_s, 1e-9),
                 "n_parameters": self.model.n_parameters()}
-
-
-def _initial_model(path: str, cfg: ArtConfig) -> checkpoint.TrainedArt:
-    """The checkpoint a fine-tuning starts from; its architecture must be `cfg`.
-
-    Raises:
-        InputError: a file that is not a readable model, or one of another architecture.
-    """
-    try:
-        init = checkpoint.load(path)
-    except GuidanceError as exc:
-        raise InputError("--init", str(exc), path) from exc
-    want, have = cfg.to_dict(), init.model.cfg.to_dict()
-    diff = {k: (have.get(k), want.get(k)) for k in sorted(set(want) | set(have))
-            if have.get(k) != want.get(k)}
-    if diff:
-        shown = ", ".join(f"{k}: model {a!r}, options {b!r}" for k, (a, b) in diff.items())
-        raise InputError("--init", f"the model is not what --preset/--repr/--normalization/"
-                         f"--burn-gate describe ({shown}); give the flags it was trained with",
-                         path)
-    return init
-
-
-def _check_init_data(path: str, init: checkpoint.TrainedArt, provenance: dict) -> None:
-    """Raise InputError unless the data is of the initial model's mode and describes the same
-    problem (`GuidanceConfig.data_json`: scenario, uncertainty, SCVx* and its samples per node;
-    planning choices only flight uses may differ, e.g. a bundle written before one existed)."""
-    data = init.meta.get("dataset", {})
-    if data.get("mode") != provenance["mode"]:
-        raise InputError("--init", f"the model was trained on {data.get('mode')} data, --data "
-                         f"is {provenance['mode']} data", path)
-    if data.get("config_sha256") == provenance["config_sha256"]:
-        return
-    try:
-        config = training_config(init)
-    except ConfigError as exc:
-        raise InputError("--init", f"the model's record of its data's configuration is "
-                         f"unusable ({exc})", path) from exc
-    if config is None:
-        raise InputError("--init", "the model records no configuration of its data", path)
-    diff = config.data_differences(GuidanceConfig.from_json(provenance["guidance_config"]))
-    if diff:
-        raise InputError("--init", f"the model's data and --data differ in configuration "
-                         f"({', '.join(diff)}: config {str(data.get('config_sha256'))[:12]} "
-                         f"against {provenance['config_sha256'][:12]})", path)
 
 
 def _copy_state(model: ArtModel, state: dict[str, torch.Tensor] | None = None,

@@ -15,45 +15,27 @@ magic) is cut or garbled. Damage elsewhere in such a file is still damage.
 
 The messages a damaged chunk held are counted, where the file tells, from the Message Index
 records written after it (they lie outside the chunk and its CRC).
+
+The records themselves are framed, parsed and checked by `record.mcap_records`; this module is
+the walk over a file and what it reports (`FileScan`, `Damage`), and `lend_channels` across the
+files of a bag.
 """
 from __future__ import annotations
 
 import bisect
-import io
 import mmap
 import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import zstandard
-from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
-from mcap.records import (
-    Channel, Chunk, ChunkIndex, DataEnd, Footer, Header, Message, MessageIndex, Metadata, Schema,
+from mcap.records import Channel, ChunkIndex, DataEnd, Header, Message, Metadata, Schema
+
+from art_guidance.record.mcap_records import (  # noqa: F401 (chunk_records: read from here)
+    FRAME_BYTES, MAGIC, OPCODES, BadRecord, ShortRecord, chunk_records, frame, index_counts,
+    mcap_ending, next_chunk, parse, read_chunk,
 )
-
-MAGIC = b"\x89MCAP0\r\n"
-FRAME_BYTES = 9  # opcode (1) and record length (8)
-FOOTER_BYTES = FRAME_BYTES + 20
-DATA_END_BYTES = FRAME_BYTES + 4
-_OPCODES = frozenset(int(op) for op in Opcode)
-_IN_CHUNK = (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE)
-_COMPRESSIONS = ("", "zstd")
-_READERS = {
-    Opcode.HEADER: Header.read, Opcode.SCHEMA: Schema.read, Opcode.CHANNEL: Channel.read,
-    Opcode.METADATA: Metadata.read, Opcode.CHUNK: Chunk.read, Opcode.CHUNK_INDEX: ChunkIndex.read,
-    Opcode.MESSAGE_INDEX: MessageIndex.read, Opcode.DATA_END: DataEnd.read,
-    Opcode.FOOTER: Footer.read,
-}
-
-
-class _Bad(Exception):
-    """A record that does not parse or does not check out."""
-
-
-class _Short(_Bad):
-    """A record that runs past the end of the file (a torn end when nothing follows it)."""
 
 
 @dataclass(frozen=True)
@@ -106,148 +88,12 @@ class FileScan:
     orphans: int = 0  # messages of channels defined nowhere (dropped)
 
 
-class _Exact(io.BytesIO):
-    """A record body: reading past its end is an error, not a short read."""
-
-    def read(self, size: int | None = -1) -> bytes:
-        data = super().read(size)
-        if size is not None and size > 0 and len(data) < size:
-            raise _Bad("a field runs past the end of its record")
-        return data
-
-
-def _frame(buf: bytes, pos: int, limit: int) -> tuple[int, bytes, int]:
-    """(opcode, body, end) of the record at `pos`, which must end by `limit`."""
-    if pos + FRAME_BYTES > limit:
-        raise _Short(f"{limit - pos} byte(s) left where a record starts")
-    opcode, length = struct.unpack_from("<BQ", buf, pos)
-    end = pos + FRAME_BYTES + length
-    if end > limit:
-        raise _Short(f"record 0x{opcode:02x} of {length} bytes runs past the end "
-                     f"({limit - pos - FRAME_BYTES} bytes left)")
-    return opcode, buf[pos + FRAME_BYTES:end], end
-
-
-def _parse(opcode: int, body: bytes) -> object:
-    """The record of `opcode` from its body (extra bytes at its end are allowed padding)."""
-    stream = ReadDataStream(_Exact(body))
-    try:
-        if opcode == Opcode.MESSAGE:
-            if len(body) < 22:
-                raise _Bad("message record shorter than its fields")
-            return Message.read(stream, len(body))
-        return _READERS[opcode](stream)
-    except _Bad:
-        raise
-    except Exception as exc:  # struct, UnicodeDecodeError, mcap's EndOfFile ...
-        raise _Bad(f"record 0x{opcode:02x} does not parse ({type(exc).__name__}: {exc})")
-
-
-def chunk_records(chunk: Chunk) -> list[object]:
-    """The Schema, Channel and Message records inside a chunk, every check passed.
-
-    Raises:
-        _Bad: decompression failed, the size or CRC does not match, or a record inside does
-            not parse.
-    """
-    if chunk.compression == "zstd":
-        try:
-            data = zstandard.ZstdDecompressor().decompress(
-                chunk.data, max_output_size=chunk.uncompressed_size)
-        except zstandard.ZstdError as exc:
-            raise _Bad(f"zstd decompression failed ({exc})")
-    elif chunk.compression == "":
-        data = chunk.data
-    else:
-        raise _Bad(f"unsupported chunk compression {chunk.compression!r}")
-    if len(data) != chunk.uncompressed_size:
-        raise _Bad(f"{len(data)} bytes uncompressed, the chunk says {chunk.uncompressed_size}")
-    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
-        raise _Bad(f"CRC mismatch (uncompressed_crc {chunk.uncompressed_crc:08x}, computed "
-                   f"{zlib.crc32(data):08x})")
-    records, pos = [], 0
-    while pos < len(data):
-        try:
-            opcode, body, pos = _frame(data, pos, len(data))
-        except _Short as exc:
-            raise _Bad(f"inside the chunk: {exc}")
-        if opcode not in _IN_CHUNK:
-            raise _Bad(f"record opcode 0x{opcode:02x} inside the chunk")
-        records.append(_parse(opcode, body))
-    return records
-
-
-def _read_chunk(body: bytes) -> list[object]:
-    chunk = _parse(Opcode.CHUNK, body)
-    return chunk_records(chunk)
-
-
-def _plausible_chunk(buf: bytes, pos: int, limit: int) -> bool:
-    """A chunk record starts at `pos`: its length fits, its header agrees with its length,
-    and it reads with every check passed."""
-    head = pos + FRAME_BYTES
-    if head + 32 > limit:
-        return False
-    length = struct.unpack_from("<Q", buf, pos + 1)[0]
-    (name_len,) = struct.unpack_from("<I", buf, head + 28)
-    if head + length > limit or name_len > 8 or head + 32 + name_len + 8 > limit:
-        return False
-    (data_len,) = struct.unpack_from("<Q", buf, head + 32 + name_len)
-    if 32 + name_len + 8 + data_len != length:
-        return False
-    try:
-        _read_chunk(buf[head:head + length])
-    except _Bad:
-        return False
-    return True
-
-
-def _next_chunk(buf: bytes, start: int, limit: int) -> int | None:
-    """Offset of the next plausible chunk record at or after `start` (None: there is none)."""
-    pos = start
-    while True:
-        pos = buf.find(b"\x06", pos, limit)
-        if pos < 0:
-            return None
-        if _plausible_chunk(buf, pos, limit):
-            return pos
-        pos += 1
-
-
-def _ending(buf: bytes, size: int) -> tuple[int, Footer] | None:
-    """(footer offset, footer) when the file ends in a footer and the closing magic."""
-    if size < 2 * len(MAGIC) + FOOTER_BYTES or buf[size - len(MAGIC):size] != MAGIC:
-        return None
-    pos = size - len(MAGIC) - FOOTER_BYTES
-    opcode, length = struct.unpack_from("<BQ", buf, pos)
-    if opcode != Opcode.FOOTER or length != 20:
-        return None
-    start, offsets, crc = struct.unpack_from("<QQI", buf, pos + FRAME_BYTES)
-    return pos, Footer(start, offsets, crc)
-
-
-def _index_counts(buf: bytes, pos: int, limit: int) -> dict[int, int] | None:
-    """Messages per channel id in the Message Index records from `pos` (None: none there)."""
-    counts: dict[int, int] = {}
-    try:
-        while pos < limit:
-            opcode, body, end = _frame(buf, pos, limit)
-            if opcode != Opcode.MESSAGE_INDEX:
-                break
-            index = _parse(opcode, body)
-            counts[index.channel_id] = counts.get(index.channel_id, 0) + len(index.records)
-            pos = end
-    except _Bad:
-        pass
-    return counts or None
-
-
 class _Walk:
     """State of one `scan_file` pass."""
 
     def __init__(self, path: Path, buf: bytes) -> None:
         self.scan, self.buf, self.size = FileScan(path), buf, len(buf)
-        self.ending = _ending(buf, self.size)
+        self.ending = mcap_ending(buf, self.size)
         self.limit = self.size
         self.index: list[ChunkIndex] = []
         self.offsets: list[int] = []
@@ -272,24 +118,24 @@ class _Walk:
         what = "summary section"
         try:
             if not len(MAGIC) <= start <= footer_pos:
-                raise _Bad(f"the footer points outside the file ({start})")
+                raise BadRecord(f"the footer points outside the file ({start})")
             if footer.summary_crc:
                 crc = zlib.crc32(self.buf[start:footer_pos + FRAME_BYTES + 16])
                 if crc != footer.summary_crc:
-                    raise _Bad(f"CRC mismatch (summary_crc {footer.summary_crc:08x}, "
-                               f"computed {crc:08x})")
+                    raise BadRecord(f"CRC mismatch (summary_crc {footer.summary_crc:08x}, "
+                                    f"computed {crc:08x})")
             pos, index, schemas, channels = start, [], {}, {}
             while pos < footer_pos:
-                opcode, body, pos = _frame(self.buf, pos, footer_pos)
+                opcode, body, pos = frame(self.buf, pos, footer_pos)
                 if opcode == Opcode.CHUNK_INDEX:
-                    index.append(_parse(opcode, body))
+                    index.append(parse(opcode, body))
                 elif opcode == Opcode.SCHEMA:
-                    schema = _parse(opcode, body)
+                    schema = parse(opcode, body)
                     schemas[schema.id] = schema
                 elif opcode == Opcode.CHANNEL:
-                    channel = _parse(opcode, body)
+                    channel = parse(opcode, body)
                     channels[channel.id] = channel
-        except _Bad as exc:
+        except BadRecord as exc:
             self._damage(None, start, footer_pos - start, f"{what}: {exc}; not used")
             return
         self.scan.summary = True
@@ -307,27 +153,27 @@ class _Walk:
         if self.index:
             k = bisect.bisect_right(self.offsets, pos)
             return self.offsets[k] if k < len(self.offsets) else None
-        return _next_chunk(self.buf, pos + 1, self.limit)
+        return next_chunk(self.buf, pos + 1, self.limit)
 
     def _record(self, pos: int) -> int | None:
         """Read the record at `pos`; returns where the next one starts (None: data end)."""
-        opcode, body, end = _frame(self.buf, pos, self.limit)
-        if opcode not in _OPCODES:
-            raise _Bad(f"unknown record opcode 0x{opcode:02x}")
+        opcode, body, end = frame(self.buf, pos, self.limit)
+        if opcode not in OPCODES:
+            raise BadRecord(f"unknown record opcode 0x{opcode:02x}")
         scan = self.scan
         if opcode == Opcode.CHUNK:
-            self._keep(_read_chunk(body))
+            self._keep(read_chunk(body))
             self.counted += 1
             scan.chunks += 1
             self.read.add(pos)
         elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
-            self._keep([_parse(opcode, body)])
+            self._keep([parse(opcode, body)])
         elif opcode == Opcode.HEADER:
-            scan.header = _parse(opcode, body)
+            scan.header = parse(opcode, body)
         elif opcode == Opcode.METADATA:
-            scan.metadata.append(_parse(opcode, body))
+            scan.metadata.append(parse(opcode, body))
         elif opcode == Opcode.DATA_END:
-            self._data_crc(pos, _parse(opcode, body))
+            self._data_crc(pos, parse(opcode, body))
             if self.ending is None:
                 self.scan.torn = (f"torn end after the data end record (byte offset {end}): "
                                   "no valid footer and closing magic follow it")
@@ -353,10 +199,10 @@ class _Walk:
                              f"{data_end.data_section_crc:08x}, computed {crc:08x}) outside "
                              "the chunks, whose own CRCs check out")
 
-    def _failed(self, pos: int, exc: _Bad) -> int | None:
+    def _failed(self, pos: int, exc: BadRecord) -> int | None:
         """Name the damage at `pos`; returns where reading goes on (None: it stops)."""
         nxt = self._resync(pos)
-        if nxt is None and isinstance(exc, _Short) and self.ending is None:
+        if nxt is None and isinstance(exc, ShortRecord) and self.ending is None:
             self.scan.torn = f"torn end at byte offset {pos}: {exc}"
             return None
         stop = self.limit if nxt is None else nxt
@@ -373,21 +219,21 @@ class _Walk:
             counts = None
             if is_chunk:
                 end = pos + FRAME_BYTES + struct.unpack_from("<Q", self.buf, pos + 1)[0]
-                counts = _index_counts(self.buf, end, stop) if end <= stop else None
+                counts = index_counts(self.buf, end, stop) if end <= stop else None
             self._damage(chunk, pos, stop - pos, str(exc), counts)
         return nxt
 
-    def _lost_chunk(self, k: int, offset: int, pos: int, stop: int, exc: _Bad) -> None:
+    def _lost_chunk(self, k: int, offset: int, pos: int, stop: int, exc: BadRecord) -> None:
         entry = self.index[k]
         reason = str(exc) if offset == pos else f"in a damaged stretch ({exc})"
-        counts = _index_counts(self.buf, offset + entry.chunk_length, self.limit)
+        counts = index_counts(self.buf, offset + entry.chunk_length, self.limit)
         self._damage(k, offset, entry.chunk_length if offset != pos else stop - pos, reason,
                      counts)
 
     def run(self) -> FileScan:
         pos = len(MAGIC)
         if self.buf[:len(MAGIC)] != MAGIC:
-            pos = self._failed(0, _Bad("no MCAP magic at the start of the file"))
+            pos = self._failed(0, BadRecord("no MCAP magic at the start of the file"))
         while pos is not None:
             if pos >= self.limit:
                 if self.ending is None:
@@ -396,7 +242,7 @@ class _Walk:
                 break
             try:
                 pos = self._record(pos)
-            except _Bad as exc:
+            except BadRecord as exc:
                 pos = self._failed(pos, exc)
         self._unread_chunks()
         self._finish()
@@ -408,7 +254,7 @@ class _Walk:
         for k, entry in enumerate(self.index):
             off = entry.chunk_start_offset
             if off not in self.read and off not in named:
-                counts = _index_counts(self.buf, off + entry.chunk_length, self.limit)
+                counts = index_counts(self.buf, off + entry.chunk_length, self.limit)
                 self._damage(k, off, entry.chunk_length, "not reached: the chunk index "
                              "points into a stretch that did not read", counts)
 
