@@ -16,6 +16,12 @@ magic) is cut or garbled. Damage elsewhere in such a file is still damage.
 The messages a damaged chunk held are counted, where the file tells, from the Message Index
 records written after it (they lie outside the chunk and its CRC).
 
+A summary that fails its CRC is not used, nor is the footer's offset to it: the data section is
+then read up to the data end record, so a file in which a bad copy wrote a chunk twice (every
+offset after it shifted, the footer pointing into data) loses none of the intact chunks after
+the bogus offset. A chunk identical to one read before, and a message identical to one read
+before (same channel, log time and data), is dropped and named in the notes.
+
 The records themselves are framed, parsed and checked by `record.mcap_records`; this module is
 the walk over a file and what it reports (`FileScan`, `Damage`), and `lend_channels` across the
 files of a bag.
@@ -23,6 +29,7 @@ files of a bag.
 from __future__ import annotations
 
 import bisect
+import hashlib
 import mmap
 import struct
 import zlib
@@ -100,6 +107,9 @@ class _Walk:
         self.read: set[int] = set()  # offsets of the chunks read intact
         self.counted = 0  # chunk records met (the ordinal without a summary)
         self.pending: list[tuple[Damage, dict[int, int] | None]] = []
+        self.chunk_digests: dict[bytes, int] = {}  # chunk body digest -> its first offset
+        self.message_keys: set[tuple[int, int, bytes]] = set()  # channel, log time, data
+        self.duplicate_messages = 0
         if self.ending is not None:
             self._data_limit()
             self._summary()
@@ -137,6 +147,7 @@ class _Walk:
                     channels[channel.id] = channel
         except BadRecord as exc:
             self._damage(None, start, footer_pos - start, f"{what}: {exc}; not used")
+            self.limit = footer_pos  # nor its offset: the data end record ends the data
             return
         self.scan.summary = True
         self.index = sorted(index, key=lambda c: c.chunk_start_offset)
@@ -162,9 +173,15 @@ class _Walk:
             raise BadRecord(f"unknown record opcode 0x{opcode:02x}")
         scan = self.scan
         if opcode == Opcode.CHUNK:
-            self._keep(read_chunk(body))
+            records = read_chunk(body)
+            first = self.chunk_digests.setdefault(hashlib.blake2b(body).digest(), pos)
+            if first == pos:
+                self._keep(records)
+                scan.chunks += 1
+            else:
+                scan.notes.append(f"{scan.path.name}: the chunk at byte offset {pos} "
+                                  f"duplicates the chunk at byte offset {first}: dropped")
             self.counted += 1
-            scan.chunks += 1
             self.read.add(pos)
         elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
             self._keep([parse(opcode, body)])
@@ -185,6 +202,11 @@ class _Walk:
     def _keep(self, records: list[object]) -> None:
         for record in records:
             if isinstance(record, Message):
+                key = (record.channel_id, record.log_time, bytes(record.data))
+                if key in self.message_keys:
+                    self.duplicate_messages += 1
+                    continue
+                self.message_keys.add(key)
                 self.scan.messages.append(record)
             elif isinstance(record, Schema):
                 self.scan.schemas[record.id] = record
@@ -259,6 +281,10 @@ class _Walk:
                              "points into a stretch that did not read", counts)
 
     def _finish(self) -> None:
+        if self.duplicate_messages:
+            self.scan.notes.append(f"{self.scan.path.name}: {self.duplicate_messages} "
+                                   "message(s) identical to one read before (same channel, "
+                                   "log time and data): dropped")
         topics = {cid: ch.topic for cid, ch in self.scan.channels.items()}
         for damage, counts in sorted(self.pending, key=lambda p: p[0].offset):
             if counts is not None:

@@ -261,3 +261,36 @@ def test_a_clean_bag_exits_0_with_nothing_reported(tmp_path, results, capsys):
     assert report["lost"]["messages"] == 0 and report["lost"]["notes"] == []
     assert cli_main(["bag", "reindex", str(bag)]) == EXIT_OK
     assert "0 file(s) rewritten" in capsys.readouterr().out
+
+
+def _duplicate_chunk(path: Path, k: int) -> tuple[int, int]:
+    """Write chunk `k` of a file twice (what a bad copy or sync tool does): its bytes again
+    right after it. Returns (its start offset, its length)."""
+    index = sorted(_summary(path).chunk_indexes, key=lambda c: c.chunk_start_offset)[k]
+    start, length = index.chunk_start_offset, index.chunk_length
+    data = path.read_bytes()
+    path.write_bytes(data[:start + length] + data[start:start + length] + data[start + length:])
+    return start, length
+
+
+def test_a_chunk_written_twice_loses_nothing_and_the_copy_is_dropped(tmp_path, results, capsys):
+    """The footer's summary offset then points into data and the summary fails its CRC: the
+    rest of the file is scanned (no intact chunk after the bogus offset is dropped), the
+    second copy is dropped and named, and `bag reindex` rewrites the file with every solve
+    once."""
+    bag = _bag(tmp_path, results)
+    path = bag / "guidance_0.mcap"
+    n_chunks = len(_summary(path).chunk_indexes)
+    start, length = _duplicate_chunk(path, n_chunks // 3)
+    log = read_log(bag)
+    assert _plan_ids(log) == list(range(N_SOLVES))
+    assert any(f"duplicates the chunk at byte offset {start}" in n for n in log.notes), log.notes
+    assert [d.reason.split(":")[0] for d in log.damaged] == ["summary section"]
+    assert log.lost["messages"] == 0, log.lost
+    repair = repair_bag(bag, say=print)
+    assert repair.rewritten == ["guidance_0.mcap"]
+    out = capsys.readouterr().out
+    assert "duplicates the chunk" in out, out
+    ids = _rosbags_plan_ids(bag)
+    assert sorted(int(i.split("-")[1]) for i in ids) == list(range(N_SOLVES))
+    assert read_log(bag).damaged == [] and _plan_ids(read_log(bag)) == list(range(N_SOLVES))
