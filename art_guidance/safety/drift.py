@@ -349,7 +349,7 @@ class DriftArcs:
         """
         target = _sign_target if sign_only else _target
         for level in range(MAX_LEVELS + 1):
-            lb = self.lower_bound(it, item, lo, hi, target(best)[item])
+            lb = self.lower_bound(it, item, lo, hi, target(best)[item], sign_only)
             open_ = lb < target(best)[item]
             bracket = open_ & (lo.dm < 0.0) & (hi.dm > 0.0) & ~refined
             if bracket.any():  # a local minimum of m that may matter: refine it

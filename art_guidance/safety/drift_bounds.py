@@ -69,7 +69,7 @@ class ArcPoints:
 
 
 def lower_bound(it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints,
-                target: np.ndarray | None = None) -> np.ndarray:
+                target: np.ndarray | None = None, sign_only: bool = False) -> np.ndarray:
     """Certified lower bounds (I,) of the margin on intervals [lo.tau, hi.tau] of arcs `item`.
 
     Staged (module docstring, step 2); each stage only runs where the bound so far is below
@@ -78,6 +78,11 @@ def lower_bound(it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints,
     1. d from the Hermite interpolant of F with its h^4 error bound, ``sigma <= A_0``;
     2. (chance) sigma from the interpolant of W = |v|^2 and the d bound of stage 1;
     3. (chance) the chord bound, pairing d and sigma at N_SUB + 1 sub-grid points.
+
+    `sign_only` (the sign-only search, for which a bound matters only as below `target` or
+    not, and as below zero or not): stage 1 first with ``sigma <= A_0``; stages 2 and 3 only
+    where that is below max(target, 0). Where it is not, the smaller stage-1 bound is returned,
+    which decides the same way.
     """
     target = np.full(item.size, np.inf) if target is None else target
     h = hi.tau - lo.tau
@@ -87,6 +92,12 @@ def lower_bound(it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints,
     idx = np.flatnonzero(lb < target)
     if idx.size == 0:
         return lb
+    if sign_only and it.k_sup is not None:
+        first = _Bounds(it, item[idx], lo.take(idx), hi.take(idx), stage1_only=True)
+        lb[idx] = np.maximum(lb[idx], first.lb)
+        idx = idx[lb[idx] < np.maximum(target[idx], 0.0)]
+        if idx.size == 0:
+            return lb
     b = _Bounds(it, item[idx], lo.take(idx), hi.take(idx))
     lb[idx] = np.maximum(lb[idx], b.lb)
     if it.k_sup is not None:
@@ -99,7 +110,10 @@ def lower_bound(it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints,
 class _Bounds:
     """Stages 1 and 2 of `lower_bound` on I intervals, and stage 3 on demand."""
 
-    def __init__(self, it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints) -> None:
+    def __init__(self, it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints,
+                 stage1_only: bool = False) -> None:
+        """`stage1_only`: the chance margin's bound from stage 1 and ``sigma <= A_0`` alone
+        (no stage 2; `chord` is then not available)."""
         self.q, self.h = it.q, hi.tau - lo.tau
         h = self.h
         ys = it.y_sup[item]  # (I, 5)
@@ -112,6 +126,9 @@ class _Bounds:
             self.lb = self.d_lo - 1.0
             return
         ks = self.ks = it.k_sup[item]
+        if stage1_only:
+            self.lb = self.d_lo - 1.0 - it.q * ks[:, 0]
+            return
         yl = np.column_stack([y0, ys[:, 1:]])
         vs = np.stack([sum(comb(r, j) * ks[:, j] * yl[:, r - j] for j in range(r + 1))
                        for r in range(N_ORDERS)], axis=1)  # bounds on |v^(r)|, v = K y
