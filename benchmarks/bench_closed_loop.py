@@ -25,7 +25,7 @@ import time
 import numpy as np
 
 from art_guidance.planning import GuidancePipeline
-from art_guidance.planning.pipeline import CVX_SAFE_REASON
+from art_guidance.planning.learned import CVX_SAFE_REASON
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
 from art_guidance.sim.inprocess import InProcessGuidance
 

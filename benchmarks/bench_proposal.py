@@ -35,7 +35,7 @@ from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.optim import solve_cvx
 from art_guidance.planning import GuidancePipeline, PlanRequest
-from art_guidance.planning.pipeline import cvx_is_safe
+from art_guidance.planning.learned import cvx_is_safe
 from art_guidance.safety.passive import SafetyEvaluation
 from art_guidance.scenarios import sample_scenario
 
@@ -95,7 +95,8 @@ def _scenarios(pipeline: GuidancePipeline, first: int, n: int) -> list:
         seed += 1
         request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
                               chance_constrained=True)
-        horizon, safety = pipeline._setup(request)
+        transfer = pipeline.transfer(request)
+        horizon, safety = transfer.horizon, transfer.safety
         cvx = solve_cvx(horizon, request.roe0_m,
                         np.linalg.solve(horizon.psi[-1], request.target_rtn))
         if cvx.status.feasible and not cvx_is_safe(cvx, safety):

@@ -1,10 +1,11 @@
 """`GuidancePipeline.plan(request) -> PlanResult`: warm start -> post hoc check -> SCP.
 
-The convex TPBVP ("CVX") is always solved: it is the fallback and the post hoc reference
-(R_des = -J_CVX). A learned `WarmStartProvider` (ART, `art_guidance.art.provider`) then
-proposes controls; the pipeline validates them and applies the post hoc check
-(`planning.posthoc.check_proposal`: accept when E_R and E_C of the warm start SCVx* would start
-from, or of the rollout itself, are inside the configured region); an
+Every stage solves the request's one `Transfer` (`planning.transfer`). The convex TPBVP ("CVX")
+is always solved: it is the fallback and the post hoc reference (R_des = -J_CVX). The learned
+step (`planning.learned.learned_warm_start`, in line or in the proposal worker process) asks a
+`WarmStartProvider` (ART, `art_guidance.art.provider`) for controls, validates them and applies
+the post hoc check (`planning.posthoc.check_proposal`: accept when E_R and E_C of the warm start
+SCVx* would start from, or of the rollout itself, are inside the configured region); an
 accepted (or, with warm_start "art", forced) proposal warm-starts SCVx*, otherwise CVX does.
 Every plan says in words which warm start it used and why (`PlanResult.warm_start_reason`).
 """
@@ -12,23 +13,22 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
-from art_guidance.checks import as_finite_array
 from art_guidance.config import GuidanceConfig
-from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
 from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions
-from art_guidance.planning.posthoc import check_proposal
+from art_guidance.planning.learned import (
+    Learned, cvx_is_safe, error_text, timed_learned_warm_start,
+)
 from art_guidance.planning.proposal_process import (
     GRACE_S, NO_DEADLINE_TIMEOUT_S, ProposalProcess, model_key,
 )
+from art_guidance.planning.transfer import Transfer, Transfers
 from art_guidance.planning.types import (
-    PlanRequest, PlanResult, PosthocDecision, ScpAttempt, WarmStart, WarmStartProposal,
-    WarmStartProvider,
+    PlanRequest, PlanResult, ScpAttempt, WarmStart, WarmStartProvider,
 )
 from art_guidance.safety import PassiveSafety
 
@@ -59,7 +59,7 @@ class GuidancePipeline:
         self.deadline_s = deadline_s
         self.subproblem = subproblem or SubproblemOptions()
         self._worker: ProposalProcess | None = None
-        self._cache: dict = {}
+        self._transfers = Transfers(self.scenario, self.uncertainty)
 
     def config_json(self) -> dict:
         """The configuration this pipeline plans with (recorded with every run)."""
@@ -80,28 +80,14 @@ class GuidancePipeline:
         except (KeyError, TypeError, ConfigError, InputError) as exc:
             raise InputError("config", f"recorded configuration is malformed: {exc!r}") from exc
 
-    def _setup(self, request: PlanRequest) -> tuple[Horizon, PassiveSafety]:
-        n_nodes = int(request.n_nodes or self.scenario.n_nodes)
-        n_orbits = float(request.n_orbits or self.scenario.n_orbits)
-        switch = self.scenario.ae_to_koz_node
-        if request.koz_switch_node is not None:
-            switch = int(min(request.koz_switch_node, n_nodes))
-        # the exact elements (rounding a huge finite angle overflowed: 1e300 and 2e300 met)
-        key = (tuple(request.chief_oe.tolist()), n_nodes, n_orbits, switch,
-               request.chance_constrained)
-        if key not in self._cache:
-            if len(self._cache) > 8:
-                self._cache.clear()
-            horizon = Horizon.build(request.chief_oe,
-                                    time_grid_s(request.chief_oe[0], n_orbits, n_nodes))
-            unc = self.uncertainty if request.chance_constrained else None
-            self._cache[key] = (horizon, PassiveSafety(horizon, self.scenario, unc,
-                                                       koz_switch_node=switch))
-        return self._cache[key]
+    def transfer(self, request: PlanRequest) -> Transfer:
+        """The problem every stage of a plan of `request` solves (horizon and passive-safety
+        model cached)."""
+        return self._transfers.get(request)
 
     def safety_model(self, request: PlanRequest) -> PassiveSafety:
         """The passive-safety model a request is planned with (cached with its horizon)."""
-        return self._setup(request)[1]
+        return self.transfer(request).safety
 
     def plan(self, request: PlanRequest) -> PlanResult:
         """Plan one transfer; never raises for solver or model trouble (see
@@ -121,17 +107,16 @@ class GuidancePipeline:
         """
         t0 = time.perf_counter()
         deadline = None if self.deadline_s is None else t0 + self.deadline_s
-        horizon, safety = self._setup(request)
+        transfer = self.transfer(request)
+        horizon, safety, roe_f = transfer.horizon, transfer.safety, transfer.roe_f_m
         t_setup = time.perf_counter()
-        roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
         cvx = solve_cvx(horizon, request.roe0_m, roe_f)
         t_cvx = time.perf_counter()
         cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
             else np.zeros((horizon.n_nodes, 3))
         scvx = Scvx(safety, request.roe0_m, roe_f, self.scp_config,
                     samples_per_node=self.samples_per_node, subproblem=self.subproblem)
-        early, learned, art_ms = self._propose(request, roe_f, safety, cvx, cvx_dv, scvx,
-                                               deadline, t0)
+        early, learned, art_ms = self._propose(transfer, cvx, cvx_dv, scvx, deadline, t0)
         t_art = time.perf_counter()
         source, reason, discarded = learned.source, learned.reason, None
         warm = {"cvx": cvx_dv, "art": learned.dv}
@@ -180,10 +165,10 @@ class GuidancePipeline:
                           learned.posthoc, margin, timings, request, learned.proposal, reason,
                           discarded)
 
-    def _propose(self, request: PlanRequest, roe_f: np.ndarray, safety: PassiveSafety,
-                 cvx: ConvexSolution, cvx_dv: np.ndarray, scvx: Scvx, deadline: float | None,
-                 t0: float) -> tuple[ScpResult | None, "_Learned", float]:
-        """The learned warm start step (`_learned`): (SCVx* from CVX if it was solved
+    def _propose(self, transfer: Transfer, cvx: ConvexSolution, cvx_dv: np.ndarray,
+                 scvx: Scvx, deadline: float | None,
+                 t0: float) -> tuple[ScpResult | None, Learned, float]:
+        """The learned warm start step (`planning.learned`): (SCVx* from CVX if it was solved
         meanwhile, else None; the decision; the proposal's wall time [ms]).
 
         With `propose_concurrently`, warm start auto and `also_solve_from_cvx` (so that SCVx*
@@ -194,15 +179,15 @@ class GuidancePipeline:
         late is stopped and the proposal is made here instead (`proposal_worker_error` says
         why).
         """
-        planning, early = self.config.planning, None
+        planning, early, request = self.config.planning, None, transfer.request
         model = model_key(self.provider)
         if planning.propose_concurrently and planning.also_solve_from_cvx and model \
                 and request.warm_start == WarmStart.AUTO.value and cvx.status.feasible \
-                and not (planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety)):
+                and not (planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, transfer.safety)):
             worker = self._proposal_worker()
             left = None if deadline is None else max(deadline - time.perf_counter(), 0.0)
             job = {"config": self.config.to_json(), "config_sha256": self.config.sha256(),
-                   "model": model, "request": request, "roe_f": roe_f, "cvx": cvx,
+                   "model": model, "request": request, "cvx": cvx,
                    "time_left_s": left, "cvx_unsafe": planning.skip_art_when_cvx_safe}
             if worker.submit(job):
                 budget = self._time_left(t0)
@@ -210,7 +195,7 @@ class GuidancePipeline:
                     early = scvx.solve(cvx_dv, deadline_s=None if budget is None
                                        else budget * planning.art_deadline_share)
                 except BaseException as exc:  # the worker is freed on every path
-                    worker.abandon(f"SCVx* from CVX failed meanwhile ({_short(exc)})")
+                    worker.abandon(f"SCVx* from CVX failed meanwhile ({error_text(exc)})")
                     raise
                 wait = NO_DEADLINE_TIMEOUT_S if deadline is None \
                     else max(deadline - time.perf_counter(), 0.0) + GRACE_S
@@ -218,15 +203,11 @@ class GuidancePipeline:
                 if answer is not None:
                     return (early, *answer)
             # CVX was found not passively safe above: the in-line proposal does not ask again
-            return (early, *self._timed_learned(request, roe_f, safety, cvx, deadline,
-                                                planning.skip_art_when_cvx_safe))
-        return (early, *self._timed_learned(request, roe_f, safety, cvx, deadline))
-
-    def _timed_learned(self, *args: object) -> tuple["_Learned", float]:
-        """`_learned` and its wall time [ms]."""
-        t = time.perf_counter()
-        learned = self._learned(*args)
-        return learned, 1e3 * (time.perf_counter() - t)
+            return (early, *timed_learned_warm_start(self.provider, transfer, cvx, planning,
+                                                     deadline,
+                                                     planning.skip_art_when_cvx_safe))
+        return (early, *timed_learned_warm_start(self.provider, transfer, cvx, planning,
+                                                 deadline))
 
     def _proposal_worker(self) -> ProposalProcess:
         if self._worker is None:
@@ -268,92 +249,6 @@ class GuidancePipeline:
         if self.deadline_s is None:
             return None
         return max(self.deadline_s - (time.perf_counter() - t_start), 0.0)
-
-    def _learned(self, request: PlanRequest, roe_f: np.ndarray, safety: PassiveSafety,
-                 cvx: ConvexSolution, deadline: float | None = None,
-                 cvx_unsafe: bool = False) -> "_Learned":
-        """Ask the provider for a learned warm start and check it post hoc (`deadline`: the
-        plan's, a `time.perf_counter()` instant, or None; `cvx_unsafe`: the caller found the
-        CVX plan not passively safe already, so it is not evaluated again)."""
-        if request.warm_start == WarmStart.CVX.value:
-            return _Learned("cvx", "CVX warm start requested")
-        if self.provider is None:
-            return _Learned("cvx", f"{request.warm_start} requested but no learned model is "
-                            "loaded: CVX warm start")
-        if not cvx.status.feasible:
-            return _Learned("cvx", f"CVX ended {cvx.status.name}: no reference for the post hoc "
-                            "check, CVX warm start")
-        if request.warm_start == WarmStart.AUTO.value and not cvx_unsafe \
-                and self.config.planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety):
-            return _Learned("cvx", CVX_SAFE_REASON)
-        t0 = time.perf_counter()
-        if deadline is not None and t0 >= deadline:
-            return _Learned("cvx", f"{DEADLINE_REASON} before ART: CVX warm start")
-        kwargs = {"deadline": deadline} if _takes_deadline(self.provider) else {}
-        try:
-            proposal = self.provider.propose(request, safety, cvx, **kwargs)
-        except Exception as exc:  # a model never takes the plan down
-            return _Learned("cvx", f"ART not run ({_short(exc)}): CVX warm start")
-        if not isinstance(proposal, WarmStartProposal):
-            proposal = WarmStartProposal(proposal, rollout_ms=1e3 * (time.perf_counter() - t0))
-        try:
-            dv = as_finite_array("ART warm start", proposal.dv_rtn_mps,
-                                 (safety.horizon.n_nodes, 3))
-        except InputError as exc:  # a broken model output is rejected, never flown
-            return _Learned("cvx", f"ART output rejected ({_short(exc)}): CVX warm start",
-                            PosthocDecision(float("nan"), float("nan"), False), proposal)
-        posthoc = check_proposal(dv, request.roe0_m, roe_f, cvx.cost_mps, safety,
-                                 self.config.planning)
-        if posthoc.accepted:
-            return _Learned("art", f"ART accepted by the post hoc check ({posthoc.text()})",
-                            posthoc, proposal, dv)
-        if request.warm_start == WarmStart.ART.value:
-            return _Learned("art", f"ART forced although the post hoc check rejects it "
-                            f"({posthoc.text()})", posthoc, proposal, dv)
-        return _Learned("cvx", f"ART rejected by the post hoc check ({posthoc.text()}): CVX "
-                        "warm start", posthoc, proposal, dv)
-
-
-@dataclass(frozen=True)
-class _Learned:
-    """What the learned warm start step decided."""
-
-    source: str
-    reason: str
-    posthoc: PosthocDecision | None = None
-    proposal: WarmStartProposal | None = None
-    dv: np.ndarray | None = None
-
-
-DEADLINE_REASON = "the plan's deadline (solve_deadline_s) passed"
-
-
-def _takes_deadline(provider: object) -> bool:
-    """Whether a provider's `propose` takes the plan's deadline (`ArtWarmStart` does; the
-    `WarmStartProvider` protocol does not require it)."""
-    import inspect
-
-    propose = getattr(provider, "propose", None)
-    if propose is None:
-        return False
-    try:
-        return "deadline" in inspect.signature(propose).parameters
-    except (TypeError, ValueError):
-        return False
-
-
-# The decision's reason when `skip_art_when_cvx_safe` left ART out.
-CVX_SAFE_REASON = ("CVX is passively safe (C_CVX(t_1) = 0), so SCVx* from it is the plan: ART "
-                   "not run, CVX warm start")
-
-
-def cvx_is_safe(cvx: ConvexSolution, safety: PassiveSafety) -> bool:
-    """Whether the CVX plan already satisfies the passive-safety constraint at every node
-    (C_CVX(t_1) = 0). CVX is the problem without that constraint, so SCVx* from it keeps it
-    (one iteration) and no warm start can do better: on 96 such held-out scenarios of the
-    warm-start analysis `auto` with ART gained nothing; in the closed loop 55-58 % of the
-    replans are such, and ART's proposal there only adds latency (`skip_art_when_cvx_safe`)."""
-    return int(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0]) == 0
 
 
 def second_run(first: ScpResult, source: str, other_exists: bool,
@@ -403,8 +298,3 @@ def keep_first_plan(first: ScpResult, second: ScpResult, source: str,
     else:
         keep_cvx = better_plan(cvx, art)
     return keep_cvx == (source == "cvx")
-
-
-def _short(exc: Exception) -> str:
-    text = str(exc).splitlines()[0] if str(exc) else ""
-    return f"{type(exc).__name__}: {text[:200]}"

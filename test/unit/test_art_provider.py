@@ -336,7 +336,8 @@ def test_sweep_proposes_the_best_of_its_candidates(model_path):
     single = ArtWarmStart.load(model_path, reward_scales=(1.0,))
     req = _request(5, chance=True)
     pipeline = GuidancePipeline(provider=sweep)
-    horizon, safety = pipeline._setup(req)
+    transfer = pipeline.transfer(req)
+    horizon, safety = transfer.horizon, transfer.safety
     cvx = solve_cvx(horizon, req.roe0_m, np.linalg.solve(horizon.psi[-1], req.target_rtn))
     res = rollout(sweep.art, safety, np.tile(req.roe0_m, (3, 1)), req.target_rtn,
                   -cvx.cost_mps * np.array(scales), 0.0)
@@ -362,7 +363,8 @@ def test_the_rollouts_suite_scores_what_the_sweep_proposes(model_path):
     sweep = ArtWarmStart.load(model_path, reward_scales=scales)
     for seed in (5, 6, 7):
         req = _request(seed, chance=True)
-        horizon, safety = GuidancePipeline(provider=sweep)._setup(req)
+        transfer = GuidancePipeline(provider=sweep).transfer(req)
+        horizon, safety = transfer.horizon, transfer.safety
         cvx = solve_cvx(horizon, req.roe0_m, np.linalg.solve(horizon.psi[-1], req.target_rtn))
         prop = sweep.propose(req, safety, cvx)
         scores = score_rollouts(sweep.art, safety, req.roe0_m[None], req.target_rtn[None],

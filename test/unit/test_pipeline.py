@@ -111,7 +111,8 @@ def test_broken_provider_output_falls_back_to_cvx(request_0):
 def test_posthoc_check_on_an_unsafe_rollout(request_0):
     scenario, req = request_0
     pipeline = GuidancePipeline(_config(scenario))
-    horizon, safety = pipeline._setup(req)
+    transfer = pipeline.transfer(req)
+    horizon, safety = transfer.horizon, transfer.safety
     dv = np.zeros((horizon.n_nodes, 3))
     roe = horizon.propagate(req.roe0_m, dv)
     decision = posthoc_check(dv, roe, 1.0, safety, PosthocThresholds())
