@@ -155,9 +155,7 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
     t0 = time.perf_counter()
     cvx = solve_cvx(horizon, request.roe0_m, roe_f)
     t1 = time.perf_counter()
-    if hasattr(provider, "planning"):
-        provider.planning = config.planning  # rank candidates as the pipeline does
-    prop = provider.propose(request, safety, cvx)
+    prop = provider.propose(request, safety, cvx, planning=config.planning)  # ranked as flown
     art_dv = np.asarray(prop.dv_rtn_mps, float)
     art_roe = horizon.propagate_nonlinear(request.roe0_m, art_dv)
     ph = check_proposal(art_dv, request.roe0_m, roe_f, cvx.cost_mps, safety, config.planning)

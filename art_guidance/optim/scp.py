@@ -41,6 +41,7 @@ import numpy as np
 
 from art_guidance.config import ScpConfig
 from art_guidance.dynamics import DeputyLinearization, Horizon
+from art_guidance.deadline import Deadline
 from art_guidance.optim.cvx import control_cost, terminal_maps
 from art_guidance.optim.problem import SubproblemOptions, pooled_subproblem
 from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus
@@ -185,14 +186,14 @@ class Scvx:
         return it.cost + float(mu @ gp) + 0.5 * w * float(gp @ gp)
 
     def solve(self, dv_warm_rtn_mps: np.ndarray, multipliers: dict | None = None,
-              deadline_s: float | None = None) -> ScpResult:
+              deadline: Deadline | None = None) -> ScpResult:
         """Run SCVx* from a warm-start control sequence (N, 3) [m/s].
 
         Args:
             dv_warm_rtn_mps: warm-start controls; states are recomputed from them.
             multipliers: optional {"mu", "w", "trust_radius"} from an earlier solve.
-            deadline_s: wall-clock budget [s]; on expiry the best feasible iterate is returned
-                with status TIMEOUT.
+            deadline: when to stop (None: never); on expiry the best feasible iterate is
+                returned with status TIMEOUT.
         """
         t_start = time.perf_counter()
         cfg, n = self.cfg, self.horizon.n_nodes
@@ -212,7 +213,7 @@ class Scvx:
         self.sub.set_dynamics(lin_dyn)
         lin = self._linearize(ref)
         for it_no in range(1, cfg.max_iterations + 1):
-            if deadline_s is not None and time.perf_counter() - t_start > deadline_s:
+            if deadline is not None and deadline.passed():
                 status = ScpStatus.TIMEOUT
                 break
             self.sub.set_reference(ref.roe_m, ref.dv_rtn_mps, radius)

@@ -16,6 +16,7 @@ import numpy as np
 
 from art_guidance.checks import as_finite_array
 from art_guidance.config import PlanningConfig
+from art_guidance.deadline import Deadline
 from art_guidance.errors import InputError
 from art_guidance.optim import ConvexSolution
 from art_guidance.planning.posthoc import check_proposal
@@ -52,7 +53,7 @@ class Learned:
 
 def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
                        cvx: ConvexSolution, planning: PlanningConfig,
-                       deadline: float | None = None, cvx_unsafe: bool = False) -> Learned:
+                       deadline: Deadline | None = None, cvx_unsafe: bool = False) -> Learned:
     """Ask `provider` for a learned warm start of `transfer` and check it post hoc under
     `planning` (its region, its `posthoc_subject`, `skip_art_when_cvx_safe`).
 
@@ -61,7 +62,7 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
         transfer: the plan's problem.
         cvx: the plan's CVX solution (the post hoc reference, R_des = -J_CVX).
         planning: the planning options the candidates are ranked and checked by.
-        deadline: the plan's deadline, a `time.perf_counter()` instant, or None.
+        deadline: the plan's deadline, or None.
         cvx_unsafe: the caller found the CVX plan not passively safe already (it is not
             evaluated again).
     """
@@ -78,11 +79,10 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
             and planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety):
         return Learned("cvx", CVX_SAFE_REASON)
     t0 = time.perf_counter()
-    if deadline is not None and t0 >= deadline:
+    if deadline is not None and deadline.passed():
         return Learned("cvx", f"{DEADLINE_REASON} before ART: CVX warm start")
-    kwargs = {"deadline": deadline} if _takes_deadline(provider) else {}
     try:
-        proposal = provider.propose(request, safety, cvx, **kwargs)
+        proposal = provider.propose(request, safety, cvx, planning=planning, deadline=deadline)
     except Exception as exc:  # a model never takes the plan down
         return Learned("cvx", f"ART not run ({error_text(exc)}): CVX warm start")
     if not isinstance(proposal, WarmStartProposal):
@@ -125,17 +125,3 @@ def error_text(exc: BaseException) -> str:
     """An exception in one short line: its type and the first line of its message."""
     text = str(exc).splitlines()[0] if str(exc) else ""
     return f"{type(exc).__name__}: {text[:200]}"
-
-
-def _takes_deadline(provider: object) -> bool:
-    """Whether a provider's `propose` takes the plan's deadline (`ArtWarmStart` does; the
-    `WarmStartProvider` protocol does not require it)."""
-    import inspect
-
-    propose = getattr(provider, "propose", None)
-    if propose is None:
-        return False
-    try:
-        return "deadline" in inspect.signature(propose).parameters
-    except (TypeError, ValueError):
-        return False

@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from art_guidance.config import GuidanceConfig
+from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
 from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions
@@ -43,14 +44,13 @@ class GuidancePipeline:
         """Args:
             config: the configuration bundle (default: the packaged YAML files).
             provider: a learned warm-start provider, or None (CVX only).
-            deadline_s: wall-clock budget of one whole plan [s] (CVX, the learned proposal
-                and every SCVx* run, counted from the call of `plan`), or None.
+            deadline_s: the default wall-clock budget of one whole plan [s] (CVX, the learned
+                proposal and every SCVx* run, counted from the call of `plan`) for a `plan`
+                given no deadline, or None (recorded with the configuration).
             subproblem: how SCVx*'s subproblem is posed (`optim.problem.SubproblemOptions`;
                 None: the default); recorded with the configuration (`config_json`).
         """
         self.config = config or GuidanceConfig.load()
-        if provider is not None and hasattr(provider, "planning"):
-            provider.planning = self.config.planning  # rank candidates by our post hoc check
         self.scenario = self.config.scenario
         self.uncertainty = self.config.uncertainty
         self.scp_config = self.config.scp
@@ -68,14 +68,17 @@ class GuidancePipeline:
                 "scp_subproblem": dataclasses.asdict(self.subproblem)}
 
     @classmethod
-    def from_config_json(cls, data: dict) -> "GuidancePipeline":
-        """Rebuild a pipeline from `config_json` output (for replay). A record from before
-        the subproblem's options were recorded was solved with `REFERENCE_OPTIONS`, and is
-        replayed with them."""
+    def from_config_json(cls, data: dict, provider: WarmStartProvider | None = None,
+                         time_boxed: bool = True) -> "GuidancePipeline":
+        """Rebuild a pipeline from `config_json` output (for replay), with `provider`; with
+        `time_boxed` False its plans have no default deadline (the recorded one is dropped).
+        A record from before the subproblem's options were recorded was solved with
+        `REFERENCE_OPTIONS`, and is replayed with them."""
         try:
             sub = data.get("scp_subproblem")
             options = REFERENCE_OPTIONS if sub is None else SubproblemOptions(**sub)
-            return cls(GuidanceConfig.from_json(data), deadline_s=data["deadline_s"],
+            deadline_s = data["deadline_s"] if time_boxed else None
+            return cls(GuidanceConfig.from_json(data), provider, deadline_s=deadline_s,
                        subproblem=options)
         except (KeyError, TypeError, ConfigError, InputError) as exc:
             raise InputError("config", f"recorded configuration is malformed: {exc!r}") from exc
@@ -89,7 +92,7 @@ class GuidancePipeline:
         """The passive-safety model a request is planned with (cached with its horizon)."""
         return self.transfer(request).safety
 
-    def plan(self, request: PlanRequest) -> PlanResult:
+    def plan(self, request: PlanRequest, deadline: Deadline | None = None) -> PlanResult:
         """Plan one transfer; never raises for solver or model trouble (see
         `PlanResult.status` and `PlanResult.warm_start_reason`).
 
@@ -98,7 +101,8 @@ class GuidancePipeline:
         post hoc check rejected them), SCVx* is retried from the other one in the time left and
         the better feasible plan (then the lower cost) is kept.
 
-        With a deadline (`deadline_s`) the whole plan is bounded: the learned proposal is not
+        `deadline` bounds the whole plan (None: `deadline_s` from now, the pipeline's default
+        budget, if it has one): the learned proposal is not
         started once it has passed and stops at the first rollout step after it (the plan is
         then warm-started from CVX), each SCVx* run gets what is left of it (the first run
         `art_deadline_share` of that when a retry is possible) and returns its best feasible
@@ -106,7 +110,8 @@ class GuidancePipeline:
         rollout step and the final safety evaluation.
         """
         t0 = time.perf_counter()
-        deadline = None if self.deadline_s is None else t0 + self.deadline_s
+        if deadline is None and self.deadline_s is not None:
+            deadline = Deadline(t0 + self.deadline_s)
         transfer = self.transfer(request)
         horizon, safety, roe_f = transfer.horizon, transfer.safety, transfer.roe_f_m
         t_setup = time.perf_counter()
@@ -116,28 +121,29 @@ class GuidancePipeline:
             else np.zeros((horizon.n_nodes, 3))
         scvx = Scvx(safety, request.roe0_m, roe_f, self.scp_config,
                     samples_per_node=self.samples_per_node, subproblem=self.subproblem)
-        early, learned, art_ms = self._propose(transfer, cvx, cvx_dv, scvx, deadline, t0)
+        early, learned, art_ms = self._propose(transfer, cvx, cvx_dv, scvx, deadline)
         t_art = time.perf_counter()
         source, reason, discarded = learned.source, learned.reason, None
         warm = {"cvx": cvx_dv, "art": learned.dv}
 
-        def solve(src: str, budget_s: float | None) -> ScpResult:
+        def solve(src: str, until: Deadline | None) -> ScpResult:
             """SCVx* from a warm start (from CVX: the run made during the proposal, if any)."""
             return early if src == "cvx" and early is not None \
-                else scvx.solve(warm[src], deadline_s=budget_s)
+                else scvx.solve(warm[src], deadline=until)
 
         other = "cvx" if source == "art" else "art"
-        budget = self._time_left(t0)
-        if warm[other] is not None and budget is not None:
-            budget *= self.config.planning.art_deadline_share  # leave time for the retry
-        res = solve(source, budget)
-        auto = request.warm_start == WarmStart.AUTO.value and self._time_left(t0) != 0.0
+        first = deadline
+        if warm[other] is not None and deadline is not None:  # leave time for the retry
+            first = deadline.share(self.config.planning.art_deadline_share)
+        res = solve(source, first)
+        auto = request.warm_start == WarmStart.AUTO.value and not (
+            deadline is not None and deadline.passed())
         second = second_run(res, source, warm[other] is not None,
                             auto and self.config.planning.also_solve_from_cvx,
                             auto and self.config.planning.also_solve_from_art)
         if second is not None:
             alt_source, why = second
-            alt = solve(alt_source, self._time_left(t0))
+            alt = solve(alt_source, deadline)
             keep_first = keep_first_plan(res, alt, source,
                                          self.config.planning.art_min_gain_mps)
             kept, lost = (res, alt) if keep_first else (alt, res)
@@ -166,8 +172,8 @@ class GuidancePipeline:
                           discarded)
 
     def _propose(self, transfer: Transfer, cvx: ConvexSolution, cvx_dv: np.ndarray,
-                 scvx: Scvx, deadline: float | None,
-                 t0: float) -> tuple[ScpResult | None, Learned, float]:
+                 scvx: Scvx,
+                 deadline: Deadline | None) -> tuple[ScpResult | None, Learned, float]:
         """The learned warm start step (`planning.learned`): (SCVx* from CVX if it was solved
         meanwhile, else None; the decision; the proposal's wall time [ms]).
 
@@ -185,20 +191,19 @@ class GuidancePipeline:
                 and request.warm_start == WarmStart.AUTO.value and cvx.status.feasible \
                 and not (planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, transfer.safety)):
             worker = self._proposal_worker()
-            left = None if deadline is None else max(deadline - time.perf_counter(), 0.0)
+            left = None if deadline is None else deadline.left_s()
             job = {"config": self.config.to_json(), "config_sha256": self.config.sha256(),
                    "model": model, "request": request, "cvx": cvx,
                    "time_left_s": left, "cvx_unsafe": planning.skip_art_when_cvx_safe}
             if worker.submit(job):
-                budget = self._time_left(t0)
                 try:
-                    early = scvx.solve(cvx_dv, deadline_s=None if budget is None
-                                       else budget * planning.art_deadline_share)
+                    early = scvx.solve(cvx_dv, deadline=None if deadline is None
+                                       else deadline.share(planning.art_deadline_share))
                 except BaseException as exc:  # the worker is freed on every path
                     worker.abandon(f"SCVx* from CVX failed meanwhile ({error_text(exc)})")
                     raise
                 wait = NO_DEADLINE_TIMEOUT_S if deadline is None \
-                    else max(deadline - time.perf_counter(), 0.0) + GRACE_S
+                    else deadline.left_s() + GRACE_S
                 answer = worker.collect(wait)
                 if answer is not None:
                     return (early, *answer)
@@ -242,13 +247,6 @@ class GuidancePipeline:
         concurrent proposal starts it again)."""
         if self._worker is not None:
             self._worker.close()
-
-    def _time_left(self, t_start: float) -> float | None:
-        """What is left of the plan's deadline, started at `t_start` [s] (None: no
-        deadline)."""
-        if self.deadline_s is None:
-            return None
-        return max(self.deadline_s - (time.perf_counter() - t_start), 0.0)
 
 
 def second_run(first: ScpResult, source: str, other_exists: bool,

@@ -76,6 +76,7 @@ def _run(job: dict, state: dict, torch: Any) -> tuple:
     """One job: ("warm_up",) loads the model; a plan job returns (decision, wall ms)."""
     from art_guidance.art.provider import ArtWarmStart
     from art_guidance.config import GuidanceConfig
+    from art_guidance.deadline import Deadline
     from art_guidance.planning.learned import timed_learned_warm_start
     from art_guidance.planning.transfer import Transfers
 
@@ -86,13 +87,12 @@ def _run(job: dict, state: dict, torch: Any) -> tuple:
         provider = ArtWarmStart.load(path, expected_sha256=sha, threads=threads,
                                      reward_scales=scales)
         config = GuidanceConfig.from_json(job["config"])
-        provider.planning = config.planning  # rank candidates by the planner's check
         state.update(key=key, provider=provider, config=config,
                      transfers=Transfers(config.scenario, config.uncertainty))
     if job.get("warm_up"):
         return (None, 0.0)
-    left_s = job["time_left_s"]
-    deadline = None if left_s is None else time.perf_counter() + left_s
+    left_s = job["time_left_s"]  # the plan's deadline, on this process's clock
+    deadline = None if left_s is None else Deadline.after(left_s)
     return timed_learned_warm_start(state["provider"], state["transfers"].get(job["request"]),
                                     job["cvx"], state["config"].planning, deadline,
                                     bool(job.get("cvx_unsafe", False)))

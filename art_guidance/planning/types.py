@@ -11,6 +11,8 @@ from typing import Protocol
 import numpy as np
 
 from art_guidance.checks import as_finite_array
+from art_guidance.config import PlanningConfig
+from art_guidance.deadline import Deadline
 from art_guidance.dynamics import check_chief, check_deputy_inclination, mean_motion
 from art_guidance.errors import InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus
@@ -205,7 +207,10 @@ class WarmStartProvider(Protocol):
 
     `propose` returns a `WarmStartProposal` (or bare (N, 3) controls [m/s]); it raises a
     `GuidanceError` saying why when the request is outside what it can propose for (e.g. a
-    horizon longer than the model's context). The pipeline never trusts the output: it
+    horizon longer than the model's context). `planning` says how the pipeline will check the
+    proposal (a provider with several candidates ranks them by it; None: the packaged
+    defaults); `deadline` is the plan's (None: none), after which a provider should stop
+    (raising `DeadlineError`). The pipeline never trusts the output: it
     validates it, rolls it out through its own dynamics and applies the post hoc check; any
     exception is caught and the plan falls back to CVX.
 
@@ -215,8 +220,9 @@ class WarmStartProvider(Protocol):
 
     sha256: str
 
-    def propose(self, request: PlanRequest, safety: PassiveSafety,
-                cvx: ConvexSolution) -> "WarmStartProposal | np.ndarray":
+    def propose(self, request: PlanRequest, safety: PassiveSafety, cvx: ConvexSolution,
+                planning: PlanningConfig | None = None,
+                deadline: Deadline | None = None) -> "WarmStartProposal | np.ndarray":
         ...
 
 

@@ -280,9 +280,9 @@ def replay(path: str | Path, model: str | Path | None = None) -> dict:
         raise InputError("log", "no art_guidance configuration in the MCAP metadata", str(path))
     provider, model_note = _replay_provider(log, model)
     same_model = provider is None or provider.sha256 == log.metadata.get("model_checksum")
-    pipeline = GuidancePipeline.from_config_json(json.loads(log.metadata["config"]))
-    pipeline.provider = provider
-    pipeline.deadline_s = None  # replays are not time-boxed; timed-out solves are flagged
+    # replays are not time-boxed; timed-out solves are flagged
+    pipeline = GuidancePipeline.from_config_json(json.loads(log.metadata["config"]),
+                                                 provider, time_boxed=False)
     rows = []
     for record, plan in log.solves():
         cost, dv = _plan_arrays(plan)

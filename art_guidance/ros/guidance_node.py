@@ -32,6 +32,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from art_guidance import topics
 from art_guidance.config import GuidanceConfig, node_parameter_defaults
+from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.plan_view import nav_position, plan_view
 from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
@@ -293,10 +294,10 @@ class GuidanceNodeBase:
                 self.core.job_done()
 
     def _solve(self, job: Job) -> None:
-        # solve_deadline_s bounds the replan up to its publication: the pipeline gets what the
+        # solve_deadline_s bounds the replan up to its publication: the plan gets what the
         # recent messages and recordings leave of it
-        self.pipeline.deadline_s = self.budget.planning_s(self.p["solve_deadline_s"])
-        solved = self.core.solve(job)
+        solved = self.core.solve(job, Deadline.after(
+            self.budget.planning_s(self.p["solve_deadline_s"])))
         t_solved = time.perf_counter()
         result, plan_id, action, active_id = (solved.result, solved.plan_id, solved.action,
                                               solved.active_id)

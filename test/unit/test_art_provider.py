@@ -16,6 +16,7 @@ from helpers.art_models import write_untrained_checkpoint
 
 from art_guidance.art.provider import ArtWarmStart
 from art_guidance.cli import main as cli_main
+from art_guidance.deadline import Deadline
 from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
@@ -45,7 +46,7 @@ class Scaled:
     def __init__(self, factor: float) -> None:
         self.factor = factor
 
-    def propose(self, request, safety, cvx):
+    def propose(self, request, safety, cvx, planning=None, deadline=None):
         return WarmStartProposal(cvx.dv_rtn_mps * self.factor)
 
 
@@ -187,11 +188,11 @@ def test_failing_provider_never_takes_the_plan_down():
     class Raises:
         sha256 = ""
 
-        def propose(self, request, safety, cvx):
+        def propose(self, request, safety, cvx, planning=None, deadline=None):
             raise RuntimeError("boom")
 
     class WrongShape(Raises):
-        def propose(self, request, safety, cvx):
+        def propose(self, request, safety, cvx, planning=None, deadline=None):
             return np.zeros((3, 3))
 
     result = GuidancePipeline(provider=Raises()).plan(_request(4, warm_start="art"))
@@ -236,25 +237,25 @@ def test_deadline_is_honoured_with_art(provider):
 
 
 class Slow(Scaled):
-    """Scaled, after a pause longer than the test's deadline (a provider without a deadline
-    argument: the pipeline cannot stop it, only what comes after)."""
+    """Scaled, after a pause longer than the test's deadline (a provider that ignores the
+    deadline: the pipeline cannot stop it, only what comes after)."""
 
-    def propose(self, request, safety, cvx):
+    def propose(self, request, safety, cvx, planning=None, deadline=None):
         import time
 
         time.sleep(0.3)
-        return super().propose(request, safety, cvx)
+        return super().propose(request, safety, cvx, planning)
 
 
 def test_a_deadline_that_passes_in_the_proposal_ends_the_plan(provider):
     """A rollout that would run past the deadline stops (CVX warm start, said in the
     reason), and SCVx* then gets no time: the plan is the best feasible iterate at hand
-    (status TIMEOUT); a provider that takes no deadline is waited for, nothing after it runs."""
+    (status TIMEOUT); a provider that ignores the deadline is waited for, nothing after it
+    runs. The pipeline's `deadline_s` is the deadline of a plan given none."""
     request = _request(3, chance=True, warm_start="art")
     pipeline = GuidancePipeline(provider=provider)
     pipeline.plan(request)  # horizon and safety model cached: CVX then takes ~5 ms
-    pipeline.deadline_s = 0.05  # the sweep takes > 100 ms
-    result = pipeline.plan(request)
+    result = pipeline.plan(request, Deadline.after(0.05))  # the sweep takes > 100 ms
     assert "DeadlineError" in result.warm_start_reason and result.warm_start == "cvx"
     assert result.status is ScpStatus.TIMEOUT and result.scp.iterations == 0
     assert result.timings_ms["total"] <= 50.0 + 300.0, result.timings_ms
