@@ -22,10 +22,11 @@ from art_guidance.optim import ConvexSolution
 from art_guidance.planning.posthoc import check_proposal
 from art_guidance.planning.transfer import Transfer
 from art_guidance.planning.types import (
-    PosthocDecision, WarmStart, WarmStartProposal, WarmStartProvider,
+    PosthocDecision, WarmStart, WarmStartProposal, WarmStartProvider, WarmStartSource,
 )
 from art_guidance.safety import PassiveSafety
 
+ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 DEADLINE_REASON = "the plan's deadline (solve_deadline_s) passed"
 # The decision's reason when `skip_art_when_cvx_safe` left ART out.
 CVX_SAFE_REASON = ("CVX is passively safe (C_CVX(t_1) = 0), so SCVx* from it is the plan: ART "
@@ -37,14 +38,14 @@ class Learned:
     """What the learned warm-start step decided.
 
     Attributes:
-        source: the warm start SCVx* starts from, "art" or "cvx".
+        source: the warm start SCVx* starts from.
         reason: why, in words.
         posthoc: the post hoc decision (None: the check was not run).
         proposal: the provider's proposal as it came (None: none was made).
         dv: (N, 3) the validated proposed controls [m/s] (None: no valid proposal).
     """
 
-    source: str
+    source: WarmStartSource
     reason: str
     posthoc: PosthocDecision | None = None
     proposal: WarmStartProposal | None = None
@@ -68,40 +69,40 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
     """
     request, safety = transfer.request, transfer.safety
     if request.warm_start == WarmStart.CVX.value:
-        return Learned("cvx", "CVX warm start requested")
+        return Learned(CVX, "CVX warm start requested")
     if provider is None:
-        return Learned("cvx", f"{request.warm_start} requested but no learned model is "
+        return Learned(CVX, f"{request.warm_start} requested but no learned model is "
                        "loaded: CVX warm start")
     if not cvx.status.feasible:
-        return Learned("cvx", f"CVX ended {cvx.status.name}: no reference for the post hoc "
+        return Learned(CVX, f"CVX ended {cvx.status.name}: no reference for the post hoc "
                        "check, CVX warm start")
     if request.warm_start == WarmStart.AUTO.value and not cvx_unsafe \
             and planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety):
-        return Learned("cvx", CVX_SAFE_REASON)
+        return Learned(CVX, CVX_SAFE_REASON)
     t0 = time.perf_counter()
     if deadline is not None and deadline.passed():
-        return Learned("cvx", f"{DEADLINE_REASON} before ART: CVX warm start")
+        return Learned(CVX, f"{DEADLINE_REASON} before ART: CVX warm start")
     try:
         proposal = provider.propose(request, safety, cvx, planning=planning, deadline=deadline)
     except Exception as exc:  # a model never takes the plan down
-        return Learned("cvx", f"ART not run ({error_text(exc)}): CVX warm start")
+        return Learned(CVX, f"ART not run ({error_text(exc)}): CVX warm start")
     if not isinstance(proposal, WarmStartProposal):
         proposal = WarmStartProposal(proposal, rollout_ms=1e3 * (time.perf_counter() - t0))
     try:
         dv = as_finite_array("ART warm start", proposal.dv_rtn_mps,
                              (transfer.horizon.n_nodes, 3))
     except InputError as exc:  # a broken model output is rejected, never flown
-        return Learned("cvx", f"ART output rejected ({error_text(exc)}): CVX warm start",
+        return Learned(CVX, f"ART output rejected ({error_text(exc)}): CVX warm start",
                        PosthocDecision(float("nan"), float("nan"), False), proposal)
     posthoc = check_proposal(dv, request.roe0_m, transfer.roe_f_m, cvx.cost_mps, safety,
                              planning)
     if posthoc.accepted:
-        return Learned("art", f"ART accepted by the post hoc check ({posthoc.text()})",
+        return Learned(ART, f"ART accepted by the post hoc check ({posthoc.text()})",
                        posthoc, proposal, dv)
     if request.warm_start == WarmStart.ART.value:
-        return Learned("art", f"ART forced although the post hoc check rejects it "
+        return Learned(ART, f"ART forced although the post hoc check rejects it "
                        f"({posthoc.text()})", posthoc, proposal, dv)
-    return Learned("cvx", f"ART rejected by the post hoc check ({posthoc.text()}): CVX "
+    return Learned(CVX, f"ART rejected by the post hoc check ({posthoc.text()}): CVX "
                    "warm start", posthoc, proposal, dv)
 
 

@@ -29,9 +29,11 @@ from art_guidance.planning.proposal_process import (
 )
 from art_guidance.planning.transfer import Transfer, Transfers
 from art_guidance.planning.types import (
-    PlanRequest, PlanResult, ScpAttempt, WarmStart, WarmStartProvider,
+    PlanRequest, PlanResult, ScpAttempt, WarmStart, WarmStartProvider, WarmStartSource,
 )
 from art_guidance.safety import PassiveSafety
+
+ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 
 
 class GuidancePipeline:
@@ -124,14 +126,14 @@ class GuidancePipeline:
         early, learned, art_ms = self._propose(transfer, cvx, cvx_dv, scvx, deadline)
         t_art = time.perf_counter()
         source, reason, discarded = learned.source, learned.reason, None
-        warm = {"cvx": cvx_dv, "art": learned.dv}
+        warm = {CVX: cvx_dv, ART: learned.dv}
 
-        def solve(src: str, until: Deadline | None) -> ScpResult:
+        def solve(src: WarmStartSource, until: Deadline | None) -> ScpResult:
             """SCVx* from a warm start (from CVX: the run made during the proposal, if any)."""
-            return early if src == "cvx" and early is not None \
+            return early if src is CVX and early is not None \
                 else scvx.solve(warm[src], deadline=until)
 
-        other = "cvx" if source == "art" else "art"
+        other = source.other
         first = deadline
         if warm[other] is not None and deadline is not None:  # leave time for the retry
             first = deadline.share(self.config.planning.art_deadline_share)
@@ -151,9 +153,9 @@ class GuidancePipeline:
                                    lost.cost_mps, lost.iterations, lost.solve_time_ms)
             source = source if keep_first else alt_source
             reason += (f"; {why} ({alt.status.name}, {alt.cost_mps:.4f} m/s): kept the "
-                       f"{source.upper()}-warm-started plan")
-            art_plan, cvx_plan = (kept, lost) if source == "art" else (lost, kept)
-            if source == "cvx" and art_plan.feasible and cvx_plan.feasible \
+                       f"{source.label}-warm-started plan")
+            art_plan, cvx_plan = (kept, lost) if source is ART else (lost, kept)
+            if source is CVX and art_plan.feasible and cvx_plan.feasible \
                     and art_plan.cost_mps < cvx_plan.cost_mps:
                 reason += (f" (the ART-warm-started one is only "
                            f"{1e3 * (cvx_plan.cost_mps - art_plan.cost_mps):.2f} mm/s cheaper, "
@@ -249,10 +251,11 @@ class GuidancePipeline:
             self._worker.close()
 
 
-def second_run(first: ScpResult, source: str, other_exists: bool,
-               also_from_cvx: bool, also_from_art: bool = False) -> tuple[str, str] | None:
-    """Whether SCVx* runs a second time after `first` (warm-started from `source`, "cvx" or
-    "art"): (the other warm start, why), or None.
+def second_run(first: ScpResult, source: WarmStartSource, other_exists: bool,
+               also_from_cvx: bool,
+               also_from_art: bool = False) -> tuple[WarmStartSource, str] | None:
+    """Whether SCVx* runs a second time after `first` (warm-started from `source`): (the other
+    warm start, why), or None.
 
     A run that did not converge is retried from the other warm start when there is one
     (`other_exists`); a converged run from ART is also solved from CVX when `also_from_cvx`
@@ -260,14 +263,14 @@ def second_run(first: ScpResult, source: str, other_exists: bool,
     run from CVX is also solved from a valid ART proposal the check rejected when
     `also_from_art` (`also_solve_from_art`, the same conditions).
     """
-    other = "cvx" if source == "art" else "art"
+    other = source.other
     if first.status is not ScpStatus.CONVERGED and other_exists:
-        return other, (f"SCP from {source.upper()} ended {first.status.name}, retried from "
-                       f"{other.upper()}")
-    if source == "art" and also_from_cvx:
-        return "cvx", "also solved from CVX"
-    if source == "cvx" and other_exists and also_from_art:
-        return "art", "also solved from ART"
+        return other, (f"SCP from {source.label} ended {first.status.name}, retried from "
+                       f"{other.label}")
+    if source is ART and also_from_cvx:
+        return CVX, "also solved from CVX"
+    if source is CVX and other_exists and also_from_art:
+        return ART, "also solved from ART"
     return None
 
 
@@ -281,18 +284,18 @@ def better_plan(a: ScpResult, b: ScpResult) -> bool:
     return a.max_violation <= b.max_violation
 
 
-def keep_first_plan(first: ScpResult, second: ScpResult, source: str,
+def keep_first_plan(first: ScpResult, second: ScpResult, source: WarmStartSource,
                     min_gain_mps: float) -> bool:
-    """Whether the plan of the first SCVx* run (warm-started from `source`, "cvx" or "art") is
+    """Whether the plan of the first SCVx* run (warm-started from `source`) is
     kept over the second's (from the other warm start): the better plan (`better_plan`),
     except that when both are feasible the ART-warm-started plan must be cheaper than the
     CVX-warm-started one by more than `min_gain_mps` [m/s] (`planning.yaml`
     `art_min_gain_mps`). In replanning the two converge to plans of nearly the same cost that
     time their burns differently, and switching between them costs more under the errors
     than the difference saves."""
-    art, cvx = (first, second) if source == "art" else (second, first)
+    art, cvx = (first, second) if source is ART else (second, first)
     if art.feasible and cvx.feasible:
         keep_cvx = not art.cost_mps < cvx.cost_mps - min_gain_mps
     else:
         keep_cvx = better_plan(cvx, art)
-    return keep_cvx == (source == "cvx")
+    return keep_cvx == (source is CVX)

@@ -32,6 +32,26 @@ class WarmStart(str, enum.Enum):
 
 
 WARM_STARTS = tuple(w.value for w in WarmStart)
+
+
+class WarmStartSource(enum.Enum):
+    """The warm start an SCVx* run started from: the convex TPBVP solution or the learned
+    proposal. Its value is the string the plan message, the solve record and the JSON carry."""
+
+    CVX = "cvx"
+    ART = "art"
+
+    @property
+    def other(self) -> "WarmStartSource":
+        """The other warm start."""
+        return WarmStartSource.ART if self is WarmStartSource.CVX else WarmStartSource.CVX
+
+    @property
+    def label(self) -> str:
+        """The name in texts: "CVX" or "ART"."""
+        return self.value.upper()
+
+
 N_ORBITS_RANGE = (0.01, 20.0)  # a plan's horizon [orbits], inclusive
 
 
@@ -140,7 +160,7 @@ class WarmStartProposal:
 class ScpAttempt:
     """An SCP run of the plan that was not kept (e.g. from ART before the retry from CVX)."""
 
-    warm_start: str
+    warm_start: WarmStartSource
     status: ScpStatus
     cost_mps: float
     iterations: int
@@ -160,7 +180,7 @@ class PlanResult:
     cost_mps: float
     scp: ScpResult
     cvx: ConvexSolution
-    warm_start: str          # "art" or "cvx": the warm start of the SCP run kept
+    warm_start: WarmStartSource  # the warm start of the SCP run kept
     posthoc: PosthocDecision | None  # None: no learned warm start was tried
     constraint_margin_m: float
     timings_ms: dict = field(default_factory=dict)
@@ -187,16 +207,16 @@ class PlanResult:
             "cvx_cost_mps": self.cvx.cost_mps,
             "status": self.status.name,
             "scp_iterations": self.scp.iterations,
-            "warm_start": self.warm_start,
+            "warm_start": self.warm_start.value,
             "warm_start_reason": self.warm_start_reason,
             "posthoc": None if ph is None else {"E_R": ph.e_r, "E_C": ph.e_c,
                                                 "accepted": ph.accepted},
             "art_cost_mps": (None if self.art_dv_rtn_mps is None or not np.all(
                 np.isfinite(self.art_dv_rtn_mps)) else float(
                 np.linalg.norm(self.art_dv_rtn_mps.reshape(-1, 3), axis=1).sum())),
-            "discarded_attempt": None if self.discarded is None else {
-                "warm_start": self.discarded.warm_start, "status": self.discarded.status.name,
-                "cost_mps": self.discarded.cost_mps, "iterations": self.discarded.iterations},
+            "discarded_attempt": None if (d := self.discarded) is None else {
+                "warm_start": d.warm_start.value, "status": d.status.name,
+                "cost_mps": d.cost_mps, "iterations": d.iterations},
             "timings_ms": dict(self.timings_ms),
             "constraint_margin_m": self.constraint_margin_m,
         }

@@ -218,9 +218,9 @@ def _art_rows(record: object, result: object) -> dict:
     rep_dv = (np.asarray(result.art_dv_rtn_mps, float).reshape(-1)
               if result.art_dv_rtn_mps is not None else np.zeros(0))
     row = {"warm_start": getattr(record, "warm_start", ""),
-           "replayed_warm_start": result.warm_start,
+           "replayed_warm_start": result.warm_start.value,
            "replayed_warm_start_reason": result.warm_start_reason}
-    ok = not row["warm_start"] or row["warm_start"] == result.warm_start
+    ok = not row["warm_start"] or row["warm_start"] == result.warm_start.value
     if rec_dv.size or rep_dv.size:
         d_roll = (float(np.max(np.abs(rec_dv - rep_dv))) if rec_dv.shape == rep_dv.shape
                   else float("inf"))

@@ -23,9 +23,10 @@ from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import CheckpointError
 from art_guidance.optim import ScpStatus, terminal_warm_start
 from art_guidance.planning import (
-    GuidancePipeline, PlanRequest, PosthocThresholds, WarmStartProposal,
+    GuidancePipeline, PlanRequest, PosthocThresholds, WarmStartProposal, WarmStartSource,
 )
 
+ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 PAPER = PosthocThresholds()  # -1.5 <= 100 E_R <= 3.5, 0 <= E_C <= 2
 
 
@@ -81,7 +82,7 @@ def test_decision_follows_the_thresholds(factor, inside):
     e_c_inside = PAPER.e_c_min <= ph.e_c <= PAPER.e_c_max
     assert ph.accepted == (inside and e_c_inside)
     # an accepted rollout's plan is also solved from CVX and the cheaper one is kept
-    assert result.warm_start == ("art" if ph.accepted else "cvx") or (
+    assert result.warm_start is (ART if ph.accepted else CVX) or (
         ph.accepted and "kept the CVX-warm-started plan" in result.warm_start_reason)
     word = "accepted" if ph.accepted else "rejected"
     assert word in result.warm_start_reason and "100 E_R" in result.warm_start_reason
@@ -98,7 +99,7 @@ def test_constraint_budget_bound_rejects():
                                                                    e_c_max=e_c + 2.0))
     result = GuidancePipeline(cfg.replace(planning=tight), provider=Scaled(1.0)).plan(
         _request(4))
-    assert not result.posthoc.accepted and result.warm_start == "cvx"
+    assert not result.posthoc.accepted and result.warm_start is CVX
 
 
 def test_provider_rollout_is_what_the_pipeline_checks(provider):
@@ -118,7 +119,7 @@ def test_provider_rollout_is_what_the_pipeline_checks(provider):
         (-norms.sum() + result.cvx.cost_mps) / -result.cvx.cost_mps, rel=1e-9)
     # forced (the untrained model's rollout is rejected) and flown unless SCVx* from it failed
     assert "forced" in result.warm_start_reason or result.posthoc.accepted
-    assert result.warm_start == "art" or "retried from CVX" in result.warm_start_reason
+    assert result.warm_start is ART or "retried from CVX" in result.warm_start_reason
     assert result.timings_ms["art"] >= prop.rollout_ms > 0.0
     assert result.scp.feasible
 
@@ -174,11 +175,11 @@ def test_out_of_domain_horizons_fall_back_to_cvx(provider):
     cfg = cfg.replace(planning=dataclasses.replace(cfg.planning, skip_art_when_cvx_safe=False))
     too_long = _request(5, n_nodes=120, n_orbits=1.29 * 119 / 99)
     result = GuidancePipeline(cfg, provider=provider).plan(too_long)
-    assert result.warm_start == "cvx" and result.posthoc is None
+    assert result.warm_start is CVX and result.posthoc is None
     assert "longer than the model's context" in result.warm_start_reason
     wrong_spacing = _request(5, n_nodes=50, n_orbits=1.29)
     result = GuidancePipeline(cfg, provider=provider).plan(wrong_spacing)
-    assert result.warm_start == "cvx" and "node spacing" in result.warm_start_reason
+    assert result.warm_start is CVX and "node spacing" in result.warm_start_reason
     replan = _request(5, n_nodes=40, n_orbits=1.29 * 39 / 99, koz_switch_node=10)
     result = GuidancePipeline(cfg, provider=provider).plan(replan)  # a training tail
     assert result.proposal is not None and result.proposal.dv_rtn_mps.shape == (40, 3)
@@ -196,16 +197,16 @@ def test_failing_provider_never_takes_the_plan_down():
             return np.zeros((3, 3))
 
     result = GuidancePipeline(provider=Raises()).plan(_request(4, warm_start="art"))
-    assert result.warm_start == "cvx" and "RuntimeError: boom" in result.warm_start_reason
+    assert result.warm_start is CVX and "RuntimeError: boom" in result.warm_start_reason
     assert result.posthoc is None and result.scp.feasible
     result = GuidancePipeline(provider=WrongShape()).plan(_request(4))
-    assert result.warm_start == "cvx" and "output rejected" in result.warm_start_reason
+    assert result.warm_start is CVX and "output rejected" in result.warm_start_reason
     assert not result.posthoc.accepted and np.isnan(result.posthoc.e_r)
 
 
 def test_no_model_says_not_run():
     result = GuidancePipeline().plan(_request(4, warm_start="art"))
-    assert result.warm_start == "cvx" and result.posthoc is None
+    assert result.warm_start is CVX and result.posthoc is None
     assert "no learned model" in result.warm_start_reason
     assert "requested" in GuidancePipeline().plan(_request(4, warm_start="cvx")
                                                   ).warm_start_reason
@@ -219,7 +220,7 @@ def test_unconverged_art_scp_is_retried_from_cvx():
     result = GuidancePipeline(cfg, provider=Scaled(1.5)).plan(_request(4, warm_start="art"))
     lost = result.discarded
     assert lost is not None and "retried from CVX" in result.warm_start_reason
-    assert {result.warm_start, lost.warm_start} == {"art", "cvx"}
+    assert {result.warm_start, lost.warm_start} == {ART, CVX}
     if result.scp.feasible and lost.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS):
         assert result.cost_mps <= lost.cost_mps + 1e-12
 
@@ -256,7 +257,7 @@ def test_a_deadline_that_passes_in_the_proposal_ends_the_plan(provider):
     pipeline = GuidancePipeline(provider=provider)
     pipeline.plan(request)  # horizon and safety model cached: CVX then takes ~5 ms
     result = pipeline.plan(request, Deadline.after(0.05))  # the sweep takes > 100 ms
-    assert "DeadlineError" in result.warm_start_reason and result.warm_start == "cvx"
+    assert "DeadlineError" in result.warm_start_reason and result.warm_start is CVX
     assert result.status is ScpStatus.TIMEOUT and result.scp.iterations == 0
     assert result.timings_ms["total"] <= 50.0 + 300.0, result.timings_ms
     slow = GuidancePipeline(provider=Slow(1.0), deadline_s=0.05).plan(request)
@@ -302,7 +303,7 @@ def test_unconverged_cvx_scp_is_retried_from_a_rejected_rollout():
     result = GuidancePipeline(cfg, provider=Scaled(0.5)).plan(_request(4))
     assert not result.posthoc.accepted
     assert "retried from ART" in result.warm_start_reason and result.discarded is not None
-    assert {result.warm_start, result.discarded.warm_start} == {"art", "cvx"}
+    assert {result.warm_start, result.discarded.warm_start} == {ART, CVX}
 
 
 def test_best_candidate_ranks_by_the_posthoc_criteria():
