@@ -208,9 +208,14 @@ class ArtWarmStart:
         planning = planning or PlanningConfig()
         cost, c_t1 = judged_candidates(res, request, safety, planning.posthoc_subject)
         b = best_candidate(cost, c_t1, j_cvx, planning.posthoc)
+        warm = (None, None)
+        if planning.posthoc_subject == "warm_start":  # the one the check and SCVx* start from
+            roe_f = np.linalg.solve(safety.horizon.psi[-1], request.target_rtn)
+            warm = judged_trajectory(safety.horizon, request.roe0_m, roe_f, res.dv_rtn_mps[b],
+                                     planning.posthoc_subject)
         return WarmStartProposal(res.dv_rtn_mps[b], res.realised_reward_to_go_mps[b],
                                  res.realised_constraint_to_go[b].astype(float), self.sha256,
-                                 1e3 * (time.perf_counter() - t0))
+                                 1e3 * (time.perf_counter() - t0), *warm)
 
 
 def judged_candidates(res: RolloutResult, request: PlanRequest, safety: PassiveSafety,

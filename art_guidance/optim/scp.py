@@ -186,7 +186,8 @@ class Scvx:
         return it.cost + float(mu @ gp) + 0.5 * w * float(gp @ gp)
 
     def solve(self, dv_warm_rtn_mps: np.ndarray, multipliers: dict | None = None,
-              deadline: Deadline | None = None) -> ScpResult:
+              deadline: Deadline | None = None,
+              projected: tuple[np.ndarray, np.ndarray] | None = None) -> ScpResult:
         """Run SCVx* from a warm-start control sequence (N, 3) [m/s].
 
         Args:
@@ -194,12 +195,15 @@ class Scvx:
             multipliers: optional {"mu", "w", "trust_radius"} from an earlier solve.
             deadline: when to stop (None: never); on expiry the best feasible iterate is
                 returned with status TIMEOUT.
+            projected: the warm start's `terminal_warm_start` ((N, 3) controls [m/s], (N, 6)
+                states [m]) when the caller has it already (the post hoc check made it), used
+                as the first reference instead of computing it again; None: computed here.
         """
         t_start = time.perf_counter()
         cfg, n = self.cfg, self.horizon.n_nodes
-        ref = self._iterate(*terminal_warm_start(
+        ref = self._iterate(*(projected if projected is not None else terminal_warm_start(
             self.horizon, self.roe0_m, self.roe_f_m,
-            np.asarray(dv_warm_rtn_mps, float).reshape(n, 3)))
+            np.asarray(dv_warm_rtn_mps, float).reshape(n, 3))))
         m = multipliers or {}
         mu = np.asarray(m.get("mu", np.zeros(n)), float).copy()
         w = float(m.get("w", cfg.w0))

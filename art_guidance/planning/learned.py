@@ -18,7 +18,8 @@ from art_guidance.checks import as_finite_array
 from art_guidance.config import PlanningConfig
 from art_guidance.deadline import Deadline
 from art_guidance.errors import InputError
-from art_guidance.optim import ConvexSolution
+from art_guidance.optim import ConvexSolution, terminal_warm_start
+from art_guidance.optim.scp import TERMINAL_TOL_M
 from art_guidance.planning.posthoc import check_proposal
 from art_guidance.planning.transfer import Transfer
 from art_guidance.planning.types import (
@@ -43,6 +44,8 @@ class Learned:
         posthoc: the post hoc decision (None: the check was not run).
         proposal: the provider's proposal as it came (None: none was made).
         dv: (N, 3) the validated proposed controls [m/s] (None: no valid proposal).
+        warm_start: their terminal warm start ((N, 3) controls [m/s], (N, 6) states [m]) if
+            it was made (by the provider or the check): SCVx* from ART starts there.
     """
 
     source: WarmStartSource
@@ -50,6 +53,7 @@ class Learned:
     posthoc: PosthocDecision | None = None
     proposal: WarmStartProposal | None = None
     dv: np.ndarray | None = None
+    warm_start: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
@@ -94,16 +98,39 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
     except InputError as exc:  # a broken model output is rejected, never flown
         return Learned(CVX, f"ART output rejected ({error_text(exc)}): CVX warm start",
                        PosthocDecision(float("nan"), float("nan"), False), proposal)
+    warm = carried_warm_start(transfer, proposal)
+    if warm is None and planning.posthoc_subject == "warm_start":  # the check judges it
+        warm = terminal_warm_start(transfer.horizon, request.roe0_m, transfer.roe_f_m, dv)
     posthoc = check_proposal(dv, request.roe0_m, transfer.roe_f_m, cvx.cost_mps, safety,
-                             planning)
+                             planning, warm)
     if posthoc.accepted:
         return Learned(ART, f"ART accepted by the post hoc check ({posthoc.text()})",
-                       posthoc, proposal, dv)
+                       posthoc, proposal, dv, warm)
     if request.warm_start == WarmStart.ART.value:
         return Learned(ART, f"ART forced although the post hoc check rejects it "
-                       f"({posthoc.text()})", posthoc, proposal, dv)
+                       f"({posthoc.text()})", posthoc, proposal, dv, warm)
     return Learned(CVX, f"ART rejected by the post hoc check ({posthoc.text()}): CVX "
-                   "warm start", posthoc, proposal, dv)
+                   "warm start", posthoc, proposal, dv, warm)
+
+
+def carried_warm_start(transfer: Transfer, proposal: WarmStartProposal
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The terminal warm start a proposal carries ((N, 3) controls [m/s], (N, 6) states [m]),
+    if it is one: finite, of the transfer's shape, its states those of its controls under the
+    deputy-aware model, meeting the terminal condition (TERMINAL_TOL_M); else None (the caller
+    computes it). One propagation, against the Gauss-Newton of `terminal_warm_start`."""
+    if proposal.warm_start_dv_rtn_mps is None or proposal.warm_start_roe_m is None:
+        return None
+    horizon, n = transfer.horizon, transfer.horizon.n_nodes
+    try:
+        dv = as_finite_array("terminal warm start", proposal.warm_start_dv_rtn_mps, (n, 3))
+        roe = as_finite_array("terminal warm start states", proposal.warm_start_roe_m, (n, 6))
+    except InputError:
+        return None
+    if not np.array_equal(horizon.propagate_nonlinear(transfer.request.roe0_m, dv), roe):
+        return None
+    miss = horizon.final_post_burn_nonlinear(roe, dv) - transfer.roe_f_m
+    return (dv, roe) if float(np.abs(miss).max()) <= TERMINAL_TOL_M else None
 
 
 def timed_learned_warm_start(*args: object, **kwargs: object) -> tuple[Learned, float]:

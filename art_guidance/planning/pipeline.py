@@ -127,11 +127,12 @@ class GuidancePipeline:
         t_art = time.perf_counter()
         source, reason, discarded = learned.source, learned.reason, None
         warm = {CVX: cvx_dv, ART: learned.dv}
+        projected = {CVX: None, ART: learned.warm_start}  # ART's terminal warm start, if made
 
         def solve(src: WarmStartSource, until: Deadline | None) -> ScpResult:
             """SCVx* from a warm start (from CVX: the run made during the proposal, if any)."""
             return early if src is CVX and early is not None \
-                else scvx.solve(warm[src], deadline=until)
+                else scvx.solve(warm[src], deadline=until, projected=projected[src])
 
         other = source.other
         first = deadline

@@ -147,6 +147,13 @@ class WarmStartProposal:
         constraint_to_go: (N,) realised C(t_i) = number of violating nodes j >= i.
         model_sha256: checksum of the model that produced it ("" if unknown).
         rollout_ms: wall time of the rollout [ms].
+        warm_start_dv_rtn_mps, warm_start_roe_m: (N, 3) [m/s] and (N, 6) [m]: the controls
+            corrected onto the terminal condition (`optim.terminal_warm_start`) and their
+            states, when the provider computed them judging its candidates (None: it did
+            not). The pipeline uses them for the post hoc check and as SCVx*'s first
+            reference once it has checked that they are finite, that the states are those of
+            the controls and that they meet the terminal condition; otherwise it computes
+            them.
     """
 
     dv_rtn_mps: np.ndarray
@@ -154,6 +161,8 @@ class WarmStartProposal:
     constraint_to_go: np.ndarray | None = None
     model_sha256: str = ""
     rollout_ms: float = 0.0
+    warm_start_dv_rtn_mps: np.ndarray | None = None
+    warm_start_roe_m: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

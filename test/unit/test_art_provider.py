@@ -375,3 +375,67 @@ def test_the_rollouts_suite_scores_what_the_sweep_proposes(model_path):
         assert scores.cost_mps[0] == pytest.approx(
             np.linalg.norm(prop.dv_rtn_mps, axis=1).sum(), abs=1e-5)
         assert scores.c_art[0] == prop.constraint_to_go[0]
+
+
+class Carrying:
+    """The provider with what it carries replaced: `warm` None strips the terminal warm start
+    (the pipeline computes it), a pair replaces it; counts the projections of the proposed
+    controls made outside `propose`."""
+
+    def __init__(self, inner, warm="keep") -> None:
+        self.inner, self.sha256, self.warm = inner, inner.sha256, warm
+        self.proposed, self.inside = None, False
+
+    def propose(self, request, safety, cvx, planning=None, deadline=None):
+        self.inside = True
+        try:
+            prop = self.inner.propose(request, safety, cvx, planning, deadline)
+        finally:
+            self.inside = False
+        if self.warm != "keep":
+            dv, roe = self.warm if self.warm is not None else (None, None)
+            prop = dataclasses.replace(prop, warm_start_dv_rtn_mps=dv, warm_start_roe_m=roe)
+        self.proposed = prop.dv_rtn_mps
+        return prop
+
+
+def test_the_proposals_terminal_warm_start_is_made_once(provider, monkeypatch):
+    """The provider's terminal warm start of the candidate it proposes is what the post hoc
+    check judges and where SCVx* from ART starts: neither projects the proposed controls
+    again, and the plans are bit for bit those made when the pipeline computes it itself
+    (stripped) or when the carried one is not one (zeros: refused, computed)."""
+    import art_guidance.optim.scp as scp_module
+    import art_guidance.planning.learned as learned_module
+    import art_guidance.planning.posthoc as posthoc_module
+
+    wrapped = [Carrying(provider)]
+    outside = []
+
+    def counting(original):
+        def project(horizon, roe0_m, roe_f_m, dv_rtn_mps, *args, **kwargs):
+            w = wrapped[0]
+            if not w.inside and w.proposed is not None \
+                    and np.array_equal(np.asarray(dv_rtn_mps, float).reshape(-1, 3),
+                                       np.asarray(w.proposed, float)):
+                outside.append(1)
+            return original(horizon, roe0_m, roe_f_m, dv_rtn_mps, *args, **kwargs)
+        return project
+
+    for module in (scp_module, learned_module, posthoc_module):
+        monkeypatch.setattr(module, "terminal_warm_start",
+                            counting(module.terminal_warm_start))
+    for seed in (3, 11):
+        request = _request(seed, chance=True, warm_start="art")
+        plans = {}
+        for name, warm in (("carried", "keep"), ("stripped", None),
+                           ("zeros", (np.zeros((100, 3)), np.zeros((100, 6))))):
+            wrapped[0] = Carrying(provider, warm)
+            outside.clear()
+            plans[name] = GuidancePipeline(provider=wrapped[0]).plan(request)
+            assert plans[name].proposal is not None, plans[name].warm_start_reason
+            assert len(outside) == (0 if name == "carried" else 1), name
+        for name in ("stripped", "zeros"):
+            a, b = plans["carried"], plans[name]
+            assert np.array_equal(a.dv_rtn_mps, b.dv_rtn_mps) and a.cost_mps == b.cost_mps
+            assert a.posthoc == b.posthoc and a.warm_start_reason == b.warm_start_reason
+            assert a.scp.iterations == b.scp.iterations
