@@ -104,12 +104,12 @@ class GuidancePipeline:
         the better feasible plan (then the lower cost) is kept.
 
         `deadline` bounds the whole plan (None: `deadline_s` from now, the pipeline's default
-        budget, if it has one): the learned proposal is not
-        started once it has passed and stops at the first rollout step after it (the plan is
-        then warm-started from CVX), each SCVx* run gets what is left of it (the first run
-        `art_deadline_share` of that when a retry is possible) and returns its best feasible
-        iterate on expiry (status TIMEOUT). It is overrun by at most one SCVx* iteration, one
-        rollout step and the final safety evaluation.
+        budget, if it has one): the learned proposal is not started once it has passed and
+        stops at the first rollout step after it (the plan is then warm-started from CVX), each
+        SCVx* run gets what is left of it (the first run `art_deadline_share` of that when a
+        retry is possible) and returns its best feasible iterate on expiry (status TIMEOUT).
+        It is overrun by at most one SCVx* iteration, one rollout step and the final safety
+        evaluation.
         """
         t0 = time.perf_counter()
         if deadline is None and self.deadline_s is not None:
