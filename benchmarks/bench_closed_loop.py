@@ -24,8 +24,8 @@ import time
 
 import numpy as np
 
-from art_guidance.planning import GuidancePipeline
-from art_guidance.planning.pipeline import CVX_SAFE_REASON
+from art_guidance.planning import GuidancePipeline, WarmStartSource
+from art_guidance.planning.learned import CVX_SAFE_REASON
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
 from art_guidance.sim.inprocess import InProcessGuidance
 
@@ -43,7 +43,7 @@ def fly(seed: int, errors: bool, pipeline: GuidancePipeline, warm_start: str = "
     posthoc = [r.posthoc for _, r in guidance.results if r.posthoc is not None]
     summary["art_checked"] = len(posthoc)
     summary["art_accepted"] = sum(bool(p.accepted) for p in posthoc)
-    summary["art_kept"] = sum(r.warm_start == "art" for _, r in guidance.results)
+    summary["art_kept"] = sum(r.warm_start is WarmStartSource.ART for _, r in guidance.results)
     summary["plan_ms"] = [float(r.timings_ms["total"]) for _, r in guidance.results]
     summary["art_skipped_cvx_safe"] = sum(r.warm_start_reason == CVX_SAFE_REASON
                                           for _, r in guidance.results)
@@ -51,7 +51,8 @@ def fly(seed: int, errors: bool, pipeline: GuidancePipeline, warm_start: str = "
     both = [r for _, r in guidance.results
             if r.discarded is not None and r.discarded.status.feasible and r.scp.feasible]
     summary["art_gain_mps"] = [_art_gain(r) for r in both]
-    summary["art_kept_gain_mps"] = [_art_gain(r) for r in both if r.warm_start == "art"]
+    summary["art_kept_gain_mps"] = [_art_gain(r) for r in both
+                                    if r.warm_start is WarmStartSource.ART]
     summary["plans"] = len(guidance.results)
     return summary
 
@@ -60,7 +61,7 @@ def _art_gain(result) -> float:
     """CVX-warm-started plan cost minus ART-warm-started plan cost [m/s] of a replan where
     SCVx* ran from both (positive: ART's plan is cheaper)."""
     kept, lost = float(result.cost_mps), float(result.discarded.cost_mps)
-    return lost - kept if result.warm_start == "art" else kept - lost
+    return lost - kept if result.warm_start is WarmStartSource.ART else kept - lost
 
 
 def _dist(x: np.ndarray) -> dict:

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.planning import GuidancePipeline, PlanRequest
+from art_guidance.planning import GuidancePipeline, PlanRequest, WarmStartSource
 from art_guidance.ros.env import isolated_ros_env
 
 REPO = Path(__file__).resolve().parents[1]
@@ -97,7 +97,7 @@ def run(repeats: int = 30) -> dict:
         for rtn in states[1:]:
             res = pipeline.plan(PlanRequest(chief, roe_from_rtn_linear(chief, rtn), target,
                                             warm_start=warm_start))
-            accepted += res.warm_start == "art"
+            accepted += res.warm_start is WarmStartSource.ART
             for key in stages:
                 stages[key].append(res.timings_ms[key])
         p50 = float(np.percentile(latency, 50))

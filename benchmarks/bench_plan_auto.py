@@ -24,7 +24,7 @@ from art_guidance.art.provider import ArtWarmStart
 from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.planning import GuidancePipeline, PlanRequest
+from art_guidance.planning import GuidancePipeline, PlanRequest, WarmStartSource
 
 
 def run(repeats: int = 40, first_seed: int = 0) -> dict:
@@ -51,7 +51,8 @@ def run(repeats: int = 40, first_seed: int = 0) -> dict:
             t_con.append(concurrent.plan(request).timings_ms["total"])
             c = cvx_only.plan(PlanRequest(chief, request.roe0_m, s.target_rtn,
                                           chance_constrained=True, warm_start="cvx"))
-            rows.append((a.posthoc is not None and a.posthoc.accepted, a.warm_start == "art",
+            rows.append((a.posthoc is not None and a.posthoc.accepted,
+                         a.warm_start is WarmStartSource.ART,
                          a.status.feasible, c.status.feasible, a.cost_mps, c.cost_mps,
                          a.timings_ms["total"], c.timings_ms["total"],
                          a.posthoc.e_r if a.posthoc is not None else np.nan,

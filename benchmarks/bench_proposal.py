@@ -35,7 +35,7 @@ from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.optim import solve_cvx
 from art_guidance.planning import GuidancePipeline, PlanRequest
-from art_guidance.planning.pipeline import cvx_is_safe
+from art_guidance.planning.learned import cvx_is_safe
 from art_guidance.safety.passive import SafetyEvaluation
 from art_guidance.scenarios import sample_scenario
 
@@ -95,7 +95,8 @@ def _scenarios(pipeline: GuidancePipeline, first: int, n: int) -> list:
         seed += 1
         request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
                               chance_constrained=True)
-        horizon, safety = pipeline._setup(request)
+        transfer = pipeline.transfer(request)
+        horizon, safety = transfer.horizon, transfer.safety
         cvx = solve_cvx(horizon, request.roe0_m,
                         np.linalg.solve(horizon.psi[-1], request.target_rtn))
         if cvx.status.feasible and not cvx_is_safe(cvx, safety):
@@ -114,17 +115,17 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
     """Fast and reference proposals alternated over `repeats` scenarios; medians [ms]."""
     torch.set_num_threads(1)
     provider = ArtWarmStart.load()
-    provider.planning = GuidanceConfig.load().planning
+    planning = GuidanceConfig.load().planning  # candidates ranked as the pipeline ranks them
     pipeline = GuidancePipeline(provider=provider)
     cases = _scenarios(pipeline, int(first_seed), max(int(repeats), 1))
     request, safety, cvx = cases[0]
-    provider.propose(request, safety, cvx)  # warm-up (decoder, caches)
+    provider.propose(request, safety, cvx, planning)  # warm-up (decoder, caches)
     rows, same = [], 0
     parts = {"c_update": [], "judge_correction": [], "judge_search": [], "rest": []}
     original = provider_module.judged_trajectory
     for request, safety, cvx in cases:
         ref, ref_wall, ref_cpu = _timed(lambda: provider.propose(request, _Reference(safety),
-                                                                 cvx))
+                                                                 cvx, planning))
         timed = _Timed(safety)
         corr = [0.0]
 
@@ -136,7 +137,7 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
 
         provider_module.judged_trajectory = corrected
         try:
-            fast, wall, cpu = _timed(lambda: provider.propose(request, timed, cvx))
+            fast, wall, cpu = _timed(lambda: provider.propose(request, timed, cvx, planning))
         finally:
             provider_module.judged_trajectory = original
         same += int(np.array_equal(fast.dv_rtn_mps, ref.dv_rtn_mps)
@@ -156,7 +157,6 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
     out.update({f"fast_{k}_ms": float(np.median(v)) for k, v in parts.items()})
     for k, scales in {**SWEEPS, 8: provider.reward_scales}.items():
         sweep = ArtWarmStart(provider.art, reward_scales=scales)
-        sweep.planning = provider.planning
-        cpu_ms = [_timed(lambda: sweep.propose(r, s, c))[2] for r, s, c in cases]
+        cpu_ms = [_timed(lambda: sweep.propose(r, s, c, planning))[2] for r, s, c in cases]
         out[f"sweep_{k}_cpu_ms"] = float(np.median(cpu_ms))
     return out

@@ -36,6 +36,7 @@ from art_guidance.art.checkpoint import TrainedArt
 from art_guidance.art.checkpoint import load as load_checkpoint
 from art_guidance.art.rollout import RolloutResult, rollout, training_config
 from art_guidance.config import PlanningConfig, PosthocThresholds, mode_name
+from art_guidance.deadline import Deadline
 from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import ModelError
 from art_guidance.optim import ConvexSolution
@@ -120,9 +121,6 @@ class ArtWarmStart:
         node_spacing_s: node spacing of the training horizon [s] (None: not recorded).
         reward_scales: the conditioning sweep, R(t_1) = -s J_CVX for each s (one batched
             rollout; the best candidate is proposed).
-        planning: the planning configuration whose post hoc check ranks the candidates (its
-            region and `posthoc_subject`; None: the packaged defaults; `GuidancePipeline` sets
-            its own).
     """
 
     def __init__(self, art: TrainedArt, load_ms: float = 0.0, threads: int = 1,
@@ -131,7 +129,6 @@ class ArtWarmStart:
         if not scales or not all(np.isfinite(x) and x > 0 for x in scales):
             raise ModelError(f"reward_scales must be positive numbers, got {reward_scales!r}")
         self.reward_scales = scales
-        self.planning: PlanningConfig | None = None
         self.art = art
         self.sha256 = art.sha256 or ""
         self.path = art.path or ""
@@ -180,12 +177,15 @@ class ArtWarmStart:
                                  f"horizon's {self.node_spacing_s:.1f} s")
 
     def propose(self, request: PlanRequest, safety: PassiveSafety, cvx: ConvexSolution,
-                deadline: float | None = None) -> WarmStartProposal:
+                planning: PlanningConfig | None = None,
+                deadline: Deadline | None = None) -> WarmStartProposal:
         """Roll the model out for `request` over `safety.horizon`.
 
         Args:
-            deadline: a `time.perf_counter()` instant after which the rollout stops (None:
-                none): the plan's deadline.
+            planning: the planning options whose post hoc check ranks the candidates (its
+                region and `posthoc_subject`; None: the packaged defaults).
+            deadline: the plan's deadline: the rollout stops at its first step after it
+                (None: none).
 
         Raises:
             ModelError: the horizon is outside the model's domain.
@@ -202,15 +202,20 @@ class ArtWarmStart:
             try:
                 res = rollout(self.art, safety, np.tile(request.roe0_m, (k, 1)),
                               request.target_rtn, -j_cvx * np.array(self.reward_scales), 0.0,
-                              deadline=deadline)
+                              deadline=None if deadline is None else deadline.at_s)
             finally:
                 torch.set_num_threads(threads)
-        planning = self.planning or PlanningConfig()
+        planning = planning or PlanningConfig()
         cost, c_t1 = judged_candidates(res, request, safety, planning.posthoc_subject)
         b = best_candidate(cost, c_t1, j_cvx, planning.posthoc)
+        warm = (None, None)
+        if planning.posthoc_subject == "warm_start":  # the one the check and SCVx* start from
+            roe_f = np.linalg.solve(safety.horizon.psi[-1], request.target_rtn)
+            warm = judged_trajectory(safety.horizon, request.roe0_m, roe_f, res.dv_rtn_mps[b],
+                                     planning.posthoc_subject)
         return WarmStartProposal(res.dv_rtn_mps[b], res.realised_reward_to_go_mps[b],
                                  res.realised_constraint_to_go[b].astype(float), self.sha256,
-                                 1e3 * (time.perf_counter() - t0))
+                                 1e3 * (time.perf_counter() - t0), *warm)
 
 
 def judged_candidates(res: RolloutResult, request: PlanRequest, safety: PassiveSafety,

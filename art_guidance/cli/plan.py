@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     t = result.timings_ms
     print(f"warm starts: CVX {result.cvx.cost_mps:.4f} m/s"
           + (f", ART {data['art_cost_mps']:.4f} m/s" if data["art_cost_mps"] is not None
-             else "") + f" -> {result.warm_start.upper()}: {result.warm_start_reason}")
+             else "") + f" -> {result.warm_start.label}: {result.warm_start_reason}")
     print(f"{result.status.name}: cost {result.cost_mps:.4f} m/s, {result.scp.iterations} SCP "
           f"iterations, margin {result.constraint_margin_m:.2f} m, {t['total']:.0f} ms "
           f"(CVX {t['cvx']:.0f}, ART {t['art']:.0f}, SCP {t['scp']:.0f}) -> {args.json}")

@@ -33,7 +33,9 @@ from art_guidance.errors import GuidanceError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
 from art_guidance.planning.pipeline import keep_first_plan, second_run
 from art_guidance.planning.posthoc import check_proposal, posthoc_check
-from art_guidance.planning.types import PlanRequest, PosthocDecision, WarmStartProposal
+from art_guidance.planning.types import (
+    PlanRequest, PosthocDecision, WarmStartProposal, WarmStartSource,
+)
 from art_guidance.safety import PassiveSafety
 
 BINS = (0, 10, 20, 30, 40)  # the paper's cumulative C_CVX(t_1) >= value bins
@@ -155,9 +157,7 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
     t0 = time.perf_counter()
     cvx = solve_cvx(horizon, request.roe0_m, roe_f)
     t1 = time.perf_counter()
-    if hasattr(provider, "planning"):
-        provider.planning = config.planning  # rank candidates as the pipeline does
-    prop = provider.propose(request, safety, cvx)
+    prop = provider.propose(request, safety, cvx, planning=config.planning)  # ranked as flown
     art_dv = np.asarray(prop.dv_rtn_mps, float)
     art_roe = horizon.propagate_nonlinear(request.roe0_m, art_dv)
     ph = check_proposal(art_dv, request.roe0_m, roe_f, cvx.cost_mps, safety, config.planning)
@@ -169,7 +169,7 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
                 samples_per_node=config.planning.samples_per_node)
     from_cvx = _solve(scvx, cvx.dv_rtn_mps)
     from_art = _solve(scvx, art_dv)
-    source = "art" if ph.accepted else "cvx"
+    source = WarmStartSource.ART if ph.accepted else WarmStartSource.CVX
     first, second = (from_art, from_cvx) if ph.accepted else (from_cvx, from_art)
     again = second_run(first, source, True, config.planning.also_solve_from_cvx)
     auto = second if again is not None and not keep_first_plan(

@@ -41,6 +41,7 @@ import numpy as np
 
 from art_guidance.config import ScpConfig
 from art_guidance.dynamics import DeputyLinearization, Horizon
+from art_guidance.deadline import Deadline
 from art_guidance.optim.cvx import control_cost, terminal_maps
 from art_guidance.optim.problem import SubproblemOptions, pooled_subproblem
 from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus
@@ -185,20 +186,24 @@ class Scvx:
         return it.cost + float(mu @ gp) + 0.5 * w * float(gp @ gp)
 
     def solve(self, dv_warm_rtn_mps: np.ndarray, multipliers: dict | None = None,
-              deadline_s: float | None = None) -> ScpResult:
+              deadline: Deadline | None = None,
+              projected: tuple[np.ndarray, np.ndarray] | None = None) -> ScpResult:
         """Run SCVx* from a warm-start control sequence (N, 3) [m/s].
 
         Args:
             dv_warm_rtn_mps: warm-start controls; states are recomputed from them.
             multipliers: optional {"mu", "w", "trust_radius"} from an earlier solve.
-            deadline_s: wall-clock budget [s]; on expiry the best feasible iterate is returned
-                with status TIMEOUT.
+            deadline: when to stop (None: never); on expiry the best feasible iterate is
+                returned with status TIMEOUT.
+            projected: the warm start's `terminal_warm_start` ((N, 3) controls [m/s], (N, 6)
+                states [m]) when the caller has it already (the post hoc check made it), used
+                as the first reference instead of computing it again; None: computed here.
         """
         t_start = time.perf_counter()
         cfg, n = self.cfg, self.horizon.n_nodes
-        ref = self._iterate(*terminal_warm_start(
+        ref = self._iterate(*(projected if projected is not None else terminal_warm_start(
             self.horizon, self.roe0_m, self.roe_f_m,
-            np.asarray(dv_warm_rtn_mps, float).reshape(n, 3)))
+            np.asarray(dv_warm_rtn_mps, float).reshape(n, 3))))
         m = multipliers or {}
         mu = np.asarray(m.get("mu", np.zeros(n)), float).copy()
         w = float(m.get("w", cfg.w0))
@@ -212,7 +217,7 @@ class Scvx:
         self.sub.set_dynamics(lin_dyn)
         lin = self._linearize(ref)
         for it_no in range(1, cfg.max_iterations + 1):
-            if deadline_s is not None and time.perf_counter() - t_start > deadline_s:
+            if deadline is not None and deadline.passed():
                 status = ScpStatus.TIMEOUT
                 break
             self.sub.set_reference(ref.roe_m, ref.dv_rtn_mps, radius)

@@ -9,9 +9,9 @@ from art_guidance.config import PosthocThresholds
 from art_guidance.planning.posthoc import posthoc_check
 from art_guidance.planning.types import (
     WARM_STARTS, NavState, PlanRequest, PlanResult, PosthocDecision, ScpAttempt, Target,
-    WarmStart, WarmStartProposal, WarmStartProvider,
+    WarmStart, WarmStartProposal, WarmStartProvider, WarmStartSource,
 )
 
 __all__ = ["GuidancePipeline", "NavState", "PlanRequest", "PlanResult", "PosthocDecision",
            "PosthocThresholds", "ScpAttempt", "Target", "WARM_STARTS", "WarmStart",
-           "WarmStartProposal", "WarmStartProvider", "posthoc_check"]
+           "WarmStartProposal", "WarmStartProvider", "WarmStartSource", "posthoc_check"]

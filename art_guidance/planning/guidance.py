@@ -26,6 +26,7 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
+from art_guidance.deadline import Deadline
 from art_guidance.planning.pipeline import GuidancePipeline
 from art_guidance.planning.replan import (
     Action, Decision, ReplanPolicy, ReplanSettings, ReplanWindow, check_target, request_for,
@@ -223,9 +224,10 @@ class GuidanceCore:
             self._lock.notify_all()
 
     # ------------------------------------------------------------------ planning
-    def solve(self, job: Job) -> Solved:
-        """Plan a job (outside the lock) and put a usable plan in force."""
-        result = self.pipeline.plan(job.request)
+    def solve(self, job: Job, deadline: Deadline | None = None) -> Solved:
+        """Plan a job (outside the lock) by `deadline` (None: the pipeline's default budget)
+        and put a usable plan in force."""
+        result = self.pipeline.plan(job.request, deadline)
         plan_id = self.next_id()
         with self._lock:  # an unusable replan never replaces the plan in force
             action = self.policy.on_result(plan_id, job.nav.stamp_ns, result)

@@ -1,10 +1,11 @@
 """`GuidancePipeline.plan(request) -> PlanResult`: warm start -> post hoc check -> SCP.
 
-The convex TPBVP ("CVX") is always solved: it is the fallback and the post hoc reference
-(R_des = -J_CVX). A learned `WarmStartProvider` (ART, `art_guidance.art.provider`) then
-proposes controls; the pipeline validates them and applies the post hoc check
-(`planning.posthoc.check_proposal`: accept when E_R and E_C of the warm start SCVx* would start
-from, or of the rollout itself, are inside the configured region); an
+Every stage solves the request's one `Transfer` (`planning.transfer`). The convex TPBVP ("CVX")
+is always solved: it is the fallback and the post hoc reference (R_des = -J_CVX). The learned
+step (`planning.learned.learned_warm_start`, in line or in the proposal worker process) asks a
+`WarmStartProvider` (ART, `art_guidance.art.provider`) for controls, validates them and applies
+the post hoc check (`planning.posthoc.check_proposal`: accept when E_R and E_C of the warm start
+SCVx* would start from, or of the rollout itself, are inside the configured region); an
 accepted (or, with warm_start "art", forced) proposal warm-starts SCVx*, otherwise CVX does.
 Every plan says in words which warm start it used and why (`PlanResult.warm_start_reason`).
 """
@@ -12,25 +13,27 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
-from art_guidance.checks import as_finite_array
 from art_guidance.config import GuidanceConfig
-from art_guidance.dynamics import Horizon, time_grid_s
+from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
 from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions
-from art_guidance.planning.posthoc import check_proposal
+from art_guidance.planning.learned import (
+    Learned, cvx_is_safe, error_text, timed_learned_warm_start,
+)
 from art_guidance.planning.proposal_process import (
     GRACE_S, NO_DEADLINE_TIMEOUT_S, ProposalProcess, model_key,
 )
+from art_guidance.planning.transfer import Transfer, Transfers
 from art_guidance.planning.types import (
-    PlanRequest, PlanResult, PosthocDecision, ScpAttempt, WarmStart, WarmStartProposal,
-    WarmStartProvider,
+    PlanRequest, PlanResult, ScpAttempt, WarmStart, WarmStartProvider, WarmStartSource,
 )
 from art_guidance.safety import PassiveSafety
+
+ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 
 
 class GuidancePipeline:
@@ -43,14 +46,13 @@ class GuidancePipeline:
         """Args:
             config: the configuration bundle (default: the packaged YAML files).
             provider: a learned warm-start provider, or None (CVX only).
-            deadline_s: wall-clock budget of one whole plan [s] (CVX, the learned proposal
-                and every SCVx* run, counted from the call of `plan`), or None.
+            deadline_s: the default wall-clock budget of one whole plan [s] (CVX, the learned
+                proposal and every SCVx* run, counted from the call of `plan`) for a `plan`
+                given no deadline, or None (recorded with the configuration).
             subproblem: how SCVx*'s subproblem is posed (`optim.problem.SubproblemOptions`;
                 None: the default); recorded with the configuration (`config_json`).
         """
         self.config = config or GuidanceConfig.load()
-        if provider is not None and hasattr(provider, "planning"):
-            provider.planning = self.config.planning  # rank candidates by our post hoc check
         self.scenario = self.config.scenario
         self.uncertainty = self.config.uncertainty
         self.scp_config = self.config.scp
@@ -59,7 +61,7 @@ class GuidancePipeline:
         self.deadline_s = deadline_s
         self.subproblem = subproblem or SubproblemOptions()
         self._worker: ProposalProcess | None = None
-        self._cache: dict = {}
+        self._transfers = Transfers(self.scenario, self.uncertainty)
 
     def config_json(self) -> dict:
         """The configuration this pipeline plans with (recorded with every run)."""
@@ -68,42 +70,31 @@ class GuidancePipeline:
                 "scp_subproblem": dataclasses.asdict(self.subproblem)}
 
     @classmethod
-    def from_config_json(cls, data: dict) -> "GuidancePipeline":
-        """Rebuild a pipeline from `config_json` output (for replay). A record from before
-        the subproblem's options were recorded was solved with `REFERENCE_OPTIONS`, and is
-        replayed with them."""
+    def from_config_json(cls, data: dict, provider: WarmStartProvider | None = None,
+                         time_boxed: bool = True) -> "GuidancePipeline":
+        """Rebuild a pipeline from `config_json` output (for replay), with `provider`; with
+        `time_boxed` False its plans have no default deadline (the recorded one is dropped).
+        A record from before the subproblem's options were recorded was solved with
+        `REFERENCE_OPTIONS`, and is replayed with them."""
         try:
             sub = data.get("scp_subproblem")
             options = REFERENCE_OPTIONS if sub is None else SubproblemOptions(**sub)
-            return cls(GuidanceConfig.from_json(data), deadline_s=data["deadline_s"],
+            deadline_s = data["deadline_s"] if time_boxed else None
+            return cls(GuidanceConfig.from_json(data), provider, deadline_s=deadline_s,
                        subproblem=options)
         except (KeyError, TypeError, ConfigError, InputError) as exc:
             raise InputError("config", f"recorded configuration is malformed: {exc!r}") from exc
 
-    def _setup(self, request: PlanRequest) -> tuple[Horizon, PassiveSafety]:
-        n_nodes = int(request.n_nodes or self.scenario.n_nodes)
-        n_orbits = float(request.n_orbits or self.scenario.n_orbits)
-        switch = self.scenario.ae_to_koz_node
-        if request.koz_switch_node is not None:
-            switch = int(min(request.koz_switch_node, n_nodes))
-        # the exact elements (rounding a huge finite angle overflowed: 1e300 and 2e300 met)
-        key = (tuple(request.chief_oe.tolist()), n_nodes, n_orbits, switch,
-               request.chance_constrained)
-        if key not in self._cache:
-            if len(self._cache) > 8:
-                self._cache.clear()
-            horizon = Horizon.build(request.chief_oe,
-                                    time_grid_s(request.chief_oe[0], n_orbits, n_nodes))
-            unc = self.uncertainty if request.chance_constrained else None
-            self._cache[key] = (horizon, PassiveSafety(horizon, self.scenario, unc,
-                                                       koz_switch_node=switch))
-        return self._cache[key]
+    def transfer(self, request: PlanRequest) -> Transfer:
+        """The problem every stage of a plan of `request` solves (horizon and passive-safety
+        model cached)."""
+        return self._transfers.get(request)
 
     def safety_model(self, request: PlanRequest) -> PassiveSafety:
         """The passive-safety model a request is planned with (cached with its horizon)."""
-        return self._setup(request)[1]
+        return self.transfer(request).safety
 
-    def plan(self, request: PlanRequest) -> PlanResult:
+    def plan(self, request: PlanRequest, deadline: Deadline | None = None) -> PlanResult:
         """Plan one transfer; never raises for solver or model trouble (see
         `PlanResult.status` and `PlanResult.warm_start_reason`).
 
@@ -112,47 +103,50 @@ class GuidancePipeline:
         post hoc check rejected them), SCVx* is retried from the other one in the time left and
         the better feasible plan (then the lower cost) is kept.
 
-        With a deadline (`deadline_s`) the whole plan is bounded: the learned proposal is not
-        started once it has passed and stops at the first rollout step after it (the plan is
-        then warm-started from CVX), each SCVx* run gets what is left of it (the first run
-        `art_deadline_share` of that when a retry is possible) and returns its best feasible
-        iterate on expiry (status TIMEOUT). It is overrun by at most one SCVx* iteration, one
-        rollout step and the final safety evaluation.
+        `deadline` bounds the whole plan (None: `deadline_s` from now, the pipeline's default
+        budget, if it has one): the learned proposal is not started once it has passed and
+        stops at the first rollout step after it (the plan is then warm-started from CVX), each
+        SCVx* run gets what is left of it (the first run `art_deadline_share` of that when a
+        retry is possible) and returns its best feasible iterate on expiry (status TIMEOUT).
+        It is overrun by at most one SCVx* iteration, one rollout step and the final safety
+        evaluation.
         """
         t0 = time.perf_counter()
-        deadline = None if self.deadline_s is None else t0 + self.deadline_s
-        horizon, safety = self._setup(request)
+        if deadline is None and self.deadline_s is not None:
+            deadline = Deadline(t0 + self.deadline_s)
+        transfer = self.transfer(request)
+        horizon, safety, roe_f = transfer.horizon, transfer.safety, transfer.roe_f_m
         t_setup = time.perf_counter()
-        roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
         cvx = solve_cvx(horizon, request.roe0_m, roe_f)
         t_cvx = time.perf_counter()
         cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
             else np.zeros((horizon.n_nodes, 3))
         scvx = Scvx(safety, request.roe0_m, roe_f, self.scp_config,
                     samples_per_node=self.samples_per_node, subproblem=self.subproblem)
-        early, learned, art_ms = self._propose(request, roe_f, safety, cvx, cvx_dv, scvx,
-                                               deadline, t0)
+        early, learned, art_ms = self._propose(transfer, cvx, cvx_dv, scvx, deadline)
         t_art = time.perf_counter()
         source, reason, discarded = learned.source, learned.reason, None
-        warm = {"cvx": cvx_dv, "art": learned.dv}
+        warm = {CVX: cvx_dv, ART: learned.dv}
+        projected = {CVX: None, ART: learned.warm_start}  # ART's terminal warm start, if made
 
-        def solve(src: str, budget_s: float | None) -> ScpResult:
+        def solve(src: WarmStartSource, until: Deadline | None) -> ScpResult:
             """SCVx* from a warm start (from CVX: the run made during the proposal, if any)."""
-            return early if src == "cvx" and early is not None \
-                else scvx.solve(warm[src], deadline_s=budget_s)
+            return early if src is CVX and early is not None \
+                else scvx.solve(warm[src], deadline=until, projected=projected[src])
 
-        other = "cvx" if source == "art" else "art"
-        budget = self._time_left(t0)
-        if warm[other] is not None and budget is not None:
-            budget *= self.config.planning.art_deadline_share  # leave time for the retry
-        res = solve(source, budget)
-        auto = request.warm_start == WarmStart.AUTO.value and self._time_left(t0) != 0.0
+        other = source.other
+        first = deadline
+        if warm[other] is not None and deadline is not None:  # leave time for the retry
+            first = deadline.share(self.config.planning.art_deadline_share)
+        res = solve(source, first)
+        auto = request.warm_start == WarmStart.AUTO.value and not (
+            deadline is not None and deadline.passed())
         second = second_run(res, source, warm[other] is not None,
                             auto and self.config.planning.also_solve_from_cvx,
                             auto and self.config.planning.also_solve_from_art)
         if second is not None:
             alt_source, why = second
-            alt = solve(alt_source, self._time_left(t0))
+            alt = solve(alt_source, deadline)
             keep_first = keep_first_plan(res, alt, source,
                                          self.config.planning.art_min_gain_mps)
             kept, lost = (res, alt) if keep_first else (alt, res)
@@ -160,9 +154,9 @@ class GuidancePipeline:
                                    lost.cost_mps, lost.iterations, lost.solve_time_ms)
             source = source if keep_first else alt_source
             reason += (f"; {why} ({alt.status.name}, {alt.cost_mps:.4f} m/s): kept the "
-                       f"{source.upper()}-warm-started plan")
-            art_plan, cvx_plan = (kept, lost) if source == "art" else (lost, kept)
-            if source == "cvx" and art_plan.feasible and cvx_plan.feasible \
+                       f"{source.label}-warm-started plan")
+            art_plan, cvx_plan = (kept, lost) if source is ART else (lost, kept)
+            if source is CVX and art_plan.feasible and cvx_plan.feasible \
                     and art_plan.cost_mps < cvx_plan.cost_mps:
                 reason += (f" (the ART-warm-started one is only "
                            f"{1e3 * (cvx_plan.cost_mps - art_plan.cost_mps):.2f} mm/s cheaper, "
@@ -180,10 +174,10 @@ class GuidancePipeline:
                           learned.posthoc, margin, timings, request, learned.proposal, reason,
                           discarded)
 
-    def _propose(self, request: PlanRequest, roe_f: np.ndarray, safety: PassiveSafety,
-                 cvx: ConvexSolution, cvx_dv: np.ndarray, scvx: Scvx, deadline: float | None,
-                 t0: float) -> tuple[ScpResult | None, "_Learned", float]:
-        """The learned warm start step (`_learned`): (SCVx* from CVX if it was solved
+    def _propose(self, transfer: Transfer, cvx: ConvexSolution, cvx_dv: np.ndarray,
+                 scvx: Scvx,
+                 deadline: Deadline | None) -> tuple[ScpResult | None, Learned, float]:
+        """The learned warm start step (`planning.learned`): (SCVx* from CVX if it was solved
         meanwhile, else None; the decision; the proposal's wall time [ms]).
 
         With `propose_concurrently`, warm start auto and `also_solve_from_cvx` (so that SCVx*
@@ -194,39 +188,34 @@ class GuidancePipeline:
         late is stopped and the proposal is made here instead (`proposal_worker_error` says
         why).
         """
-        planning, early = self.config.planning, None
+        planning, early, request = self.config.planning, None, transfer.request
         model = model_key(self.provider)
         if planning.propose_concurrently and planning.also_solve_from_cvx and model \
                 and request.warm_start == WarmStart.AUTO.value and cvx.status.feasible \
-                and not (planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety)):
+                and not (planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, transfer.safety)):
             worker = self._proposal_worker()
-            left = None if deadline is None else max(deadline - time.perf_counter(), 0.0)
+            left = None if deadline is None else deadline.left_s()
             job = {"config": self.config.to_json(), "config_sha256": self.config.sha256(),
-                   "model": model, "request": request, "roe_f": roe_f, "cvx": cvx,
+                   "model": model, "request": request, "cvx": cvx,
                    "time_left_s": left, "cvx_unsafe": planning.skip_art_when_cvx_safe}
             if worker.submit(job):
-                budget = self._time_left(t0)
                 try:
-                    early = scvx.solve(cvx_dv, deadline_s=None if budget is None
-                                       else budget * planning.art_deadline_share)
+                    early = scvx.solve(cvx_dv, deadline=None if deadline is None
+                                       else deadline.share(planning.art_deadline_share))
                 except BaseException as exc:  # the worker is freed on every path
-                    worker.abandon(f"SCVx* from CVX failed meanwhile ({_short(exc)})")
+                    worker.abandon(f"SCVx* from CVX failed meanwhile ({error_text(exc)})")
                     raise
                 wait = NO_DEADLINE_TIMEOUT_S if deadline is None \
-                    else max(deadline - time.perf_counter(), 0.0) + GRACE_S
+                    else deadline.left_s() + GRACE_S
                 answer = worker.collect(wait)
                 if answer is not None:
                     return (early, *answer)
             # CVX was found not passively safe above: the in-line proposal does not ask again
-            return (early, *self._timed_learned(request, roe_f, safety, cvx, deadline,
-                                                planning.skip_art_when_cvx_safe))
-        return (early, *self._timed_learned(request, roe_f, safety, cvx, deadline))
-
-    def _timed_learned(self, *args: object) -> tuple["_Learned", float]:
-        """`_learned` and its wall time [ms]."""
-        t = time.perf_counter()
-        learned = self._learned(*args)
-        return learned, 1e3 * (time.perf_counter() - t)
+            return (early, *timed_learned_warm_start(self.provider, transfer, cvx, planning,
+                                                     deadline,
+                                                     planning.skip_art_when_cvx_safe))
+        return (early, *timed_learned_warm_start(self.provider, transfer, cvx, planning,
+                                                 deadline))
 
     def _proposal_worker(self) -> ProposalProcess:
         if self._worker is None:
@@ -262,104 +251,12 @@ class GuidancePipeline:
         if self._worker is not None:
             self._worker.close()
 
-    def _time_left(self, t_start: float) -> float | None:
-        """What is left of the plan's deadline, started at `t_start` [s] (None: no
-        deadline)."""
-        if self.deadline_s is None:
-            return None
-        return max(self.deadline_s - (time.perf_counter() - t_start), 0.0)
 
-    def _learned(self, request: PlanRequest, roe_f: np.ndarray, safety: PassiveSafety,
-                 cvx: ConvexSolution, deadline: float | None = None,
-                 cvx_unsafe: bool = False) -> "_Learned":
-        """Ask the provider for a learned warm start and check it post hoc (`deadline`: the
-        plan's, a `time.perf_counter()` instant, or None; `cvx_unsafe`: the caller found the
-        CVX plan not passively safe already, so it is not evaluated again)."""
-        if request.warm_start == WarmStart.CVX.value:
-            return _Learned("cvx", "CVX warm start requested")
-        if self.provider is None:
-            return _Learned("cvx", f"{request.warm_start} requested but no learned model is "
-                            "loaded: CVX warm start")
-        if not cvx.status.feasible:
-            return _Learned("cvx", f"CVX ended {cvx.status.name}: no reference for the post hoc "
-                            "check, CVX warm start")
-        if request.warm_start == WarmStart.AUTO.value and not cvx_unsafe \
-                and self.config.planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety):
-            return _Learned("cvx", CVX_SAFE_REASON)
-        t0 = time.perf_counter()
-        if deadline is not None and t0 >= deadline:
-            return _Learned("cvx", f"{DEADLINE_REASON} before ART: CVX warm start")
-        kwargs = {"deadline": deadline} if _takes_deadline(self.provider) else {}
-        try:
-            proposal = self.provider.propose(request, safety, cvx, **kwargs)
-        except Exception as exc:  # a model never takes the plan down
-            return _Learned("cvx", f"ART not run ({_short(exc)}): CVX warm start")
-        if not isinstance(proposal, WarmStartProposal):
-            proposal = WarmStartProposal(proposal, rollout_ms=1e3 * (time.perf_counter() - t0))
-        try:
-            dv = as_finite_array("ART warm start", proposal.dv_rtn_mps,
-                                 (safety.horizon.n_nodes, 3))
-        except InputError as exc:  # a broken model output is rejected, never flown
-            return _Learned("cvx", f"ART output rejected ({_short(exc)}): CVX warm start",
-                            PosthocDecision(float("nan"), float("nan"), False), proposal)
-        posthoc = check_proposal(dv, request.roe0_m, roe_f, cvx.cost_mps, safety,
-                                 self.config.planning)
-        if posthoc.accepted:
-            return _Learned("art", f"ART accepted by the post hoc check ({posthoc.text()})",
-                            posthoc, proposal, dv)
-        if request.warm_start == WarmStart.ART.value:
-            return _Learned("art", f"ART forced although the post hoc check rejects it "
-                            f"({posthoc.text()})", posthoc, proposal, dv)
-        return _Learned("cvx", f"ART rejected by the post hoc check ({posthoc.text()}): CVX "
-                        "warm start", posthoc, proposal, dv)
-
-
-@dataclass(frozen=True)
-class _Learned:
-    """What the learned warm start step decided."""
-
-    source: str
-    reason: str
-    posthoc: PosthocDecision | None = None
-    proposal: WarmStartProposal | None = None
-    dv: np.ndarray | None = None
-
-
-DEADLINE_REASON = "the plan's deadline (solve_deadline_s) passed"
-
-
-def _takes_deadline(provider: object) -> bool:
-    """Whether a provider's `propose` takes the plan's deadline (`ArtWarmStart` does; the
-    `WarmStartProvider` protocol does not require it)."""
-    import inspect
-
-    propose = getattr(provider, "propose", None)
-    if propose is None:
-        return False
-    try:
-        return "deadline" in inspect.signature(propose).parameters
-    except (TypeError, ValueError):
-        return False
-
-
-# The decision's reason when `skip_art_when_cvx_safe` left ART out.
-CVX_SAFE_REASON = ("CVX is passively safe (C_CVX(t_1) = 0), so SCVx* from it is the plan: ART "
-                   "not run, CVX warm start")
-
-
-def cvx_is_safe(cvx: ConvexSolution, safety: PassiveSafety) -> bool:
-    """Whether the CVX plan already satisfies the passive-safety constraint at every node
-    (C_CVX(t_1) = 0). CVX is the problem without that constraint, so SCVx* from it keeps it
-    (one iteration) and no warm start can do better: on 96 such held-out scenarios of the
-    warm-start analysis `auto` with ART gained nothing; in the closed loop 55-58 % of the
-    replans are such, and ART's proposal there only adds latency (`skip_art_when_cvx_safe`)."""
-    return int(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0]) == 0
-
-
-def second_run(first: ScpResult, source: str, other_exists: bool,
-               also_from_cvx: bool, also_from_art: bool = False) -> tuple[str, str] | None:
-    """Whether SCVx* runs a second time after `first` (warm-started from `source`, "cvx" or
-    "art"): (the other warm start, why), or None.
+def second_run(first: ScpResult, source: WarmStartSource, other_exists: bool,
+               also_from_cvx: bool,
+               also_from_art: bool = False) -> tuple[WarmStartSource, str] | None:
+    """Whether SCVx* runs a second time after `first` (warm-started from `source`): (the other
+    warm start, why), or None.
 
     A run that did not converge is retried from the other warm start when there is one
     (`other_exists`); a converged run from ART is also solved from CVX when `also_from_cvx`
@@ -367,14 +264,14 @@ def second_run(first: ScpResult, source: str, other_exists: bool,
     run from CVX is also solved from a valid ART proposal the check rejected when
     `also_from_art` (`also_solve_from_art`, the same conditions).
     """
-    other = "cvx" if source == "art" else "art"
+    other = source.other
     if first.status is not ScpStatus.CONVERGED and other_exists:
-        return other, (f"SCP from {source.upper()} ended {first.status.name}, retried from "
-                       f"{other.upper()}")
-    if source == "art" and also_from_cvx:
-        return "cvx", "also solved from CVX"
-    if source == "cvx" and other_exists and also_from_art:
-        return "art", "also solved from ART"
+        return other, (f"SCP from {source.label} ended {first.status.name}, retried from "
+                       f"{other.label}")
+    if source is ART and also_from_cvx:
+        return CVX, "also solved from CVX"
+    if source is CVX and other_exists and also_from_art:
+        return ART, "also solved from ART"
     return None
 
 
@@ -388,23 +285,18 @@ def better_plan(a: ScpResult, b: ScpResult) -> bool:
     return a.max_violation <= b.max_violation
 
 
-def keep_first_plan(first: ScpResult, second: ScpResult, source: str,
+def keep_first_plan(first: ScpResult, second: ScpResult, source: WarmStartSource,
                     min_gain_mps: float) -> bool:
-    """Whether the plan of the first SCVx* run (warm-started from `source`, "cvx" or "art") is
+    """Whether the plan of the first SCVx* run (warm-started from `source`) is
     kept over the second's (from the other warm start): the better plan (`better_plan`),
     except that when both are feasible the ART-warm-started plan must be cheaper than the
     CVX-warm-started one by more than `min_gain_mps` [m/s] (`planning.yaml`
     `art_min_gain_mps`). In replanning the two converge to plans of nearly the same cost that
     time their burns differently, and switching between them costs more under the errors
     than the difference saves."""
-    art, cvx = (first, second) if source == "art" else (second, first)
+    art, cvx = (first, second) if source is ART else (second, first)
     if art.feasible and cvx.feasible:
         keep_cvx = not art.cost_mps < cvx.cost_mps - min_gain_mps
     else:
         keep_cvx = better_plan(cvx, art)
-    return keep_cvx == (source == "cvx")
-
-
-def _short(exc: Exception) -> str:
-    text = str(exc).splitlines()[0] if str(exc) else ""
-    return f"{type(exc).__name__}: {text[:200]}"
+    return keep_cvx == (source is CVX)

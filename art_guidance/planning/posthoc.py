@@ -56,10 +56,17 @@ def judged_trajectory(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
 
 
 def check_proposal(dv_rtn_mps: np.ndarray, roe0_m: np.ndarray, roe_f_m: np.ndarray,
-                   cvx_cost_mps: float, safety: PassiveSafety,
-                   planning: PlanningConfig) -> PosthocDecision:
+                   cvx_cost_mps: float, safety: PassiveSafety, planning: PlanningConfig,
+                   warm_start: tuple[np.ndarray, np.ndarray] | None = None
+                   ) -> PosthocDecision:
     """The post hoc decision on a rollout's controls under `planning` (its region and its
-    `posthoc_subject`), from `roe0_m` to the post-burn terminal ROE `roe_f_m` [m]."""
-    dv, roe = judged_trajectory(safety.horizon, roe0_m, roe_f_m, dv_rtn_mps,
-                                planning.posthoc_subject)
+    `posthoc_subject`), from `roe0_m` to the post-burn terminal ROE `roe_f_m` [m].
+
+    `warm_start`: the controls' terminal warm start ((N, 3) [m/s], (N, 6) [m]) when the caller
+    has it; judged under "warm_start" instead of computing it again (`judged_trajectory`)."""
+    if warm_start is not None and planning.posthoc_subject == "warm_start":
+        dv, roe = warm_start
+    else:
+        dv, roe = judged_trajectory(safety.horizon, roe0_m, roe_f_m, dv_rtn_mps,
+                                    planning.posthoc_subject)
     return posthoc_check(dv, roe, cvx_cost_mps, safety, planning.posthoc)

@@ -6,9 +6,10 @@ other. In one process they cannot overlap: both hold Python's lock for most of t
 (measured with a second thread: CPU time = wall time, no gain). This worker is a second
 process, started once (spawned: it imports torch and loads the model itself) and fed one job
 per plan through a pipe: the plan's configuration, the model's file and checksum, the request,
-the CVX solution and the time left. It rebuilds the same horizon and passive-safety model
-(`GuidancePipeline._setup`) and runs the same `GuidancePipeline._learned` as the planner would
-in line, so the decision is the same bit for bit (tested), only made on another core.
+the CVX solution and the time left. It rebuilds the same transfer problem
+(`planning.transfer.Transfers`) and runs the same learned step
+(`planning.learned.learned_warm_start`) as the planner would in line, so the decision is the
+same bit for bit (tested), only made on another core.
 
 Only a model loaded from a file (`ArtWarmStart` with a path) can be sent this way; any other
 provider, a worker that cannot start, fails or answers too late is reported through
@@ -79,10 +80,12 @@ def _serve(conn: Any) -> None:
 
 
 def _run(job: dict, state: dict, torch: Any) -> tuple:
-    """One job: ("warm_up",) loads the pipeline; a plan job returns (decision, wall ms)."""
+    """One job: ("warm_up",) loads the model; a plan job returns (decision, wall ms)."""
     from art_guidance.art.provider import ArtWarmStart
     from art_guidance.config import GuidanceConfig
-    from art_guidance.planning.pipeline import GuidancePipeline
+    from art_guidance.deadline import Deadline
+    from art_guidance.planning.learned import timed_learned_warm_start
+    from art_guidance.planning.transfer import Transfers
 
     key = (job["config_sha256"], job["model"])
     if state.get("key") != key:
@@ -91,15 +94,15 @@ def _run(job: dict, state: dict, torch: Any) -> tuple:
         provider = ArtWarmStart.load(path, expected_sha256=sha, threads=threads,
                                      reward_scales=scales)
         config = GuidanceConfig.from_json(job["config"])
-        state.update(key=key, pipeline=GuidancePipeline(config, provider=provider))
+        state.update(key=key, provider=provider, config=config,
+                     transfers=Transfers(config.scenario, config.uncertainty))
     if job.get("warm_up"):
         return (None, 0.0)
-    pipeline = state["pipeline"]
-    request, roe_f, cvx, left_s = job["request"], job["roe_f"], job["cvx"], job["time_left_s"]
-    deadline = None if left_s is None else time.perf_counter() + left_s
-    safety = pipeline._setup(request)[1]
-    return pipeline._timed_learned(request, roe_f, safety, cvx, deadline,
-                                   bool(job.get("cvx_unsafe", False)))
+    left_s = job["time_left_s"]  # the plan's deadline, on this process's clock
+    deadline = None if left_s is None else Deadline.after(left_s)
+    return timed_learned_warm_start(state["provider"], state["transfers"].get(job["request"]),
+                                    job["cvx"], state["config"].planning, deadline,
+                                    bool(job.get("cvx_unsafe", False)))
 
 
 class ProposalProcess:

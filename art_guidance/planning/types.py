@@ -11,6 +11,8 @@ from typing import Protocol
 import numpy as np
 
 from art_guidance.checks import as_finite_array
+from art_guidance.config import PlanningConfig
+from art_guidance.deadline import Deadline
 from art_guidance.dynamics import check_chief, check_deputy_inclination, mean_motion
 from art_guidance.errors import InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus
@@ -30,6 +32,26 @@ class WarmStart(str, enum.Enum):
 
 
 WARM_STARTS = tuple(w.value for w in WarmStart)
+
+
+class WarmStartSource(enum.Enum):
+    """The warm start an SCVx* run started from: the convex TPBVP solution or the learned
+    proposal. Its value is the string the plan message, the solve record and the JSON carry."""
+
+    CVX = "cvx"
+    ART = "art"
+
+    @property
+    def other(self) -> "WarmStartSource":
+        """The other warm start."""
+        return WarmStartSource.ART if self is WarmStartSource.CVX else WarmStartSource.CVX
+
+    @property
+    def label(self) -> str:
+        """The name in texts: "CVX" or "ART"."""
+        return self.value.upper()
+
+
 N_ORBITS_RANGE = (0.01, 20.0)  # a plan's horizon [orbits], inclusive
 
 
@@ -125,6 +147,13 @@ class WarmStartProposal:
         constraint_to_go: (N,) realised C(t_i) = number of violating nodes j >= i.
         model_sha256: checksum of the model that produced it ("" if unknown).
         rollout_ms: wall time of the rollout [ms].
+        warm_start_dv_rtn_mps, warm_start_roe_m: (N, 3) [m/s] and (N, 6) [m]: the controls
+            corrected onto the terminal condition (`optim.terminal_warm_start`) and their
+            states, when the provider computed them judging its candidates (None: it did
+            not). The pipeline uses them for the post hoc check and as SCVx*'s first
+            reference once it has checked that they are finite, that the states are those of
+            the controls and that they meet the terminal condition; otherwise it computes
+            them.
     """
 
     dv_rtn_mps: np.ndarray
@@ -132,13 +161,15 @@ class WarmStartProposal:
     constraint_to_go: np.ndarray | None = None
     model_sha256: str = ""
     rollout_ms: float = 0.0
+    warm_start_dv_rtn_mps: np.ndarray | None = None
+    warm_start_roe_m: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
 class ScpAttempt:
     """An SCP run of the plan that was not kept (e.g. from ART before the retry from CVX)."""
 
-    warm_start: str
+    warm_start: WarmStartSource
     status: ScpStatus
     cost_mps: float
     iterations: int
@@ -158,7 +189,7 @@ class PlanResult:
     cost_mps: float
     scp: ScpResult
     cvx: ConvexSolution
-    warm_start: str          # "art" or "cvx": the warm start of the SCP run kept
+    warm_start: WarmStartSource  # the warm start of the SCP run kept
     posthoc: PosthocDecision | None  # None: no learned warm start was tried
     constraint_margin_m: float
     timings_ms: dict = field(default_factory=dict)
@@ -185,16 +216,16 @@ class PlanResult:
             "cvx_cost_mps": self.cvx.cost_mps,
             "status": self.status.name,
             "scp_iterations": self.scp.iterations,
-            "warm_start": self.warm_start,
+            "warm_start": self.warm_start.value,
             "warm_start_reason": self.warm_start_reason,
             "posthoc": None if ph is None else {"E_R": ph.e_r, "E_C": ph.e_c,
                                                 "accepted": ph.accepted},
             "art_cost_mps": (None if self.art_dv_rtn_mps is None or not np.all(
                 np.isfinite(self.art_dv_rtn_mps)) else float(
                 np.linalg.norm(self.art_dv_rtn_mps.reshape(-1, 3), axis=1).sum())),
-            "discarded_attempt": None if self.discarded is None else {
-                "warm_start": self.discarded.warm_start, "status": self.discarded.status.name,
-                "cost_mps": self.discarded.cost_mps, "iterations": self.discarded.iterations},
+            "discarded_attempt": None if (d := self.discarded) is None else {
+                "warm_start": d.warm_start.value, "status": d.status.name,
+                "cost_mps": d.cost_mps, "iterations": d.iterations},
             "timings_ms": dict(self.timings_ms),
             "constraint_margin_m": self.constraint_margin_m,
         }
@@ -205,7 +236,10 @@ class WarmStartProvider(Protocol):
 
     `propose` returns a `WarmStartProposal` (or bare (N, 3) controls [m/s]); it raises a
     `GuidanceError` saying why when the request is outside what it can propose for (e.g. a
-    horizon longer than the model's context). The pipeline never trusts the output: it
+    horizon longer than the model's context). `planning` says how the pipeline will check the
+    proposal (a provider with several candidates ranks them by it; None: the packaged
+    defaults); `deadline` is the plan's (None: none), after which a provider should stop
+    (raising `DeadlineError`). The pipeline never trusts the output: it
     validates it, rolls it out through its own dynamics and applies the post hoc check; any
     exception is caught and the plan falls back to CVX.
 
@@ -215,8 +249,9 @@ class WarmStartProvider(Protocol):
 
     sha256: str
 
-    def propose(self, request: PlanRequest, safety: PassiveSafety,
-                cvx: ConvexSolution) -> "WarmStartProposal | np.ndarray":
+    def propose(self, request: PlanRequest, safety: PassiveSafety, cvx: ConvexSolution,
+                planning: PlanningConfig | None = None,
+                deadline: Deadline | None = None) -> "WarmStartProposal | np.ndarray":
         ...
 
 

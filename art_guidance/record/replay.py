@@ -218,9 +218,9 @@ def _art_rows(record: object, result: object) -> dict:
     rep_dv = (np.asarray(result.art_dv_rtn_mps, float).reshape(-1)
               if result.art_dv_rtn_mps is not None else np.zeros(0))
     row = {"warm_start": getattr(record, "warm_start", ""),
-           "replayed_warm_start": result.warm_start,
+           "replayed_warm_start": result.warm_start.value,
            "replayed_warm_start_reason": result.warm_start_reason}
-    ok = not row["warm_start"] or row["warm_start"] == result.warm_start
+    ok = not row["warm_start"] or row["warm_start"] == result.warm_start.value
     if rec_dv.size or rep_dv.size:
         d_roll = (float(np.max(np.abs(rec_dv - rep_dv))) if rec_dv.shape == rep_dv.shape
                   else float("inf"))
@@ -280,9 +280,9 @@ def replay(path: str | Path, model: str | Path | None = None) -> dict:
         raise InputError("log", "no art_guidance configuration in the MCAP metadata", str(path))
     provider, model_note = _replay_provider(log, model)
     same_model = provider is None or provider.sha256 == log.metadata.get("model_checksum")
-    pipeline = GuidancePipeline.from_config_json(json.loads(log.metadata["config"]))
-    pipeline.provider = provider
-    pipeline.deadline_s = None  # replays are not time-boxed; timed-out solves are flagged
+    # replays are not time-boxed; timed-out solves are flagged
+    pipeline = GuidancePipeline.from_config_json(json.loads(log.metadata["config"]),
+                                                 provider, time_boxed=False)
     rows = []
     for record, plan in log.solves():
         cost, dv = _plan_arrays(plan)

@@ -123,14 +123,14 @@ def plan_to_msg(result: PlanResult, stamp_ns: int, plan_id: str) -> ManeuverPlan
     msg.status = MSG_STATUS[result.status]
     msg.status_text = (f"{result.status.name}: {result.cost_mps:.4f} m/s after "
                        f"{result.scp.iterations} SCP iterations from the "
-                       f"{result.warm_start.upper()} warm start, passive-safety margin "
+                       f"{result.warm_start.label} warm start, passive-safety margin "
                        f"{result.constraint_margin_m:.2f} m")
     msg.epochs_s = result.epochs_s.astype(float).tolist()
     msg.dv_rtn_mps = result.dv_rtn_mps.reshape(-1).tolist()
     msg.roe_m = result.roe_m.reshape(-1).tolist()
     msg.rtn = result.rtn.reshape(-1).tolist()
     msg.cost_mps = float(result.cost_mps)
-    msg.warm_start = result.warm_start
+    msg.warm_start = result.warm_start.value
     msg.warm_start_reason = result.warm_start_reason[:500]
     msg.posthoc, msg.posthoc_e_r, msg.posthoc_e_c = posthoc_fields(result)
     msg.scp_iterations = int(result.scp.iterations)
@@ -163,7 +163,7 @@ def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str, trigger: s
         msg.art_reward_to_go_mps = _floats(proposal.reward_to_go_mps)
         msg.art_constraint_to_go = _floats(proposal.constraint_to_go)
         msg.model_sha256 = proposal.model_sha256
-    msg.warm_start, msg.warm_start_reason = result.warm_start, result.warm_start_reason
+    msg.warm_start, msg.warm_start_reason = result.warm_start.value, result.warm_start_reason
     msg.posthoc, msg.posthoc_e_r, msg.posthoc_e_c = posthoc_fields(result)
     if np.all(np.isfinite(result.cvx.dv_rtn_mps)):
         msg.warm_start_cvx_dv_rtn_mps = result.cvx.dv_rtn_mps.reshape(-1).tolist()

@@ -19,46 +19,31 @@ from typing import Callable, Sequence
 import numpy as np
 import rclpy
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseWithCovarianceStamped
-from nav_msgs.msg import Path
-from visualization_msgs.msg import MarkerArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from art_guidance import topics
-from art_guidance.config import GuidanceConfig, node_parameter_defaults
+from art_guidance.config import GuidanceConfig, ScenarioConfig, node_parameter_defaults
+from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, GuidanceError
-from art_guidance.plan_view import nav_position, plan_view
-from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
+from art_guidance.planning import GuidancePipeline, Target
 from art_guidance.planning.guidance import GuidanceCore, Job, ReplanBudget
-from art_guidance.planning.replan import Action, ReplanSettings
-from art_guidance.record.recorder import (
-    NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE, McapRecorder, check_cap,
-    check_record_dir, default_log_dir,
-)
-from art_guidance.ros.parameters import PLANNING_PARAMETERS, SPECS, check_table, descriptor
-from art_guidance.ros import visualization as viz
+from art_guidance.planning.replan import Action
 from art_guidance.ros.adapters import (
-    diagnostics_msg, nav_from_msg, plan_to_msg, solve_record_msg, stamp_to_ns, status_plan_msg,
-    target_from_msg,
+    nav_from_msg, plan_to_msg, status_plan_msg, target_from_msg,
 )
+from art_guidance.ros.node_outputs import ERROR, OK, WARN, NodeOutputs
+from art_guidance.ros.parameters import (
+    PLANNING_PARAMETERS, SPECS, NodeParameters, check_table, descriptor,
+)
+from art_guidance.ros.solve_recording import SolveRecording
 
-OK, WARN, ERROR = 0, 1, 2
 SPIN_PERIOD_S = 0.1  # the executor wakes this often to notice SIGINT/SIGTERM [s]
-DEPUTY_VIZ_PERIOD_S = 0.5  # smallest stamp-time spacing of the deputy's visualisation [s]
-POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
-                     "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
-                     "min_remaining_nodes")
 PARAMETERS = node_parameter_defaults()  # config/guidance_node.yaml: the one table
-VIZ_TYPES = {topics.PLAN_PATH: Path, topics.PLAN_MARKERS: MarkerArray,
-             topics.DEPUTY_MARKERS: MarkerArray, topics.DEPUTY_POSE: PoseWithCovarianceStamped}
-VIZ_TYPE_NAMES = {topic: f"{t.__module__.split('.')[0]}/msg/{t.__name__}"
-                  for topic, t in VIZ_TYPES.items()}
 
 
 def solver_error_text(exc: BaseException, active_id: str) -> str:
@@ -75,34 +60,52 @@ class GuidanceNodeBase:
     """The ROS wiring of a `planning.guidance.GuidanceCore`, mixed into an rclpy `Node`
     (`GuidanceNode`) or a `LifecycleNode` (`ManagedGuidanceNode`): parameters, publishers and
     subscriptions, the worker thread, the recorder, diagnostics and visualisation. The decision
-    sequence itself is the core's."""
+    sequence itself is the core's.
 
-    def _declare_parameters(self) -> None:
+    The parameters are read once (`params`, replaced whole on an accepted run-time change);
+    what `_configure` builds is None until then (and again after a lifecycle cleanup).
+    """
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("guidance_node", **kwargs)
         check_table(PARAMETERS)
         for name, default in PARAMETERS.items():
             self.declare_parameter(name, default, descriptor(name))
         config = GuidanceConfig.load(self.get_parameter("config_dir").value or None)
         for name in PLANNING_PARAMETERS:
             self.declare_parameter(name, getattr(config.planning, name), descriptor(name))
-        self.p = {name: spec.coerce(name, self.get_parameter(name).value)
-                  for name, spec in SPECS.items()}
-        self.core: GuidanceCore | None = None  # None: not configured
+        self.params = NodeParameters.from_values(
+            {name: self.get_parameter(name).value for name in SPECS})
+        # built by _configure (None: not configured)
+        self.core: GuidanceCore | None = None
+        self.pipeline: GuidancePipeline | None = None
+        self.scenario: ScenarioConfig | None = None
+        self.provider: object | None = None
+        self.model_status = ""
+        self.budget = ReplanBudget()
+        self.recording: SolveRecording | None = None
+        # publishers (_create_publishers), subscriptions and the worker (while planning)
+        self.out: NodeOutputs | None = None
+        self.nav_sub = self.request_sub = None
+        self._worker: threading.Thread | None = None
+        self._worker_deaths = 0  # proposal worker deaths logged so far
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
     def _configure(self) -> None:
         """Load the configuration (and, with the learned warm start, the model); build the
         pipeline, the replan policy and the recorder. Raises GuidanceError on bad config."""
-        config = GuidanceConfig.load(self.p["config_dir"] or None)
+        p = self.params
+        config = GuidanceConfig.load(p.config_dir or None)
         config = config.replace(planning=dataclasses.replace(
-            config.planning, samples_per_node=int(self.p["samples_per_node"]),
-            propose_concurrently=bool(self.p["propose_concurrently"])))
+            config.planning, samples_per_node=p.samples_per_node,
+            propose_concurrently=p.propose_concurrently))
         self.scenario = config.scenario
-        if self.p["default_waypoint"] not in self.scenario.waypoints_rtn:
-            raise ConfigError(f"default_waypoint {self.p['default_waypoint']!r} is not one of "
+        if p.default_waypoint not in self.scenario.waypoints_rtn:
+            raise ConfigError(f"default_waypoint {p.default_waypoint!r} is not one of "
                               f"{sorted(self.scenario.waypoints_rtn)}")
         self.provider, self.model_status = self._load_model()
         self.pipeline = GuidancePipeline(config, provider=self.provider,
-                                         deadline_s=self.p["solve_deadline_s"])
+                                         deadline_s=p.solve_deadline_s)
         if config.planning.propose_concurrently and self.provider is not None:
             if self.pipeline.start_proposal_worker():
                 self.get_logger().info("learned proposals are made in a worker process")
@@ -110,16 +113,15 @@ class GuidanceNodeBase:
                 self.get_logger().warning(f"the proposal worker process did not start, "
                                           f"proposals are made in line: "
                                           f"{self.pipeline.proposal_worker_error}")
-        settings = {name: self.p[name] for name in POLICY_PARAMETERS}
-        target = Target(self.p["default_waypoint"],
-                        np.asarray(self.scenario.waypoints_rtn[self.p["default_waypoint"]]),
-                        self.p["chance_constrained"], self.p["warm_start"], None)
-        self.core = GuidanceCore(self.pipeline, ReplanSettings(
-            **settings, ae_to_koz_node=self.scenario.ae_to_koz_node), target)
-        self._worker: threading.Thread | None = None
-        self._worker_deaths = 0  # proposal worker deaths logged so far
+        target = Target(p.default_waypoint,
+                        np.asarray(self.scenario.waypoints_rtn[p.default_waypoint]),
+                        p.chance_constrained, p.warm_start, None)
+        self.core = GuidanceCore(self.pipeline, p.replan_settings(
+            ae_to_koz_node=self.scenario.ae_to_koz_node), target)
+        self._worker, self._worker_deaths = None, 0
         self.budget = ReplanBudget()
-        self.recorder = self._make_recorder()
+        self.recording = SolveRecording(self.resolve_topic_name, p, self.pipeline,
+                                        self.provider, self.model_status, self.get_logger())
 
     def _load_model(self) -> tuple[object | None, str]:
         """Load the learned warm start once, at start-up (never in a callback).
@@ -128,13 +130,14 @@ class GuidanceNodeBase:
         leaves the node in CVX-only mode with one warning (and the status in every plan
         diagnostic); it never stops the node.
         """
-        spec = self.p["model_path"]
+        spec = self.params.model_path
         if spec.strip().lower() == "none":
             return None, "cvx-only: model_path is 'none'"
         try:
             from art_guidance.art.provider import ArtWarmStart, resolve_model_path
 
-            provider = ArtWarmStart.load(resolve_model_path(spec, self.p["chance_constrained"]))
+            provider = ArtWarmStart.load(resolve_model_path(spec,
+                                                            self.params.chance_constrained))
         except Exception as exc:  # a model never takes the node down
             text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             status = f"cvx-only: the model did not load ({type(exc).__name__}: {text[:300]})"
@@ -154,24 +157,12 @@ class GuidanceNodeBase:
         return values
 
     def _create_publishers(self, create: Callable) -> None:
-        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.plan_pub = create(ManeuverPlan, topics.MANEUVER_PLAN, qos)
-        self.diag_pub = create(DiagnosticArray, topics.DIAGNOSTICS, qos)
-        self.viz_pubs = {}
-        self._deputy_viz_ns: int | None = None  # stamp of the last deputy drawn
-        if self.p["visualization"]:
-            latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
-            self.viz_pubs = {topic: create(msg_type, topic, latched)
-                             for topic, msg_type in VIZ_TYPES.items()}
-
-    def _all_publishers(self) -> list:
-        return [self.plan_pub, self.diag_pub, *self.viz_pubs.values()]
+        self.out = NodeOutputs(create, self.params.visualization)
 
     def _create_subscriptions(self) -> None:
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         nav_qos = QoSProfile(depth=10, reliability=(
-            ReliabilityPolicy.BEST_EFFORT if self.p["nav_qos_reliability"] == "best_effort"
+            ReliabilityPolicy.BEST_EFFORT if self.params.nav_qos_reliability == "best_effort"
             else ReliabilityPolicy.RELIABLE))
         self.nav_sub = self.create_subscription(RelativeNavState, topics.NAV,
                                                 self._on_nav, nav_qos)
@@ -181,16 +172,17 @@ class GuidanceNodeBase:
     def _destroy_subscriptions(self) -> None:
         for sub in (self.nav_sub, self.request_sub):
             self.destroy_subscription(sub)
+        self.nav_sub = self.request_sub = None
 
     def _start_worker(self) -> None:
         self.core.start()
         self._worker = threading.Thread(target=self._work, name="guidance_worker", daemon=True)
         self._worker.start()
         self.get_logger().info(f"guidance_node planning (target {self.core.target.waypoint}, "
-                               f"stamp_check {self.p['stamp_check']}, warm start "
-                               f"{self.p['warm_start']}, {self.model_status})")
-        self._publish_diag("art_guidance/model", OK if self.provider is not None else WARN,
-                           self.model_status, self._model_values())
+                               f"stamp_check {self.params.stamp_check}, warm start "
+                               f"{self.params.warm_start}, {self.model_status})")
+        self.out.diag("art_guidance/model", OK if self.provider is not None else WARN,
+                      self.model_status, self._model_values())
 
     def _stop_worker(self) -> None:
         """Stop taking jobs; the running solve finishes (and is recorded and published)."""
@@ -200,49 +192,17 @@ class GuidanceNodeBase:
         self._worker.join(timeout=30.0)
         self._worker = None
 
-    def _make_recorder(self) -> McapRecorder | None:
-        # message type -> resolved topic (namespace and remapping applied); the solve record
-        # is recorded only, under the node's own namespace
-        # (resolved from the names, so it works before the endpoints exist: lifecycle)
-        self._record_topics = {
-            NAV_TYPE: self.resolve_topic_name(topics.NAV),
-            REQUEST_TYPE: self.resolve_topic_name(topics.REPLAN_REQUEST),
-            SOLVE_RECORD_TYPE: self.resolve_topic_name(topics.SOLVE_RECORD),
-            PLAN_TYPE: self.resolve_topic_name(topics.MANEUVER_PLAN)}
-        self._viz_topics = {topic: self.resolve_topic_name(topic) for topic in VIZ_TYPES} \
-            if self.p["visualization"] else {}
-        self._recorded_request: ReplanRequest | None = None  # last one written (worker only)
-        if not self.p["record"]:
-            return None
-        check_cap(int(self.p["record_max_total_bytes"]), int(self.p["record_max_bytes"]))
-        directory = check_record_dir(self.p["record_dir"] or str(default_log_dir()))
-        meta = {"config": self.pipeline.config_json(), "versions": _versions(),
-                "model_checksum": self.provider.sha256 if self.provider else "none",
-                "model": self.model_status, "parameters": self.p}
-        self.get_logger().info(f"recording every solve to {directory}")
-        recorded = {t: msg_type for msg_type, t in self._record_topics.items()}
-        recorded.update({self._viz_topics[t]: VIZ_TYPE_NAMES[t] for t in self._viz_topics})
-        return McapRecorder(directory, meta, max_bytes=int(self.p["record_max_bytes"]),
-                            topics=recorded,
-                            max_total_bytes=int(self.p["record_max_total_bytes"]))
-
     def _on_set_parameters(self, params: list) -> SetParametersResult:
         """Validate and apply run-time parameter changes (all or none)."""
-        new = dict(self.p)
         try:
-            for prm in params:
-                spec = SPECS.get(prm.name)
-                if spec is None or not spec.dynamic:
-                    raise ConfigError(f"{prm.name} is read-only (fixed at start-up)")
-                new[prm.name] = spec.coerce(prm.name, prm.value)
-            settings = ReplanSettings(**{n: new[n] for n in POLICY_PARAMETERS})
+            new = self.params.changed({prm.name: prm.value for prm in params})
         except ConfigError as exc:
             self.get_logger().warning(f"parameter change refused: {exc}")
             return SetParametersResult(successful=False, reason=str(exc))
-        self.p = new
+        self.params = new
         if self.core is not None:  # not configured yet: the values are used at configure
-            self.core.update_settings(settings)
-        changed = ", ".join(f"{p.name}={new[p.name]!r}" for p in params)
+            self.core.update_settings(new.replan_settings())
+        changed = ", ".join(f"{p.name}={getattr(new, p.name)!r}" for p in params)
         self.get_logger().info(f"parameters changed: {changed}")
         return SetParametersResult(successful=True)
 
@@ -259,8 +219,9 @@ class GuidanceNodeBase:
         except Exception as exc:  # never die on a message
             self._reject(stamp_ns, f"unexpected {type(exc).__name__}: {exc}")
             return
-        self._publish_deputy(nav)
-        self._diag(nav.stamp_ns, OK, decision.value, {"deviation_sigma": round(deviation, 3)})
+        self.out.publish_deputy(nav, self.get_logger())
+        self.out.nav_diag(nav.stamp_ns, OK, decision.value,
+                          {"deviation_sigma": round(deviation, 3)})
 
     def _on_request(self, msg: ReplanRequest) -> None:
         try:
@@ -270,11 +231,10 @@ class GuidanceNodeBase:
             reason = (str(exc) if isinstance(exc, GuidanceError)
                       else f"unexpected {type(exc).__name__}: {exc}")
             self.get_logger().warning(f"replan request rejected: {reason}")
-            self._publish_diag("art_guidance/replan_request", WARN, reason,
-                               {"reason": reason})
+            self.out.diag("art_guidance/replan_request", WARN, reason, {"reason": reason})
             return
-        self._publish_diag("art_guidance/replan_request", OK, f"target {target.waypoint}",
-                           {"waypoint": target.waypoint})
+        self.out.diag("art_guidance/replan_request", OK, f"target {target.waypoint}",
+                      {"waypoint": target.waypoint})
 
     # ------------------------------------------------------------------ worker
     def _work(self) -> None:
@@ -284,19 +244,19 @@ class GuidanceNodeBase:
             except Exception as exc:  # the worker must survive anything
                 if not self.context.ok():
                     return  # shutting down under a running solve: nothing left to tell
-                text = solver_error_text(exc, self._active_id())
+                text = solver_error_text(exc, self.core.active_id)
                 self._log().error(f"planning failed: {text}")
-                self.plan_pub.publish(status_plan_msg(
-                    job.nav.stamp_ns, self._next_id(), ManeuverPlan.STATUS_SOLVER_ERROR,
-                    text, self._active_id()))
+                self.out.plan_pub.publish(status_plan_msg(
+                    job.nav.stamp_ns, self.core.next_id(), ManeuverPlan.STATUS_SOLVER_ERROR,
+                    text, self.core.active_id))
             finally:
                 self.core.job_done()
 
     def _solve(self, job: Job) -> None:
-        # solve_deadline_s bounds the replan up to its publication: the pipeline gets what the
+        # solve_deadline_s bounds the replan up to its publication: the plan gets what the
         # recent messages and recordings leave of it
-        self.pipeline.deadline_s = self.budget.planning_s(self.p["solve_deadline_s"])
-        solved = self.core.solve(job)
+        solved = self.core.solve(job, Deadline.after(
+            self.budget.planning_s(self.params.solve_deadline_s)))
         t_solved = time.perf_counter()
         result, plan_id, action, active_id = (solved.result, solved.plan_id, solved.action,
                                               solved.active_id)
@@ -305,29 +265,33 @@ class GuidanceNodeBase:
         if action is not Action.ACTIVATED:
             plan_msg.status_text = solved.status_text
         # a plan a queued solve replaces at once is not drawn (bursts)
-        views = (self._plan_views(job, result, plan_id)
+        views = (self.out.plan_views(job.nav, result, plan_id,
+                                     lambda: self.pipeline.safety_model(job.request),
+                                     self.scenario, self._log())
                  if action is Action.ACTIVATED and not self.core.job_queued() else [])
         # recorded (and fsync'ed) before it is published: a crash never loses a published plan
-        self._record(job, result, plan_id, plan_msg, views)
+        if not self.recording.record(job, result, plan_id, plan_msg, views):
+            recorder = self.recording.recorder
+            self._log().error(f"recording failed, guidance continues: {recorder.last_error}")
+            self.out.diag("art_guidance/recorder", ERROR, recorder.last_error,
+                          {"errors": recorder.errors})
         self.budget.add_post_solve_s(time.perf_counter() - t_solved)
-        self.plan_pub.publish(plan_msg)
-        for topic, msg in views:
-            self.viz_pubs[topic].publish(msg)
+        self.out.publish_plan(plan_msg, views)
         level = OK if result.scp.feasible else WARN
         t = result.timings_ms
         self._log().info(
             f"{plan_id} ({job.trigger}): {result.status.name}, {result.cost_mps:.4f} m/s, "
-            f"{result.scp.iterations} it from {result.warm_start.upper()}, margin "
+            f"{result.scp.iterations} it from {result.warm_start.label}, margin "
             f"{result.constraint_margin_m:.2f} m, {t['total']:.0f} ms; {action.value} "
             f"(in force: {active_id or 'none'}); {result.warm_start_reason}")
-        self._publish_diag("art_guidance/plan", level, f"{result.status.name}: {action.value}",
-                           {"plan_id": plan_id, "nav_stamp_ns": str(job.nav.stamp_ns),
-                            "action": action.value, "active_plan_id": active_id,
-                            "cost_mps": result.cost_mps, "warm_start": result.warm_start,
-                            "warm_start_reason": result.warm_start_reason,
-                            "solve_time_ms": t["total"], "cvx_ms": round(t["cvx"], 2),
-                            "art_ms": round(t["art"], 2), "scp_ms": round(t["scp"], 2),
-                            **self._model_values(), **self._proposal_worker_values()})
+        self.out.diag("art_guidance/plan", level, f"{result.status.name}: {action.value}",
+                      {"plan_id": plan_id, "nav_stamp_ns": str(job.nav.stamp_ns),
+                       "action": action.value, "active_plan_id": active_id,
+                       "cost_mps": result.cost_mps, "warm_start": result.warm_start.value,
+                       "warm_start_reason": result.warm_start_reason,
+                       "solve_time_ms": t["total"], "cvx_ms": round(t["cvx"], 2),
+                       "art_ms": round(t["art"], 2), "scp_ms": round(t["scp"], 2),
+                       **self._model_values(), **self._proposal_worker_values()})
 
     def _proposal_worker_values(self) -> dict:
         """The proposal worker process for the plan diagnostic (none: no values); a death
@@ -343,93 +307,14 @@ class GuidanceNodeBase:
         return {"proposal_worker": state, "proposal_worker_deaths": deaths,
                 "proposal_worker_error": self.pipeline.proposal_worker_error}
 
-    def _plan_views(self, job: Job, result: PlanResult, plan_id: str) -> list[tuple[str, object]]:
-        """The visualisation messages of a plan put in force, [(topic, msg)] (none when off;
-        a failure is logged and never stops the plan)."""
-        if not self.viz_pubs:
-            return []
-        try:
-            view = plan_view(result, self.pipeline.safety_model(job.request), self.scenario)
-            t0 = job.nav.stamp_ns
-            markers, pose = self._deputy_view(job.nav)
-            text = viz.status_line(plan_id, result)
-            return [(topics.PLAN_PATH, viz.path_msg(view, t0)),
-                    (topics.PLAN_MARKERS, viz.plan_markers(view, t0, text)),
-                    (topics.DEPUTY_MARKERS, markers), (topics.DEPUTY_POSE, pose)]
-        except Exception as exc:  # a picture never takes the plan down
-            self._log().warning(f"visualisation of {plan_id} failed: {type(exc).__name__}: "
-                                f"{exc}")
-            return []
-
-    def _deputy_view(self, nav: NavState) -> tuple:
-        position, cov = nav_position(nav.chief_oe, nav.roe_m, nav.cov_m2)
-        return viz.deputy_msgs(position, cov, nav.stamp_ns)
-
-    def _publish_deputy(self, nav: NavState) -> None:
-        """The navigated deputy on guidance/viz/deputy*: accepted fixes at least
-        DEPUTY_VIZ_PERIOD_S apart in stamp time (a 100 Hz burst costs the callbacks nothing)."""
-        if not self.viz_pubs:
-            return
-        last = self._deputy_viz_ns
-        if last is not None and 0 <= nav.stamp_ns - last < DEPUTY_VIZ_PERIOD_S * 1e9:
-            return
-        self._deputy_viz_ns = nav.stamp_ns
-        try:
-            markers, pose = self._deputy_view(nav)
-        except Exception as exc:  # never die on a message
-            self.get_logger().warning(f"deputy visualisation failed: {exc}")
-            return
-        self.viz_pubs[topics.DEPUTY_MARKERS].publish(markers)
-        self.viz_pubs[topics.DEPUTY_POSE].publish(pose)
-
-    def _record(self, job: Job, result: PlanResult, plan_id: str, plan_msg: ManeuverPlan,
-                views: list[tuple[str, object]]) -> None:
-        if self.recorder is None:
-            return
-        topic, request = self._record_topics, job.request_payload
-        msgs = [(topic[NAV_TYPE], job.nav_payload)]
-        # each request once (same stamp and content = same request): played back, every copy
-        # would reset a live node's plan; the solve record links to it by stamp
-        new_request = request is not None and request != self._recorded_request
-        if new_request:
-            msgs.append((topic[REQUEST_TYPE], request))
-        request_ns = 0 if request is None else stamp_to_ns(request.header.stamp)
-        msgs += [(topic[SOLVE_RECORD_TYPE], solve_record_msg(
-                     result, job.nav.stamp_ns, plan_id, job.trigger, request_ns,
-                     self.provider.load_ms if self.provider is not None else 0.0)),
-                 (topic[PLAN_TYPE], plan_msg)]
-        msgs += [(self._viz_topics[t], msg) for t, msg in views]
-        if self.recorder.record_solve(msgs, time.time_ns()):
-            if new_request:
-                self._recorded_request = request
-        else:
-            self._log().error(f"recording failed, guidance continues: "
-                              f"{self.recorder.last_error}")
-            self._publish_diag("art_guidance/recorder", ERROR, self.recorder.last_error,
-                               {"errors": self.recorder.errors})
-
-    def _active_id(self) -> str:
-        """Id of the plan in force ("" = none)."""
-        return self.core.active_id
-
-    def _next_id(self) -> str:
-        return self.core.next_id()
-
     # ------------------------------------------------------------------ publishing
     def _reject(self, stamp_ns: int, reason: str) -> None:
         self.core.stats["rejected"] += 1
         self.get_logger().warning(f"nav message rejected: {reason}")
-        self.plan_pub.publish(status_plan_msg(stamp_ns, self._next_id(),
-                                              ManeuverPlan.STATUS_REJECTED_INPUT, reason,
-                                              self._active_id()))
-        self._diag(stamp_ns, WARN, "rejected", {"reason": reason})
-
-    def _diag(self, stamp_ns: int, level: int, decision: str, extra: dict) -> None:
-        values = {"nav_stamp_ns": str(stamp_ns), "decision": decision, **extra}
-        self._publish_diag("art_guidance/nav", level, decision, values)
-
-    def _publish_diag(self, name: str, level: int, message: str, values: dict) -> None:
-        self.diag_pub.publish(diagnostics_msg(time.time_ns(), name, level, message, values))
+        self.out.plan_pub.publish(status_plan_msg(stamp_ns, self.core.next_id(),
+                                                  ManeuverPlan.STATUS_REJECTED_INPUT, reason,
+                                                  self.core.active_id))
+        self.out.nav_diag(stamp_ns, WARN, "rejected", {"reason": reason})
 
     def shutdown_worker(self) -> None:
         """Stop the worker thread (after the running solve) and finish the recording."""
@@ -437,10 +322,7 @@ class GuidanceNodeBase:
             return
         self._stop_worker()
         self.pipeline.close()
-        if self.recorder is not None:
-            self.recorder.finish()
-            self._log().info(f"recorded {self.recorder.solves} solves to "
-                             f"{self.recorder.directory}")
+        self.recording.finish(self._log())
 
     def _log(self):
         """The node's logger while its context lives; after SIGINT/SIGTERM (context shut down,
@@ -455,8 +337,7 @@ class GuidanceNode(GuidanceNodeBase, Node):
     """The guidance node: configured and planning as soon as it is constructed."""
 
     def __init__(self, **kwargs) -> None:
-        Node.__init__(self, "guidance_node", **kwargs)
-        self._declare_parameters()
+        super().__init__(**kwargs)
         self._configure()
         self._create_publishers(self.create_publisher)
         self._create_subscriptions()
@@ -473,8 +354,7 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
     """
 
     def __init__(self, **kwargs) -> None:
-        LifecycleNode.__init__(self, "guidance_node", **kwargs)
-        self._declare_parameters()
+        super().__init__(**kwargs)
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
@@ -498,28 +378,15 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.shutdown_worker()
-        for pub in self._all_publishers():
+        for pub in self.out.publishers():
             self.destroy_lifecycle_publisher(pub)
-        self.core = None
+        self.core, self.out = None, None
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.shutdown_worker()
         self.core = None
         return TransitionCallbackReturn.SUCCESS
-
-
-def _versions() -> dict:
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {}
-    for pkg in ("art_guidance", "clarabel", "osqp", "numpy", "scipy", "mcap",
-                "mcap-ros2-support", "torch", "rclpy"):
-        try:
-            out[pkg] = version(pkg)
-        except PackageNotFoundError:
-            out[pkg] = "absent"
-    return out
 
 
 def main(argv: Sequence[str] | None = None, managed: bool = False) -> int:

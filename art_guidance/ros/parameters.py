@@ -11,12 +11,13 @@ is refused.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Mapping
 
 from art_guidance.errors import ConfigError
 from art_guidance.planning import WARM_STARTS
-from art_guidance.planning.replan import STAMP_CHECKS
+from art_guidance.planning.replan import STAMP_CHECKS, ReplanSettings
 
 NAV_QOS = ("best_effort", "reliable")
 
@@ -138,6 +139,75 @@ SPECS: dict[str, ParamSpec] = {
 }
 # parameters whose defaults come from planning.yaml, not guidance_node.yaml
 PLANNING_PARAMETERS = ("samples_per_node",)
+# the replan policy's parameters (`planning.replan.ReplanSettings`)
+POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
+                     "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
+                     "min_remaining_nodes")
+
+
+@dataclass(frozen=True)
+class NodeParameters:
+    """The guidance node's parameters, typed and validated (`SPECS`: meaning, unit and
+    constraints of each), in the order of `SPECS`. The node reads them once at start-up
+    (`from_values`) and replaces the whole object on an accepted run-time change (`changed`).
+    """
+
+    config_dir: str
+    default_waypoint: str
+    chance_constrained: bool
+    warm_start: str
+    model_path: str
+    replan_sigma_threshold: float
+    replan_period_s: float
+    stamp_check: str
+    max_nav_age_s: float
+    max_nav_future_s: float
+    max_stamp_jump_s: float
+    solve_deadline_s: float
+    propose_concurrently: bool
+    min_remaining_nodes: int
+    nav_qos_reliability: str
+    visualization: bool
+    record: bool
+    record_dir: str
+    record_max_bytes: int
+    record_max_total_bytes: int
+    samples_per_node: int
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, Any]) -> "NodeParameters":
+        """Every parameter of `SPECS` from `values` (name -> value), coerced and validated.
+
+        Raises:
+            ConfigError: naming the parameter, the constraint and the value.
+        """
+        return cls(**{name: spec.coerce(name, values[name]) for name, spec in SPECS.items()})
+
+    def changed(self, changes: Mapping[str, Any]) -> "NodeParameters":
+        """These parameters with run-time `changes` (name -> value) applied, all or none.
+
+        Raises:
+            ConfigError: a read-only or unknown parameter, or an invalid value (alone or for
+                the replan policy).
+        """
+        new = {}
+        for name, value in changes.items():
+            spec = SPECS.get(name)
+            if spec is None or not spec.dynamic:
+                raise ConfigError(f"{name} is read-only (fixed at start-up)")
+            new[name] = spec.coerce(name, value)
+        out = dataclasses.replace(self, **new)
+        out.replan_settings()
+        return out
+
+    def replan_settings(self, **extra: Any) -> ReplanSettings:
+        """The replan policy's settings (`POLICY_PARAMETERS`, plus `extra` fields)."""
+        return ReplanSettings(**{name: getattr(self, name) for name in POLICY_PARAMETERS},
+                              **extra)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Name -> value, in the order of `SPECS` (recorded with a run)."""
+        return dataclasses.asdict(self)
 
 
 def descriptor(name: str) -> Any:
@@ -161,6 +231,10 @@ def check_table(defaults: dict[str, Any]) -> None:
     if names != set(SPECS):
         raise ConfigError(f"guidance_node.yaml and the parameter specs differ: "
                           f"{sorted(names ^ set(SPECS))}")
+    fields = [f.name for f in dataclasses.fields(NodeParameters)]
+    if fields != list(SPECS):
+        raise ConfigError(f"NodeParameters and the parameter specs differ: {fields} against "
+                          f"{list(SPECS)}")
     for name, value in defaults.items():
         SPECS[name].coerce(name, value)
 

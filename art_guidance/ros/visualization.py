@@ -166,4 +166,4 @@ def deputy_msgs(position_m: np.ndarray, cov_m2: np.ndarray, stamp_ns: int
 def status_line(plan_id: str, result: object) -> str:
     """The status text of a plan marker."""
     return (f"{plan_id}: {result.status.name}, {result.cost_mps:.3f} m/s, "
-            f"margin {result.constraint_margin_m:.1f} m, from {result.warm_start.upper()}")
+            f"margin {result.constraint_margin_m:.1f} m, from {result.warm_start.label}")

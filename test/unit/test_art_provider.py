@@ -16,15 +16,17 @@ from helpers.art_models import write_untrained_checkpoint
 
 from art_guidance.art.provider import ArtWarmStart
 from art_guidance.cli import main as cli_main
+from art_guidance.deadline import Deadline
 from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import CheckpointError
 from art_guidance.optim import ScpStatus, terminal_warm_start
 from art_guidance.planning import (
-    GuidancePipeline, PlanRequest, PosthocThresholds, WarmStartProposal,
+    GuidancePipeline, PlanRequest, PosthocThresholds, WarmStartProposal, WarmStartSource,
 )
 
+ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 PAPER = PosthocThresholds()  # -1.5 <= 100 E_R <= 3.5, 0 <= E_C <= 2
 
 
@@ -45,7 +47,7 @@ class Scaled:
     def __init__(self, factor: float) -> None:
         self.factor = factor
 
-    def propose(self, request, safety, cvx):
+    def propose(self, request, safety, cvx, planning=None, deadline=None):
         return WarmStartProposal(cvx.dv_rtn_mps * self.factor)
 
 
@@ -80,7 +82,7 @@ def test_decision_follows_the_thresholds(factor, inside):
     e_c_inside = PAPER.e_c_min <= ph.e_c <= PAPER.e_c_max
     assert ph.accepted == (inside and e_c_inside)
     # an accepted rollout's plan is also solved from CVX and the cheaper one is kept
-    assert result.warm_start == ("art" if ph.accepted else "cvx") or (
+    assert result.warm_start is (ART if ph.accepted else CVX) or (
         ph.accepted and "kept the CVX-warm-started plan" in result.warm_start_reason)
     word = "accepted" if ph.accepted else "rejected"
     assert word in result.warm_start_reason and "100 E_R" in result.warm_start_reason
@@ -97,7 +99,7 @@ def test_constraint_budget_bound_rejects():
                                                                    e_c_max=e_c + 2.0))
     result = GuidancePipeline(cfg.replace(planning=tight), provider=Scaled(1.0)).plan(
         _request(4))
-    assert not result.posthoc.accepted and result.warm_start == "cvx"
+    assert not result.posthoc.accepted and result.warm_start is CVX
 
 
 def test_provider_rollout_is_what_the_pipeline_checks(provider):
@@ -117,7 +119,7 @@ def test_provider_rollout_is_what_the_pipeline_checks(provider):
         (-norms.sum() + result.cvx.cost_mps) / -result.cvx.cost_mps, rel=1e-9)
     # forced (the untrained model's rollout is rejected) and flown unless SCVx* from it failed
     assert "forced" in result.warm_start_reason or result.posthoc.accepted
-    assert result.warm_start == "art" or "retried from CVX" in result.warm_start_reason
+    assert result.warm_start is ART or "retried from CVX" in result.warm_start_reason
     assert result.timings_ms["art"] >= prop.rollout_ms > 0.0
     assert result.scp.feasible
 
@@ -173,11 +175,11 @@ def test_out_of_domain_horizons_fall_back_to_cvx(provider):
     cfg = cfg.replace(planning=dataclasses.replace(cfg.planning, skip_art_when_cvx_safe=False))
     too_long = _request(5, n_nodes=120, n_orbits=1.29 * 119 / 99)
     result = GuidancePipeline(cfg, provider=provider).plan(too_long)
-    assert result.warm_start == "cvx" and result.posthoc is None
+    assert result.warm_start is CVX and result.posthoc is None
     assert "longer than the model's context" in result.warm_start_reason
     wrong_spacing = _request(5, n_nodes=50, n_orbits=1.29)
     result = GuidancePipeline(cfg, provider=provider).plan(wrong_spacing)
-    assert result.warm_start == "cvx" and "node spacing" in result.warm_start_reason
+    assert result.warm_start is CVX and "node spacing" in result.warm_start_reason
     replan = _request(5, n_nodes=40, n_orbits=1.29 * 39 / 99, koz_switch_node=10)
     result = GuidancePipeline(cfg, provider=provider).plan(replan)  # a training tail
     assert result.proposal is not None and result.proposal.dv_rtn_mps.shape == (40, 3)
@@ -187,24 +189,24 @@ def test_failing_provider_never_takes_the_plan_down():
     class Raises:
         sha256 = ""
 
-        def propose(self, request, safety, cvx):
+        def propose(self, request, safety, cvx, planning=None, deadline=None):
             raise RuntimeError("boom")
 
     class WrongShape(Raises):
-        def propose(self, request, safety, cvx):
+        def propose(self, request, safety, cvx, planning=None, deadline=None):
             return np.zeros((3, 3))
 
     result = GuidancePipeline(provider=Raises()).plan(_request(4, warm_start="art"))
-    assert result.warm_start == "cvx" and "RuntimeError: boom" in result.warm_start_reason
+    assert result.warm_start is CVX and "RuntimeError: boom" in result.warm_start_reason
     assert result.posthoc is None and result.scp.feasible
     result = GuidancePipeline(provider=WrongShape()).plan(_request(4))
-    assert result.warm_start == "cvx" and "output rejected" in result.warm_start_reason
+    assert result.warm_start is CVX and "output rejected" in result.warm_start_reason
     assert not result.posthoc.accepted and np.isnan(result.posthoc.e_r)
 
 
 def test_no_model_says_not_run():
     result = GuidancePipeline().plan(_request(4, warm_start="art"))
-    assert result.warm_start == "cvx" and result.posthoc is None
+    assert result.warm_start is CVX and result.posthoc is None
     assert "no learned model" in result.warm_start_reason
     assert "requested" in GuidancePipeline().plan(_request(4, warm_start="cvx")
                                                   ).warm_start_reason
@@ -218,7 +220,7 @@ def test_unconverged_art_scp_is_retried_from_cvx():
     result = GuidancePipeline(cfg, provider=Scaled(1.5)).plan(_request(4, warm_start="art"))
     lost = result.discarded
     assert lost is not None and "retried from CVX" in result.warm_start_reason
-    assert {result.warm_start, lost.warm_start} == {"art", "cvx"}
+    assert {result.warm_start, lost.warm_start} == {ART, CVX}
     if result.scp.feasible and lost.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS):
         assert result.cost_mps <= lost.cost_mps + 1e-12
 
@@ -236,26 +238,26 @@ def test_deadline_is_honoured_with_art(provider):
 
 
 class Slow(Scaled):
-    """Scaled, after a pause longer than the test's deadline (a provider without a deadline
-    argument: the pipeline cannot stop it, only what comes after)."""
+    """Scaled, after a pause longer than the test's deadline (a provider that ignores the
+    deadline: the pipeline cannot stop it, only what comes after)."""
 
-    def propose(self, request, safety, cvx):
+    def propose(self, request, safety, cvx, planning=None, deadline=None):
         import time
 
         time.sleep(0.3)
-        return super().propose(request, safety, cvx)
+        return super().propose(request, safety, cvx, planning)
 
 
 def test_a_deadline_that_passes_in_the_proposal_ends_the_plan(provider):
     """A rollout that would run past the deadline stops (CVX warm start, said in the
     reason), and SCVx* then gets no time: the plan is the best feasible iterate at hand
-    (status TIMEOUT); a provider that takes no deadline is waited for, nothing after it runs."""
+    (status TIMEOUT); a provider that ignores the deadline is waited for, nothing after it
+    runs. The pipeline's `deadline_s` is the deadline of a plan given none."""
     request = _request(3, chance=True, warm_start="art")
     pipeline = GuidancePipeline(provider=provider)
     pipeline.plan(request)  # horizon and safety model cached: CVX then takes ~5 ms
-    pipeline.deadline_s = 0.05  # the sweep takes > 100 ms
-    result = pipeline.plan(request)
-    assert "DeadlineError" in result.warm_start_reason and result.warm_start == "cvx"
+    result = pipeline.plan(request, Deadline.after(0.05))  # the sweep takes > 100 ms
+    assert "DeadlineError" in result.warm_start_reason and result.warm_start is CVX
     assert result.status is ScpStatus.TIMEOUT and result.scp.iterations == 0
     assert result.timings_ms["total"] <= 50.0 + 300.0, result.timings_ms
     slow = GuidancePipeline(provider=Slow(1.0), deadline_s=0.05).plan(request)
@@ -301,7 +303,7 @@ def test_unconverged_cvx_scp_is_retried_from_a_rejected_rollout():
     result = GuidancePipeline(cfg, provider=Scaled(0.5)).plan(_request(4))
     assert not result.posthoc.accepted
     assert "retried from ART" in result.warm_start_reason and result.discarded is not None
-    assert {result.warm_start, result.discarded.warm_start} == {"art", "cvx"}
+    assert {result.warm_start, result.discarded.warm_start} == {ART, CVX}
 
 
 def test_best_candidate_ranks_by_the_posthoc_criteria():
@@ -336,7 +338,8 @@ def test_sweep_proposes_the_best_of_its_candidates(model_path):
     single = ArtWarmStart.load(model_path, reward_scales=(1.0,))
     req = _request(5, chance=True)
     pipeline = GuidancePipeline(provider=sweep)
-    horizon, safety = pipeline._setup(req)
+    transfer = pipeline.transfer(req)
+    horizon, safety = transfer.horizon, transfer.safety
     cvx = solve_cvx(horizon, req.roe0_m, np.linalg.solve(horizon.psi[-1], req.target_rtn))
     res = rollout(sweep.art, safety, np.tile(req.roe0_m, (3, 1)), req.target_rtn,
                   -cvx.cost_mps * np.array(scales), 0.0)
@@ -362,7 +365,8 @@ def test_the_rollouts_suite_scores_what_the_sweep_proposes(model_path):
     sweep = ArtWarmStart.load(model_path, reward_scales=scales)
     for seed in (5, 6, 7):
         req = _request(seed, chance=True)
-        horizon, safety = GuidancePipeline(provider=sweep)._setup(req)
+        transfer = GuidancePipeline(provider=sweep).transfer(req)
+        horizon, safety = transfer.horizon, transfer.safety
         cvx = solve_cvx(horizon, req.roe0_m, np.linalg.solve(horizon.psi[-1], req.target_rtn))
         prop = sweep.propose(req, safety, cvx)
         scores = score_rollouts(sweep.art, safety, req.roe0_m[None], req.target_rtn[None],
@@ -371,3 +375,67 @@ def test_the_rollouts_suite_scores_what_the_sweep_proposes(model_path):
         assert scores.cost_mps[0] == pytest.approx(
             np.linalg.norm(prop.dv_rtn_mps, axis=1).sum(), abs=1e-5)
         assert scores.c_art[0] == prop.constraint_to_go[0]
+
+
+class Carrying:
+    """The provider with what it carries replaced: `warm` None strips the terminal warm start
+    (the pipeline computes it), a pair replaces it; counts the projections of the proposed
+    controls made outside `propose`."""
+
+    def __init__(self, inner, warm="keep") -> None:
+        self.inner, self.sha256, self.warm = inner, inner.sha256, warm
+        self.proposed, self.inside = None, False
+
+    def propose(self, request, safety, cvx, planning=None, deadline=None):
+        self.inside = True
+        try:
+            prop = self.inner.propose(request, safety, cvx, planning, deadline)
+        finally:
+            self.inside = False
+        if self.warm != "keep":
+            dv, roe = self.warm if self.warm is not None else (None, None)
+            prop = dataclasses.replace(prop, warm_start_dv_rtn_mps=dv, warm_start_roe_m=roe)
+        self.proposed = prop.dv_rtn_mps
+        return prop
+
+
+def test_the_proposals_terminal_warm_start_is_made_once(provider, monkeypatch):
+    """The provider's terminal warm start of the candidate it proposes is what the post hoc
+    check judges and where SCVx* from ART starts: neither projects the proposed controls
+    again, and the plans are bit for bit those made when the pipeline computes it itself
+    (stripped) or when the carried one is not one (zeros: refused, computed)."""
+    import art_guidance.optim.scp as scp_module
+    import art_guidance.planning.learned as learned_module
+    import art_guidance.planning.posthoc as posthoc_module
+
+    wrapped = [Carrying(provider)]
+    outside = []
+
+    def counting(original):
+        def project(horizon, roe0_m, roe_f_m, dv_rtn_mps, *args, **kwargs):
+            w = wrapped[0]
+            if not w.inside and w.proposed is not None \
+                    and np.array_equal(np.asarray(dv_rtn_mps, float).reshape(-1, 3),
+                                       np.asarray(w.proposed, float)):
+                outside.append(1)
+            return original(horizon, roe0_m, roe_f_m, dv_rtn_mps, *args, **kwargs)
+        return project
+
+    for module in (scp_module, learned_module, posthoc_module):
+        monkeypatch.setattr(module, "terminal_warm_start",
+                            counting(module.terminal_warm_start))
+    for seed in (3, 11):
+        request = _request(seed, chance=True, warm_start="art")
+        plans = {}
+        for name, warm in (("carried", "keep"), ("stripped", None),
+                           ("zeros", (np.zeros((100, 3)), np.zeros((100, 6))))):
+            wrapped[0] = Carrying(provider, warm)
+            outside.clear()
+            plans[name] = GuidancePipeline(provider=wrapped[0]).plan(request)
+            assert plans[name].proposal is not None, plans[name].warm_start_reason
+            assert len(outside) == (0 if name == "carried" else 1), name
+        for name in ("stripped", "zeros"):
+            a, b = plans["carried"], plans[name]
+            assert np.array_equal(a.dv_rtn_mps, b.dv_rtn_mps) and a.cost_mps == b.cost_mps
+            assert a.posthoc == b.posthoc and a.warm_start_reason == b.warm_start_reason
+            assert a.scp.iterations == b.scp.iterations

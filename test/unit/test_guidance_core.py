@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from art_guidance.config import ScenarioConfig
+from art_guidance.deadline import Deadline
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, NavState, Target
@@ -117,9 +118,5 @@ def test_replan_budget_keeps_the_recent_recording_time_out_of_planning(pipeline)
     core.on_nav(_nav(1), 0)
     job = core.take_job(wait=False)
     budget.add_post_solve_s(0.15)
-    pipeline.deadline_s = budget.planning_s(0.3)
-    try:
-        solved = core.solve(job)
-    finally:
-        pipeline.deadline_s = None
+    solved = core.solve(job, Deadline.after(budget.planning_s(0.3)))
     assert solved.result.timings_ms["total"] <= 1e3 * 0.15 + 100.0

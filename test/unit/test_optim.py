@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from art_guidance.deadline import Deadline
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import Horizon, time_grid_s
@@ -119,7 +120,7 @@ def test_deadline_returns_timeout(setup):
     scenario, horizon, safety = setup
     x0, xf = _boundary(scenario, horizon, 2)
     cvx = solve_cvx(horizon, x0, xf)
-    res = Scvx(safety["cc"], x0, xf).solve(cvx.dv_rtn_mps, deadline_s=0.0)
+    res = Scvx(safety["cc"], x0, xf).solve(cvx.dv_rtn_mps, deadline=Deadline.after(0.0))
     assert res.status is ScpStatus.TIMEOUT
     assert res.iterations == 0
     assert np.all(np.isfinite(res.dv_rtn_mps))

@@ -13,9 +13,11 @@ from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import ConfigError
 from art_guidance.optim import ScpStatus
 from art_guidance.planning import (
-    GuidancePipeline, PlanRequest, PosthocThresholds, posthoc_check,
+    GuidancePipeline, PlanRequest, PosthocThresholds, WarmStartSource, posthoc_check,
 )
 from art_guidance.planning.pipeline import keep_first_plan
+
+ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 
 
 class ScaledCvx:
@@ -25,7 +27,7 @@ class ScaledCvx:
         self.factor = factor
         self.calls = 0
 
-    def propose(self, request, safety, cvx):
+    def propose(self, request, safety, cvx, planning=None, deadline=None):
         self.calls += 1
         return cvx.dv_rtn_mps * self.factor
 
@@ -69,7 +71,7 @@ def test_rejected_rollout_falls_back_to_cvx(request_0):
     assert provider.calls == 1
     assert result.posthoc is not None and not result.posthoc.accepted
     assert result.posthoc.e_r == pytest.approx(-0.5)
-    assert result.warm_start == "cvx"
+    assert result.warm_start is CVX
     assert result.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS)
 
 
@@ -77,7 +79,7 @@ def test_accepted_rollout_warm_starts_scp(request_0):
     scenario, req = request_0
     wide = PosthocThresholds(e_r_pct_min=-100.0, e_r_pct_max=100.0, e_c_max=1000.0)
     result = GuidancePipeline(_config(scenario, wide), provider=ScaledCvx(1.01)).plan(req)
-    assert result.posthoc.accepted and result.warm_start == "art"
+    assert result.posthoc.accepted and result.warm_start is ART
     assert result.scp.feasible
     assert np.abs(result.rtn[-1, :3] - req.target_rtn[:3]).max() < 100.0  # pre-burn, near it
 
@@ -86,11 +88,11 @@ def test_forced_art_uses_the_rollout_even_if_rejected(request_0):
     scenario, req = request_0
     forced = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start="art")
     result = GuidancePipeline(_config(scenario), provider=ScaledCvx(0.5)).plan(forced)
-    assert not result.posthoc.accepted and result.warm_start == "art"
+    assert not result.posthoc.accepted and result.warm_start is ART
     cvx_only = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start="cvx")
     provider = ScaledCvx(1.0)
     pipeline = GuidancePipeline(_config(scenario), provider=provider)
-    assert pipeline.plan(cvx_only).warm_start == "cvx"
+    assert pipeline.plan(cvx_only).warm_start is CVX
     assert provider.calls == 0
 
 
@@ -98,20 +100,21 @@ def test_broken_provider_output_falls_back_to_cvx(request_0):
     scenario, req = request_0
 
     class Broken:
-        def propose(self, request, safety, cvx):
+        def propose(self, request, safety, cvx, planning=None, deadline=None):
             return np.full((safety.n_nodes, 3), np.nan)
 
     for warm_start in ("auto", "art"):
         forced = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start)
         result = GuidancePipeline(_config(scenario), provider=Broken()).plan(forced)
-        assert result.warm_start == "cvx" and not result.posthoc.accepted
+        assert result.warm_start is CVX and not result.posthoc.accepted
         assert result.scp.feasible
 
 
 def test_posthoc_check_on_an_unsafe_rollout(request_0):
     scenario, req = request_0
     pipeline = GuidancePipeline(_config(scenario))
-    horizon, safety = pipeline._setup(req)
+    transfer = pipeline.transfer(req)
+    horizon, safety = transfer.horizon, transfer.safety
     dv = np.zeros((horizon.n_nodes, 3))
     roe = horizon.propagate(req.roe0_m, dv)
     decision = posthoc_check(dv, roe, 1.0, safety, PosthocThresholds())
@@ -124,22 +127,21 @@ def _run(feasible: bool, cost_mps: float, violation: float = 0.0):
     return types.SimpleNamespace(feasible=feasible, cost_mps=cost_mps, max_violation=violation)
 
 
-@pytest.mark.parametrize("source", ["art", "cvx"])
+@pytest.mark.parametrize("source", [ART, CVX])
 def test_art_plan_is_flown_only_when_cheaper_by_the_margin(source):
     """`art_min_gain_mps`: both plans feasible, the ART-warm-started one is kept only when it is
     cheaper than the CVX-warm-started one by more than the margin, whichever ran first; an
     infeasible plan never beats a feasible one, and 0 keeps the cheaper (ties: CVX)."""
     def kept(art, cvx, margin):
-        first, second = (art, cvx) if source == "art" else (cvx, art)
-        return source if keep_first_plan(first, second, source, margin) else \
-            ("cvx" if source == "art" else "art")
-    assert kept(_run(True, 1.000), _run(True, 1.0005), 0.001) == "cvx"
-    assert kept(_run(True, 1.000), _run(True, 1.0015), 0.001) == "art"
-    assert kept(_run(True, 1.000), _run(True, 1.0005), 0.0) == "art"
-    assert kept(_run(True, 1.000), _run(True, 1.000), 0.0) == "cvx"
-    assert kept(_run(True, 1.2), _run(False, 1.0, 0.5), 0.001) == "art"
-    assert kept(_run(False, 0.9, 0.5), _run(True, 1.0), 0.001) == "cvx"
-    assert kept(_run(False, 0.9, 0.1), _run(False, 1.0, 0.5), 0.001) == "art"
+        first, second = (art, cvx) if source is ART else (cvx, art)
+        return source if keep_first_plan(first, second, source, margin) else source.other
+    assert kept(_run(True, 1.000), _run(True, 1.0005), 0.001) == CVX
+    assert kept(_run(True, 1.000), _run(True, 1.0015), 0.001) == ART
+    assert kept(_run(True, 1.000), _run(True, 1.0005), 0.0) == ART
+    assert kept(_run(True, 1.000), _run(True, 1.000), 0.0) == CVX
+    assert kept(_run(True, 1.2), _run(False, 1.0, 0.5), 0.001) == ART
+    assert kept(_run(False, 0.9, 0.5), _run(True, 1.0), 0.001) == CVX
+    assert kept(_run(False, 0.9, 0.1), _run(False, 1.0, 0.5), 0.001) == ART
 
 
 @pytest.mark.parametrize("skip", [True, False])
@@ -154,12 +156,12 @@ def test_art_is_not_run_when_cvx_is_already_passively_safe(request_0, skip):
     cfg = cfg.replace(planning=dataclasses.replace(cfg.planning, skip_art_when_cvx_safe=skip))
     provider = ScaledCvx(1.0)
     result = GuidancePipeline(cfg, provider=provider).plan(req)
-    assert result.scp.feasible and result.warm_start == "cvx"
+    assert result.scp.feasible and result.warm_start is CVX
     if skip:
         assert provider.calls == 0 and result.posthoc is None
         assert "CVX is passively safe" in result.warm_start_reason, result.warm_start_reason
     else:
         assert provider.calls == 1 and result.posthoc is not None
     forced = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start="art")
-    assert GuidancePipeline(cfg, provider=provider).plan(forced).warm_start == "art"
+    assert GuidancePipeline(cfg, provider=provider).plan(forced).warm_start is ART
     assert provider.calls == (1 if skip else 2)

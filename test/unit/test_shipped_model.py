@@ -75,7 +75,8 @@ def test_rollouts_are_more_passively_safe_than_cvx(name):
     provider = ArtWarmStart.load(models_dir() / name)
     pipeline = GuidancePipeline(GuidanceConfig.load())
     requests = heldout_requests(100, name)
-    horizon, safety = pipeline._setup(requests[0])
+    transfer = pipeline.transfer(requests[0])
+    horizon, safety = transfer.horizon, transfer.safety
     c_cvx, j_cvx = [], []
     for req in requests:
         roe_f = np.linalg.solve(horizon.psi[-1], req.target_rtn)

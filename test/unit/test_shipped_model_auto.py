@@ -7,8 +7,10 @@ import pytest
 
 from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart, default_model_path
 from art_guidance.config import GuidanceConfig
-from art_guidance.planning import GuidancePipeline
+from art_guidance.planning import GuidancePipeline, WarmStartSource
 from helpers.shipped import heldout_requests
+
+ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 
 FLOOR_MPS = 0.010  # the paper's post hoc floor: auto never worse than CVX by more than this
 # measured on these 50 scenarios, with the post hoc check on the terminal warm start: chance 2
@@ -127,7 +129,7 @@ def test_also_solving_rejected_proposals_is_never_worse(mode):
         a, b = always.plan(req), region_only.plan(req)
         if a.status.feasible and b.status.feasible:
             assert a.cost_mps <= b.cost_mps + 1e-12, (a.warm_start_reason, b.warm_start_reason)
-        rejected = b.posthoc is not None and not b.posthoc.accepted and b.warm_start == "cvx"
+        rejected = b.posthoc is not None and not b.posthoc.accepted and b.warm_start is CVX
         if rejected and b.discarded is None and b.scp.status.name == "CONVERGED":
             assert "also solved from ART" in a.warm_start_reason, a.warm_start_reason
             second += 1

@@ -1,0 +1,155 @@
+"""The learned warm-start step of a plan: ask the provider, validate, check post hoc, decide.
+
+`learned_warm_start` is the whole step: the pipeline calls it in line, and its proposal worker
+process (`planning.proposal_process`) calls the same function on another core, so the decision
+(`Learned`: the warm start SCVx* starts from, and why in words) is the same bit for bit
+wherever it is made. It never raises for model trouble: a provider that fails, answers with
+something that is not a finite (N, 3) control sequence, or runs out of time leaves the plan to
+CVX, and the reason says so.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from art_guidance.checks import as_finite_array
+from art_guidance.config import PlanningConfig
+from art_guidance.deadline import Deadline
+from art_guidance.errors import InputError
+from art_guidance.optim import ConvexSolution, terminal_warm_start
+from art_guidance.optim.scp import TERMINAL_TOL_M
+from art_guidance.planning.posthoc import check_proposal
+from art_guidance.planning.transfer import Transfer
+from art_guidance.planning.types import (
+    PosthocDecision, WarmStart, WarmStartProposal, WarmStartProvider, WarmStartSource,
+)
+from art_guidance.safety import PassiveSafety
+
+ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
+DEADLINE_REASON = "the plan's deadline (solve_deadline_s) passed"
+# The decision's reason when `skip_art_when_cvx_safe` left ART out.
+CVX_SAFE_REASON = ("CVX is passively safe (C_CVX(t_1) = 0), so SCVx* from it is the plan: ART "
+                   "not run, CVX warm start")
+
+
+@dataclass(frozen=True)
+class Learned:
+    """What the learned warm-start step decided.
+
+    Attributes:
+        source: the warm start SCVx* starts from.
+        reason: why, in words.
+        posthoc: the post hoc decision (None: the check was not run).
+        proposal: the provider's proposal as it came (None: none was made).
+        dv: (N, 3) the validated proposed controls [m/s] (None: no valid proposal).
+        warm_start: their terminal warm start ((N, 3) controls [m/s], (N, 6) states [m]) if
+            it was made (by the provider or the check): SCVx* from ART starts there.
+    """
+
+    source: WarmStartSource
+    reason: str
+    posthoc: PosthocDecision | None = None
+    proposal: WarmStartProposal | None = None
+    dv: np.ndarray | None = None
+    warm_start: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
+                       cvx: ConvexSolution, planning: PlanningConfig,
+                       deadline: Deadline | None = None, cvx_unsafe: bool = False) -> Learned:
+    """Ask `provider` for a learned warm start of `transfer` and check it post hoc under
+    `planning` (its region, its `posthoc_subject`, `skip_art_when_cvx_safe`).
+
+    Args:
+        provider: the learned model, or None (CVX only).
+        transfer: the plan's problem.
+        cvx: the plan's CVX solution (the post hoc reference, R_des = -J_CVX).
+        planning: the planning options the candidates are ranked and checked by.
+        deadline: the plan's deadline, or None.
+        cvx_unsafe: the caller found the CVX plan not passively safe already (it is not
+            evaluated again).
+    """
+    request, safety = transfer.request, transfer.safety
+    if request.warm_start == WarmStart.CVX.value:
+        return Learned(CVX, "CVX warm start requested")
+    if provider is None:
+        return Learned(CVX, f"{request.warm_start} requested but no learned model is "
+                       "loaded: CVX warm start")
+    if not cvx.status.feasible:
+        return Learned(CVX, f"CVX ended {cvx.status.name}: no reference for the post hoc "
+                       "check, CVX warm start")
+    if request.warm_start == WarmStart.AUTO.value and not cvx_unsafe \
+            and planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety):
+        return Learned(CVX, CVX_SAFE_REASON)
+    t0 = time.perf_counter()
+    if deadline is not None and deadline.passed():
+        return Learned(CVX, f"{DEADLINE_REASON} before ART: CVX warm start")
+    try:
+        proposal = provider.propose(request, safety, cvx, planning=planning, deadline=deadline)
+    except Exception as exc:  # a model never takes the plan down
+        return Learned(CVX, f"ART not run ({error_text(exc)}): CVX warm start")
+    if not isinstance(proposal, WarmStartProposal):
+        proposal = WarmStartProposal(proposal, rollout_ms=1e3 * (time.perf_counter() - t0))
+    try:
+        dv = as_finite_array("ART warm start", proposal.dv_rtn_mps,
+                             (transfer.horizon.n_nodes, 3))
+    except InputError as exc:  # a broken model output is rejected, never flown
+        return Learned(CVX, f"ART output rejected ({error_text(exc)}): CVX warm start",
+                       PosthocDecision(float("nan"), float("nan"), False), proposal)
+    warm = carried_warm_start(transfer, proposal)
+    if warm is None and planning.posthoc_subject == "warm_start":  # the check judges it
+        warm = terminal_warm_start(transfer.horizon, request.roe0_m, transfer.roe_f_m, dv)
+    posthoc = check_proposal(dv, request.roe0_m, transfer.roe_f_m, cvx.cost_mps, safety,
+                             planning, warm)
+    if posthoc.accepted:
+        return Learned(ART, f"ART accepted by the post hoc check ({posthoc.text()})",
+                       posthoc, proposal, dv, warm)
+    if request.warm_start == WarmStart.ART.value:
+        return Learned(ART, f"ART forced although the post hoc check rejects it "
+                       f"({posthoc.text()})", posthoc, proposal, dv, warm)
+    return Learned(CVX, f"ART rejected by the post hoc check ({posthoc.text()}): CVX "
+                   "warm start", posthoc, proposal, dv, warm)
+
+
+def carried_warm_start(transfer: Transfer, proposal: WarmStartProposal
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The terminal warm start a proposal carries ((N, 3) controls [m/s], (N, 6) states [m]),
+    if it is one: finite, of the transfer's shape, its states those of its controls under the
+    deputy-aware model, meeting the terminal condition (TERMINAL_TOL_M); else None (the caller
+    computes it). One propagation, against the Gauss-Newton of `terminal_warm_start`."""
+    if proposal.warm_start_dv_rtn_mps is None or proposal.warm_start_roe_m is None:
+        return None
+    horizon, n = transfer.horizon, transfer.horizon.n_nodes
+    try:
+        dv = as_finite_array("terminal warm start", proposal.warm_start_dv_rtn_mps, (n, 3))
+        roe = as_finite_array("terminal warm start states", proposal.warm_start_roe_m, (n, 6))
+    except InputError:
+        return None
+    if not np.array_equal(horizon.propagate_nonlinear(transfer.request.roe0_m, dv), roe):
+        return None
+    miss = horizon.final_post_burn_nonlinear(roe, dv) - transfer.roe_f_m
+    return (dv, roe) if float(np.abs(miss).max()) <= TERMINAL_TOL_M else None
+
+
+def timed_learned_warm_start(*args: object, **kwargs: object) -> tuple[Learned, float]:
+    """`learned_warm_start` and its wall time [ms]."""
+    t = time.perf_counter()
+    learned = learned_warm_start(*args, **kwargs)
+    return learned, 1e3 * (time.perf_counter() - t)
+
+
+def cvx_is_safe(cvx: ConvexSolution, safety: PassiveSafety) -> bool:
+    """Whether the CVX plan already satisfies the passive-safety constraint at every node
+    (C_CVX(t_1) = 0). CVX is the problem without that constraint, so SCVx* from it keeps it
+    (one iteration) and no warm start can do better: on 96 such held-out scenarios of the
+    warm-start analysis `auto` with ART gained nothing; in the closed loop 55-58 % of the
+    replans are such, and ART's proposal there only adds latency (`skip_art_when_cvx_safe`)."""
+    return int(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0]) == 0
+
+
+def error_text(exc: BaseException) -> str:
+    """An exception in one short line: its type and the first line of its message."""
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    return f"{type(exc).__name__}: {text[:200]}"

@@ -1,0 +1,74 @@
+"""One transfer problem for every stage of a plan: the request, its horizon, its passive-safety
+model and its terminal condition.
+
+CVX, the learned proposal, the post hoc check and SCVx* all solve the `Transfer` that
+`Transfers.get` builds for a request; the horizon and the passive-safety model are cached (their
+set-up costs milliseconds and a replan over the same chief and window needs the same ones), so
+the pipeline and the proposal worker process, each with its own `Transfers`, build the same
+problem from the same request.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from art_guidance.config import ScenarioConfig, UncertaintyConfig
+from art_guidance.dynamics import Horizon, time_grid_s
+from art_guidance.planning.types import PlanRequest
+from art_guidance.safety import PassiveSafety
+
+CACHE_SIZE = 8  # transfers kept; the cache is emptied when it holds more
+
+
+@dataclass(frozen=True)
+class Transfer:
+    """The problem of one plan.
+
+    Attributes:
+        request: what is planned.
+        horizon: its time grid, dynamics and frames.
+        safety: its passive-safety model (deterministic or chance-constrained).
+        roe_f_m: (6,) terminal post-burn a-scaled ROE [m] (the request's RTN target mapped
+            through the horizon's last Psi).
+    """
+
+    request: PlanRequest
+    horizon: Horizon
+    safety: PassiveSafety
+    roe_f_m: np.ndarray
+
+
+class Transfers:
+    """Builds the `Transfer` of a request under a scenario and an uncertainty model, keeping
+    the last few horizons and passive-safety models."""
+
+    def __init__(self, scenario: ScenarioConfig, uncertainty: UncertaintyConfig) -> None:
+        self.scenario = scenario
+        self.uncertainty = uncertainty
+        self._cache: dict[tuple, tuple[Horizon, PassiveSafety]] = {}
+
+    def get(self, request: PlanRequest) -> Transfer:
+        """The transfer problem of `request` (its horizon and safety model cached)."""
+        horizon, safety = self._models(request)
+        roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
+        return Transfer(request, horizon, safety, roe_f)
+
+    def _models(self, request: PlanRequest) -> tuple[Horizon, PassiveSafety]:
+        n_nodes = int(request.n_nodes or self.scenario.n_nodes)
+        n_orbits = float(request.n_orbits or self.scenario.n_orbits)
+        switch = self.scenario.ae_to_koz_node
+        if request.koz_switch_node is not None:
+            switch = int(min(request.koz_switch_node, n_nodes))
+        # the exact elements (rounding a huge finite angle overflowed: 1e300 and 2e300 met)
+        key = (tuple(request.chief_oe.tolist()), n_nodes, n_orbits, switch,
+               request.chance_constrained)
+        if key not in self._cache:
+            if len(self._cache) > CACHE_SIZE:
+                self._cache.clear()
+            horizon = Horizon.build(request.chief_oe,
+                                    time_grid_s(request.chief_oe[0], n_orbits, n_nodes))
+            unc = self.uncertainty if request.chance_constrained else None
+            self._cache[key] = (horizon, PassiveSafety(horizon, self.scenario, unc,
+                                                       koz_switch_node=switch))
+        return self._cache[key]

@@ -1,0 +1,112 @@
+"""The guidance node's recording: every solve to MCAP, with the messages it came from.
+
+`SolveRecording` resolves the recorded topics (namespace and remapping applied, from the names:
+it works before the endpoints exist, as in a lifecycle node's configure), opens the
+`record.McapRecorder` with the run's metadata (configuration, versions, model, parameters) and
+writes each solve: the fix, the replan request once (a request played back would reset a live
+node's plan each time), the solve record, the plan and its visualisation, fsync'ed before the
+plan is published.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+from art_guidance import topics
+from art_guidance.planning import GuidancePipeline, PlanResult
+from art_guidance.planning.guidance import Job
+from art_guidance.record.recorder import (
+    NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE, McapRecorder, check_cap,
+    check_record_dir, default_log_dir,
+)
+from art_guidance.ros.adapters import solve_record_msg, stamp_to_ns
+from art_guidance.ros.node_outputs import VIZ_TYPE_NAMES, VIZ_TYPES
+from art_guidance.ros.parameters import NodeParameters
+
+
+class SolveRecording:
+    """What the node records, and the recorder (None when `record` is off).
+
+    Args:
+        resolve: the node's `resolve_topic_name`.
+        params: the node's parameters (`record*`, `visualization`; recorded).
+        pipeline: the planner (its configuration is recorded).
+        provider: the learned warm start, or None.
+        model_status: the model in words (recorded).
+        log: the node's logger.
+
+    Raises:
+        GuidanceError: a record directory or size cap that cannot be used.
+    """
+
+    def __init__(self, resolve: Callable[[str], str], params: NodeParameters,
+                 pipeline: GuidancePipeline, provider: Any, model_status: str,
+                 log: Any) -> None:
+        # message type -> resolved topic; the solve record is recorded only, under the node's
+        # own namespace
+        self.topics = {NAV_TYPE: resolve(topics.NAV), REQUEST_TYPE: resolve(topics.REPLAN_REQUEST),
+                       SOLVE_RECORD_TYPE: resolve(topics.SOLVE_RECORD),
+                       PLAN_TYPE: resolve(topics.MANEUVER_PLAN)}
+        self.viz_topics = ({topic: resolve(topic) for topic in VIZ_TYPES}
+                           if params.visualization else {})
+        self.model_load_ms = provider.load_ms if provider is not None else 0.0
+        self._recorded_request: Any = None  # the last request written (worker thread only)
+        self.recorder: McapRecorder | None = None
+        if not params.record:
+            return
+        check_cap(params.record_max_total_bytes, params.record_max_bytes)
+        directory = check_record_dir(params.record_dir or str(default_log_dir()))
+        meta = {"config": pipeline.config_json(), "versions": versions(),
+                "model_checksum": provider.sha256 if provider else "none",
+                "model": model_status, "parameters": params.as_dict()}
+        log.info(f"recording every solve to {directory}")
+        recorded = {t: msg_type for msg_type, t in self.topics.items()}
+        recorded.update({self.viz_topics[t]: VIZ_TYPE_NAMES[t] for t in self.viz_topics})
+        self.recorder = McapRecorder(directory, meta, max_bytes=params.record_max_bytes,
+                                     topics=recorded,
+                                     max_total_bytes=params.record_max_total_bytes)
+
+    def record(self, job: Job, result: PlanResult, plan_id: str, plan_msg: Any,
+               views: list[tuple[str, object]]) -> bool:
+        """Write one solve (True: written or not recording; False: see the recorder's
+        `last_error`)."""
+        if self.recorder is None:
+            return True
+        topic, request = self.topics, job.request_payload
+        msgs = [(topic[NAV_TYPE], job.nav_payload)]
+        # each request once (same stamp and content = same request): played back, every copy
+        # would reset a live node's plan; the solve record links to it by stamp
+        new_request = request is not None and request != self._recorded_request
+        if new_request:
+            msgs.append((topic[REQUEST_TYPE], request))
+        request_ns = 0 if request is None else stamp_to_ns(request.header.stamp)
+        msgs += [(topic[SOLVE_RECORD_TYPE], solve_record_msg(
+                     result, job.nav.stamp_ns, plan_id, job.trigger, request_ns,
+                     self.model_load_ms)),
+                 (topic[PLAN_TYPE], plan_msg)]
+        msgs += [(self.viz_topics[t], msg) for t, msg in views]
+        if not self.recorder.record_solve(msgs, time.time_ns()):
+            return False
+        if new_request:
+            self._recorded_request = request
+        return True
+
+    def finish(self, log: Any) -> None:
+        """Finish the recording (idempotent), saying where it went."""
+        if self.recorder is not None:
+            self.recorder.finish()
+            log.info(f"recorded {self.recorder.solves} solves to {self.recorder.directory}")
+
+
+def versions() -> dict:
+    """The versions of the packages a recorded run depends on ("absent" if not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for pkg in ("art_guidance", "clarabel", "osqp", "numpy", "scipy", "mcap",
+                "mcap-ros2-support", "torch", "rclpy"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = "absent"
+    return out

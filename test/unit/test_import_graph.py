@@ -1,0 +1,104 @@
+"""The package's modules import each other without a circle.
+
+The graph is read from the source (`ast`), every `import` and `from ... import` in a module,
+at its top or inside a function (a deferred import closes a circle as surely, only later). An
+edge goes from a module to the module it names (`from a.b import c` names `a.b.c` when that is
+a module, else `a.b`); the implicit import of a module's parent packages is no edge (a package
+that re-exports its modules is not a circle).
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import art_guidance
+
+PACKAGE = Path(art_guidance.__file__).resolve().parent
+ROOT = PACKAGE.name
+
+
+def module_names() -> dict[str, Path]:
+    """Dotted module name -> its file, for every module of the package."""
+    out = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = (ROOT, *path.relative_to(PACKAGE).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def imported(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
+    """The package's modules that module `name` (file `path`) imports."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                base = f"{anchor}.{base}" if base else anchor
+            targets = [f"{base}.{alias.name}" if f"{base}.{alias.name}" in modules else base
+                       for alias in node.names]
+        else:
+            continue
+        out.update(t for t in targets if t in modules and t != name)
+    return out
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the package's modules it imports."""
+    modules = module_names()
+    return {name: imported(name, path, modules) for name, path in modules.items()}
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_the_graph_sees_the_known_imports():
+    graph = import_graph()
+    assert "art_guidance.planning.types" in graph["art_guidance.planning.pipeline"]
+    assert "art_guidance.optim.scp" in graph["art_guidance.optim"]
+
+
+def test_a_circle_is_found():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert circles(graph) == [["a", "b", "c"]]
+
+
+def test_no_module_of_the_package_imports_itself_through_others():
+    assert circles(import_graph()) == []
