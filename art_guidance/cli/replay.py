@@ -11,6 +11,8 @@ def run(args: argparse.Namespace) -> int:
 
     report = replay(args.log, args.model)
     print(f"model: {report['model']}")
+    if report["config_check"] != "ok":
+        print(f"CONFIGURATION: {report['config_check']}")
     if args.json:
         write_json_atomic(args.json, report)
     for row in report["per_solve"]:

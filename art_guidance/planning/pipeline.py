@@ -12,6 +12,8 @@ Every plan says in words which warm start it used and why (`PlanResult.warm_star
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import time
 
 import numpy as np
@@ -64,10 +66,12 @@ class GuidancePipeline:
         self._transfers = Transfers(self.scenario, self.uncertainty)
 
     def config_json(self) -> dict:
-        """The configuration this pipeline plans with (recorded with every run)."""
-        return {**self.config.to_json(), "deadline_s": self.deadline_s,
+        """The configuration this pipeline plans with (recorded with every run), sealed by
+        `record_sha256` (`config_json_sha256`: the recording keeps it outside any CRC)."""
+        data = {**self.config.to_json(), "deadline_s": self.deadline_s,
                 "config_sha256": self.config.sha256(),
                 "scp_subproblem": dataclasses.asdict(self.subproblem)}
+        return {**data, "record_sha256": config_json_sha256(data)}
 
     @classmethod
     def from_config_json(cls, data: dict, provider: WarmStartProvider | None = None,
@@ -250,6 +254,36 @@ class GuidancePipeline:
         concurrent proposal starts it again)."""
         if self._worker is not None:
             self._worker.close()
+
+
+_RECORD_EXTRAS = ("deadline_s", "config_sha256", "scp_subproblem", "record_sha256")
+
+
+def _canonical_sha256(data: dict) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
+def config_json_sha256(data: dict) -> str:
+    """Fingerprint of a recorded configuration (`GuidancePipeline.config_json`): the sha256 of
+    its canonical JSON without the `record_sha256` entry itself."""
+    return _canonical_sha256({k: v for k, v in data.items() if k != "record_sha256"})
+
+
+def recorded_config_problem(data: dict) -> str:
+    """Why a recorded configuration cannot be trusted ("" = it can): its `record_sha256` does
+    not match its content, or, in a record from before that seal, the configuration bundle as
+    recorded does not match its `config_sha256` (`GuidanceConfig.sha256`, computed on the
+    bundle as it was written, so a field added since does not count as a change)."""
+    sealed, bundle = data.get("record_sha256"), data.get("config_sha256")
+    if sealed is not None:
+        ok, name = sealed == config_json_sha256(data), "record_sha256"
+    elif bundle is not None:
+        recorded = {k: v for k, v in data.items() if k not in _RECORD_EXTRAS}
+        ok, name = bundle == _canonical_sha256(recorded), "config_sha256"
+    else:
+        return ""
+    return "" if ok else (f"the recorded configuration does not match its {name}: it was "
+                          "altered after recording")
 
 
 def second_run(first: ScpResult, source: WarmStartSource, other_exists: bool,

@@ -23,6 +23,7 @@ from mcap_ros2.decoder import DecoderFactory
 from art_guidance.config import mode_name
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, PlanRequest
+from art_guidance.planning.pipeline import recorded_config_problem
 from art_guidance.record.bag_metadata import bag_files
 from art_guidance.record.loss import account
 from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE
@@ -267,8 +268,10 @@ def replay(path: str | Path, model: str | Path | None = None) -> dict:
 
     The report also says what could not be read (`damaged`, `truncated`: torn ends), what was
     lost against metadata.yaml (`lost`), which records or plans lack their partner
-    (`unmatched`), `advice`, and `exit_code`: EXIT_MISMATCH if a compared solve differs, else
-    EXIT_LOST if anything was lost or damaged, else EXIT_OK.
+    (`unmatched`), `advice`, `config_check` ("ok", or why the recorded configuration cannot be
+    trusted: its seal does not match, `planning.pipeline.recorded_config_problem`) and
+    `exit_code`: EXIT_MISMATCH if a compared solve differs or the configuration was altered,
+    else EXIT_LOST if anything was lost or damaged, else EXIT_OK.
 
     Args:
         path: an .mcap file or a bag folder.
@@ -280,9 +283,15 @@ def replay(path: str | Path, model: str | Path | None = None) -> dict:
         raise InputError("log", "no art_guidance configuration in the MCAP metadata", str(path))
     provider, model_note = _replay_provider(log, model)
     same_model = provider is None or provider.sha256 == log.metadata.get("model_checksum")
-    # replays are not time-boxed; timed-out solves are flagged
-    pipeline = GuidancePipeline.from_config_json(json.loads(log.metadata["config"]),
-                                                 provider, time_boxed=False)
+    try:
+        recorded = json.loads(log.metadata["config"])
+    except ValueError as exc:
+        raise InputError("config", f"recorded configuration is not JSON: {exc}") from exc
+    config_problem = recorded_config_problem(recorded) if isinstance(recorded, dict) else \
+        "the recorded configuration is not a JSON object"
+    # the pipeline as recorded: configuration, ranking of the candidates, model; replays are
+    # not time-boxed (timed-out solves are flagged)
+    pipeline = GuidancePipeline.from_config_json(recorded, provider, time_boxed=False)
     rows = []
     for record, plan in log.solves():
         cost, dv = _plan_arrays(plan)
@@ -311,8 +320,9 @@ def replay(path: str | Path, model: str | Path | None = None) -> dict:
     mismatched = sum(not r["match"] for r in compared)
     return {"log": str(path), "solves": len(rows), "compared": len(compared),
             "matched": sum(r["match"] for r in compared), "mismatched": mismatched,
-            "exit_code": (EXIT_MISMATCH if mismatched else
+            "exit_code": (EXIT_MISMATCH if mismatched or config_problem else
                           EXIT_LOST if log.data_lost else EXIT_OK),
+            "config_check": config_problem or "ok",
             "model": model_note, "model_checksum": log.metadata.get("model_checksum", "none"),
             "truncated": log.truncated,
             "damaged": [d.as_dict() for d in log.damaged],

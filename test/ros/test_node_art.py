@@ -3,12 +3,15 @@ leaves the node planning from CVX (one warning, a diagnostic, plans that say so)
 model's rollouts go through the post hoc check, are recorded, and the log replays."""
 from __future__ import annotations
 
+import json
 import math
+import shutil
 import subprocess
 from contextlib import contextmanager
 
 import numpy as np
 import pytest
+import yaml
 
 pytest.importorskip("rclpy")
 from art_guidance_msgs.msg import ManeuverPlan  # noqa: E402
@@ -143,3 +146,52 @@ def test_an_equatorial_chief_is_refused_and_planning_goes_on(ros_env, python_exe
     assert proc.returncode == 0
     out = proc.stdout.read()
     assert "Traceback" not in out, out[-3000:]
+
+
+def test_a_non_default_planning_yaml_replays_as_flown(ros_env, python_exe, tmp_path):
+    """Replay rebuilds the pipeline from what the bag recorded: a planning.yaml that judges
+    the candidates on the rollout itself (`posthoc_subject: rollout`), with a wider post hoc
+    region and `art_min_gain_mps: 0`, changes which candidate is proposed and whether it is
+    accepted; the replay ranks them the same way and every solve matches. The recorded
+    configuration is sealed: a bag whose configuration was altered afterwards is reported
+    (`config_check`) and replay exits 1."""
+    from mcap.records import Metadata
+
+    from art_guidance.config import default_config_dir
+    from art_guidance.record.reindex import rebuild
+    from art_guidance.record.replay import EXIT_MISMATCH, EXIT_OK
+    from art_guidance.record.scan import scan_file
+
+    config = tmp_path / "config"
+    shutil.copytree(default_config_dir(), config)
+    planning = yaml.safe_load((config / "planning.yaml").read_text())
+    planning.update(posthoc_subject="rollout", art_min_gain_mps=0.0)
+    planning["posthoc"] = {**planning["posthoc"], "e_r_pct_max": 50.0, "e_c_max": 20.0}
+    (config / "planning.yaml").write_text(yaml.safe_dump(planning))
+    model, bag = tmp_path / "model.pt", tmp_path / "bag"
+    write_untrained_checkpoint(model)
+    with _node(ros_env, python_exe, "nondefault", f"model_path:={model}", f"record_dir:={bag}",
+               f"config_dir:={config}", "replan_sigma_threshold:=1e-9",
+               "propose_concurrently:=false") as (proc, client):
+        for offset in (0.0, 300.0, 600.0):
+            stamp, decision = client.send_nav(NOMINAL_RTN + [0.0, offset, 0, 0, 0, 0])
+            assert decision == "replanning"
+            assert client.plan_for(stamp, 60.0) is not None
+    report = replay(bag, model)
+    assert report["config_check"] == "ok" and report["exit_code"] == EXIT_OK, report
+    assert report["compared"] == 3 and report["matched"] == 3, report
+    path = bag / "guidance_0.mcap"
+    scan = scan_file(path)
+    altered = []
+    for record in scan.metadata:
+        values = dict(record.metadata)
+        if "config" in values:
+            data = json.loads(values["config"])
+            data["planning"]["art_min_gain_mps"] = 0.5
+            values["config"] = json.dumps(data)
+        altered.append(Metadata(name=record.name, metadata=values))
+    scan.metadata = altered
+    rebuild(path, scan)
+    report = replay(bag, model)
+    assert "altered after recording" in report["config_check"], report["config_check"]
+    assert report["exit_code"] == EXIT_MISMATCH

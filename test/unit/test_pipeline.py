@@ -165,3 +165,22 @@ def test_art_is_not_run_when_cvx_is_already_passively_safe(request_0, skip):
     forced = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start="art")
     assert GuidancePipeline(cfg, provider=provider).plan(forced).warm_start is ART
     assert provider.calls == (1 if skip else 2)
+
+
+def test_the_recorded_configuration_is_sealed():
+    """`config_json` carries `record_sha256` over everything else it records; a record from
+    before that seal is checked by its `config_sha256` over the bundle as recorded."""
+    import json
+
+    from art_guidance.planning.pipeline import recorded_config_problem
+
+    data = json.loads(json.dumps(GuidancePipeline().config_json()))  # as the bag holds it
+    assert recorded_config_problem(data) == ""
+    for key, value in (("deadline_s", 9.0), ("scp_subproblem", {})):
+        assert "record_sha256" in recorded_config_problem({**data, key: value})
+    old = {k: v for k, v in data.items() if k != "record_sha256"}
+    assert recorded_config_problem(old) == ""
+    old["planning"] = {**old["planning"], "art_min_gain_mps": 0.5}
+    assert "config_sha256" in recorded_config_problem(old)
+    bare = {k: v for k, v in old.items() if k != "config_sha256"}
+    assert recorded_config_problem(bare) == ""  # nothing to check it by
