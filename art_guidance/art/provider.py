@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -206,35 +207,66 @@ class ArtWarmStart:
             finally:
                 torch.set_num_threads(threads)
         planning = planning or PlanningConfig()
-        cost, c_t1 = judged_candidates(res, request, safety, planning.posthoc_subject)
-        b = best_candidate(cost, c_t1, j_cvx, planning.posthoc)
+        judged = judge_candidates(res, request, safety, planning.posthoc_subject)
+        b = best_candidate(judged.cost_mps, judged.c_t1, j_cvx, planning.posthoc)
         warm = (None, None)
-        if planning.posthoc_subject == "warm_start":  # the one the check and SCVx* start from
-            roe_f = np.linalg.solve(safety.horizon.psi[-1], request.target_rtn)
-            warm = judged_trajectory(safety.horizon, request.roe0_m, roe_f, res.dv_rtn_mps[b],
-                                     planning.posthoc_subject)
+        if planning.posthoc_subject == "warm_start":  # the one the check and SCVx* start from:
+            warm = (judged.dv_rtn_mps[b], judged.roe_m[b])  # projected once, while judging
         return WarmStartProposal(res.dv_rtn_mps[b], res.realised_reward_to_go_mps[b],
                                  res.realised_constraint_to_go[b].astype(float), self.sha256,
                                  1e3 * (time.perf_counter() - t0), *warm)
 
 
+@dataclass(frozen=True)
+class JudgedCandidates:
+    """K candidates as the post hoc check judges them.
+
+    Attributes:
+        cost_mps: (K,) cost of the judged trajectory [m/s].
+        c_t1: (K,) its C(t_1) (sign-only search: the check's except where a node's minimum is
+            within the certification tolerance of zero).
+        dv_rtn_mps: (K, N, 3) the judged controls [m/s] (the terminal warm starts, or the
+            rollouts' own controls), None when only the rollout's figures were used.
+        roe_m: (K, N, 6) their states [m], or None likewise.
+    """
+
+    cost_mps: np.ndarray
+    c_t1: np.ndarray
+    dv_rtn_mps: np.ndarray | None = None
+    roe_m: np.ndarray | None = None
+
+
 def judged_candidates(res: RolloutResult, request: PlanRequest, safety: PassiveSafety,
                       subject: str) -> tuple[np.ndarray, np.ndarray]:
     """(K,) cost [m/s] and (K,) C(t_1) of each candidate as the post hoc check judges it
-    (`planning.posthoc.judged_trajectory`): the rollout's own (realised in the rollout) or
-    those of its terminal warm start (one correction and one safety evaluation each)."""
+    (`judge_candidates`)."""
+    judged = judge_candidates(res, request, safety, subject)
+    return judged.cost_mps, judged.c_t1
+
+
+def judge_candidates(res: RolloutResult, request: PlanRequest, safety: PassiveSafety,
+                     subject: str) -> JudgedCandidates:
+    """The candidates of a rollout as the post hoc check judges them
+    (`planning.posthoc.judged_trajectory`): the rollout's own figures (realised in the
+    rollout) or those of each terminal warm start (`judge_controls`)."""
     if subject == "rollout":
-        return res.cost_mps, res.realised_constraint_to_go[:, 0]
-    return judged_controls(safety, request.roe0_m, request.target_rtn, res.dv_rtn_mps, subject)
+        return JudgedCandidates(res.cost_mps, res.realised_constraint_to_go[:, 0])
+    return judge_controls(safety, request.roe0_m, request.target_rtn, res.dv_rtn_mps, subject)
 
 
 def judged_controls(safety: PassiveSafety, roe0_m: np.ndarray, target_rtn: np.ndarray,
                     dv_rtn_mps: np.ndarray, subject: str) -> tuple[np.ndarray, np.ndarray]:
-    """(K,) cost [m/s] and (K,) C(t_1) of K candidate controls (K, N, 3) [m/s] from `roe0_m`
-    to `target_rtn`, as the check judges them under `subject` (the trajectory
-    `planning.posthoc.judged_trajectory` gives: one correction each, then one sign-only
-    safety search over the arcs of all K (`PassiveSafety.evaluate_batch`): C(t_1) is the
-    check's except where a node's minimum is within the certification tolerance of zero)."""
+    """(K,) cost [m/s] and (K,) C(t_1) of K candidate controls (`judge_controls`)."""
+    judged = judge_controls(safety, roe0_m, target_rtn, dv_rtn_mps, subject)
+    return judged.cost_mps, judged.c_t1
+
+
+def judge_controls(safety: PassiveSafety, roe0_m: np.ndarray, target_rtn: np.ndarray,
+                   dv_rtn_mps: np.ndarray, subject: str) -> JudgedCandidates:
+    """K candidate controls (K, N, 3) [m/s] from `roe0_m` to `target_rtn` as the check judges
+    them under `subject`: the trajectory `planning.posthoc.judged_trajectory` gives (one
+    correction each), then one sign-only safety search over the arcs of all K
+    (`PassiveSafety.evaluate_batch`)."""
     horizon = safety.horizon
     roe_f = np.linalg.solve(horizon.psi[-1], target_rtn)
     judged = [judged_trajectory(horizon, roe0_m, roe_f, dv, subject) for dv in dv_rtn_mps]
@@ -243,7 +275,7 @@ def judged_controls(safety: PassiveSafety, roe0_m: np.ndarray, target_rtn: np.nd
     cost = np.linalg.norm(dv_w, axis=2).sum(axis=1)
     # the candidates' C(t_1) counts signs only: one sign-only search over all K N arcs
     c_t1 = safety.evaluate_batch(roe_w, dv_w, sign_only=True).constraint_to_go[:, 0]
-    return cost, c_t1.astype(float)
+    return JudgedCandidates(cost, c_t1.astype(float), dv_w, roe_w)
 
 
 def best_candidate(cost_mps: np.ndarray, c_t1: np.ndarray, j_cvx: float,

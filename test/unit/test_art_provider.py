@@ -439,3 +439,21 @@ def test_the_proposals_terminal_warm_start_is_made_once(provider, monkeypatch):
             assert np.array_equal(a.dv_rtn_mps, b.dv_rtn_mps) and a.cost_mps == b.cost_mps
             assert a.posthoc == b.posthoc and a.warm_start_reason == b.warm_start_reason
             assert a.scp.iterations == b.scp.iterations
+
+
+def test_each_candidate_is_projected_once_per_plan(provider, monkeypatch):
+    """The terminal correction of the sweep's candidates, made to judge them, is also the
+    proposed candidate's warm start: one projection per candidate and plan, no more."""
+    import art_guidance.art.provider as provider_module
+
+    calls = []
+    original = provider_module.judged_trajectory
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(provider_module, "judged_trajectory", counted)
+    result = GuidancePipeline(provider=provider).plan(_request(3, chance=True, warm_start="art"))
+    assert result.proposal is not None and result.proposal.warm_start_dv_rtn_mps is not None
+    assert len(calls) == len(provider.reward_scales)
