@@ -11,7 +11,8 @@ At every planned node i (from `start_node` to the last node N - 1), for a batch 
    sign is known);
 3. the performance parameters are updated, R(t_{i+1}) = R(t_i) + ||u_i||,
    C(t_{i+1}) = C(t_i) - v_i, and the state propagated in ROE with the planner's own
-   deputy-aware model (`Horizon.step_nonlinear`, one step of `Horizon.propagate_nonlinear`:
+   deputy-aware model (`Horizon.post_burn_step` and `Horizon.drift_step`, one step of
+   `Horizon.propagate_nonlinear` for a batch:
    B at the deputy's pre-burn state, second-order along-track drift), the model the dataset's
    trajectories were planned with (the RTN representation feeds Psi_{i+1} x_{i+1}). Driven by a
    plan's own controls, the rollout reproduces the plan's states and constraint-to-go.
@@ -298,5 +299,5 @@ def _run(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.ndarray, sta
         r = r + np.sqrt(np.einsum("bi,bi->b", u, u))  # R(t_{i+1}) = R(t_i) + ||u_i||
         c = c - v  # C(t_{i+1}) = C(t_i) - v_i
         if node < n_nodes - 1:
-            x = horizon.drift_step(node, z)  # (B, 6), = step_nonlinear(node, x, u)
+            x = horizon.drift_step(node, z)  # (B, 6): one step of propagate_nonlinear
     return RolloutResult(np.arange(start, n_nodes), dv, roe, rs, cs, viol)

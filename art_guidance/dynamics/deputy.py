@@ -170,17 +170,40 @@ class DeputyLinearization:
         return g.transpose(1, 0, 2).reshape(6, 3 * n)
 
 
-def _deputy_post_burn(lat_rad: float, n: float, a_m: float, inc_rad: float,
-                      x: list[float], u: list[float]) -> list[float]:
-    """``x + _control_deputy(...) @ u`` for one state, in float arithmetic (the rollout's loop)."""
+def deputy_post_burn(lat_rad, n: float, a_m: float, inc_rad: float, x: list, u: list,
+                     m=math) -> list:
+    """The post-burn ROE ``z = x + B_d(x) u`` of the deputy-aware model, written once for a
+    single state in float arithmetic (`m` = math: the single-trajectory propagation's loop)
+    and for a batch of states in array arithmetic (`m` = numpy: every other caller).
+
+    Args:
+        lat_rad: chief mean argument of latitude at the burn [rad] (float, or an array
+            broadcast against the components).
+        n, a_m, inc_rad: chief mean motion [rad/s], semi-major axis [m], inclination [rad].
+        x: the six pre-burn a-scaled ROE components [m] (floats, or (B,) arrays).
+        u: the three RTN burn components [m/s] (likewise).
+        m: the module of sin, cos, sqrt and tan for those numbers.
+
+    Returns:
+        The six post-burn components [m], as given (B_d is `control_matrix_deputy`, the
+        Jacobian dz/du).
+    """
     inv_a = 1.0 / a_m
     one_x = 1.0 + x[0] * inv_a
-    f = math.sqrt(one_x) / n
-    du = (x[1] - x[5] / math.tan(inc_rad)) * inv_a
-    cd, sd = math.cos(du), math.sin(du)
+    f = m.sqrt(one_x) / n
+    du = (x[1] - x[5] / m.tan(inc_rad)) * inv_a
+    cd, sd = m.cos(du), m.sin(du)
     v_r, v_t = cd * u[0] + sd * u[1], -sd * u[0] + cd * u[1]
-    fs, fc = f * math.sin(lat_rad + du), f * math.cos(lat_rad + du)
-    sin_ratio = math.sin(inc_rad) / math.sin(inc_rad + x[4] * inv_a)
+    fs, fc = f * m.sin(lat_rad + du), f * m.cos(lat_rad + du)
+    sin_ratio = m.sin(inc_rad) / m.sin(inc_rad + x[4] * inv_a)
     return [x[0] + 2.0 * one_x * f * v_t, x[1] - 2.0 * f * v_r,
             x[2] + fs * v_r + 2.0 * fc * v_t, x[3] - fc * v_r + 2.0 * fs * v_t,
             x[4] + fc * u[2], x[5] + fs * sin_ratio * u[2]]
+
+
+def post_burn_batch(lat_rad: float | np.ndarray, n: float, a_m: float, inc_rad: float,
+                    roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
+    """`deputy_post_burn` of states (..., 6) [m] and burns (..., 3) [m/s] at latitude(s)
+    `lat_rad` (broadcast against the leading axes): (..., 6) [m]."""
+    x, u = np.moveaxis(roe_m, -1, 0), np.moveaxis(dv_rtn_mps, -1, 0)
+    return np.stack(deputy_post_burn(lat_rad, n, a_m, inc_rad, x, u, np), axis=-1)

@@ -11,7 +11,7 @@ import numpy as np
 from art_guidance.checks import as_finite_array
 from art_guidance.dynamics.deputy import (
     DeputyLinearization, _control_deputy, _curvature_slope, _deputy_burn_jacobian,
-    _deputy_post_burn, along_track_curvature_m,
+    along_track_curvature_m, deputy_post_burn, post_burn_batch,
 )
 from art_guidance.dynamics.elements import (
     check_oe, mean_arg_latitude, mean_motion, orbital_period_s, propagate_mean_oe,
@@ -94,17 +94,12 @@ class Horizon:
         a, inc = float(self.chief_oe[0, 0]), float(self.chief_oe[0, 2])
         return mean_arg_latitude(self.chief_oe), mean_motion(a), a, inc
 
-    def b_deputy(self, roe_m: object) -> np.ndarray:
-        """Deputy-aware control matrices at the pre-burn states (N, 6) [m]: (N, 6, 3) [s]."""
-        x = as_finite_array("roe_m", roe_m, (self.n_nodes, 6))
-        lat, n, a, inc = self._deputy_constants()
-        return _control_deputy(lat, n, a, inc, x)
-
     def post_burn_nonlinear(self, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
         """Post-burn ROE ``z_k = x_k + B_d(x_k) u_k`` at every node, (N, 6) [m]."""
         x = as_finite_array("roe_m", roe_m, (self.n_nodes, 6))
         u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (self.n_nodes, 3))
-        return x + (self.b_deputy(x) @ u[:, :, None])[:, :, 0]
+        lat, n, a, inc = self._deputy_constants()
+        return post_burn_batch(lat, n, a, inc, x, u)
 
     def post_burn_nonlinear_at(self, node: int, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
         """Post-burn ROE of B candidate (state (B, 6) [m], burn (B, 3) [m/s]) pairs at a node."""
@@ -115,8 +110,8 @@ class Horizon:
     def final_post_burn_nonlinear(self, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
         """Post-burn ROE at the last node with the deputy-aware B, (6,) [m]."""
         lat, n, a, inc = self._deputy_constants()
-        x = np.asarray(roe_m, float)[-1]
-        return x + _control_deputy(lat[-1], n, a, inc, x) @ np.asarray(dv_rtn_mps, float)[-1]
+        return post_burn_batch(lat[-1], n, a, inc, np.asarray(roe_m, float)[-1],
+                               np.asarray(dv_rtn_mps, float)[-1])
 
     def propagate_nonlinear(self, roe0_m: object, dv_rtn_mps: object) -> np.ndarray:
         """Roll out ``x_{k+1} = Phi_k z_k + c_k(z_k)``, ``z_k = x_k + B_d(x_k) u_k``: (N, 6) [m].
@@ -143,7 +138,7 @@ class Horizon:
         out = [x0.tolist()]
         x = out[0]
         for k in range(self.n_nodes - 1):
-            z = _deputy_post_burn(lat[k], n, a, inc, x, u[k]) if any(u[k]) else x
+            z = deputy_post_burn(lat[k], n, a, inc, x, u[k]) if any(u[k]) else x
             x = [r[0] * z[0] + r[1] * z[1] + r[2] * z[2] + r[3] * z[3] + r[4] * z[4]
                  + r[5] * z[5] for r in stm[k]]
             xi = z[0] / a
@@ -151,26 +146,16 @@ class Horizon:
             out.append(x)
         return np.array(out)
 
-    def step_nonlinear(self, node: int, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
-        """One step of `propagate_nonlinear` for a batch: pre-burn states at `node` (B, 6) [m]
-        and burns (B, 3) [m/s] -> pre-burn states at `node + 1` (B, 6) [m].
-
-        The batched form the ART rollout advances with, so that a rollout driven by a plan's
-        own controls reproduces the plan's states (inputs are not validated: the caller's
-        arrays are finite by construction).
-        """
-        return self.drift_step(node, self.post_burn_step(node, roe_m, dv_rtn_mps))
-
     def post_burn_step(self, node: int, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
         """Post-burn ROE ``z = x + B_d(x) u`` of a batch at `node`, (B, 6) [m]: the first half
-        of `step_nonlinear` (not validated, as there)."""
+        of one step of `propagate_nonlinear` for a batch, the form the ART rollout advances
+        with (not validated: the caller's arrays are finite by construction)."""
         lat, n, a, inc = self._deputy_constants()
-        b = _control_deputy(lat[int(node)], n, a, inc, roe_m)  # (B, 6, 3)
-        return roe_m + (b @ dv_rtn_mps[:, :, None])[:, :, 0]
+        return post_burn_batch(lat[int(node)], n, a, inc, roe_m, dv_rtn_mps)
 
     def drift_step(self, node: int, z_m: np.ndarray) -> np.ndarray:
         """Pre-burn ROE at `node + 1` (B, 6) [m] from post-burn ROE `z_m` at `node`: the second
-        half of `step_nonlinear` (STM and second-order along-track drift; not validated)."""
+        half of that step (STM and second-order along-track drift; not validated)."""
         k = int(node)
         x1 = z_m @ self.stm[k].T  # (B, 6)
         a = self._deputy_constants()[2]
@@ -190,7 +175,7 @@ class Horizon:
         lat, n, a, inc = self._deputy_constants()
         b = _control_deputy(lat, n, a, inc, x)
         jac = _deputy_burn_jacobian(lat, n, a, inc, x, u)
-        z = x + (b @ u[:, :, None])[:, :, 0]
+        z = post_burn_batch(lat, n, a, inc, x, u)
         e = jac + np.eye(6)
         p = self.stm.copy()
         p[:, 1, 0] += _curvature_slope(a, z[:-1, 0], np.diff(self.epochs_s))
