@@ -19,6 +19,8 @@ from typing import Callable, Sequence
 import numpy as np
 import rclpy
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
@@ -351,10 +353,45 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
     publishers created but silent) --activate--> active (subscribed, planning)
     --deactivate--> inactive (unsubscribed; the running solve finishes) --cleanup-->
     unconfigured (recording finished) --shutdown--> finalized.
+
+    A `change_state` request for a transition the current state does not offer (deactivate
+    while unconfigured, an unknown id, anything once finalized) is refused: success=False and
+    a warning naming the transition and the state; the node keeps serving.
     """
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
+        service = getattr(self, "_service_change_state", None)  # None: no lifecycle services
+        if service is not None:
+            self._rclpy_change_state = service.callback
+            service.callback = self._on_change_state
+
+    def _on_change_state(self, request: ChangeState.Request,
+                         response: ChangeState.Response) -> ChangeState.Response:
+        """The `change_state` service: refuse a transition the current state does not offer.
+
+        rclpy's own handler (Jazzy) raises RCLError "Transition is not registered" for one,
+        out of the executor's spin and the node's main loop; this answers it instead. A valid
+        transition goes to rclpy's handler (which runs the on_* callback)."""
+        state_id, state = self._state_machine.current_state
+        offered = {tid: label for tid, label, *_ in self._state_machine.available_transitions}
+        tid, label = request.transition.id, request.transition.label
+        valid = label in offered.values() if label else tid in offered
+        if not valid:
+            named = repr(label) if label else f"{_transition_name(tid)} (id {tid})"
+            choices = ", ".join(f"{name} (id {i})" for i, name in sorted(offered.items()))
+            self.get_logger().warning(
+                f"lifecycle transition {named} refused: not valid in state {state!r} (id "
+                f"{state_id}); valid there: {choices or 'none'}")
+            response.success = False
+            return response
+        try:
+            return self._rclpy_change_state(request, response)
+        except Exception as exc:  # a service callback is a boundary: answer, never raise
+            self.get_logger().error(f"lifecycle transition {label or tid} from {state!r} "
+                                    f"failed: {type(exc).__name__}: {exc}")
+            response.success = False
+            return response
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
@@ -387,6 +424,15 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
         self.shutdown_worker()
         self.core = None
         return TransitionCallbackReturn.SUCCESS
+
+
+def _transition_name(transition_id: int) -> str:
+    """The lifecycle_msgs/Transition constant named `transition_id` (lower case, without its
+    TRANSITION_ prefix), or "unknown"."""
+    for name in dir(Transition):
+        if name.startswith("TRANSITION_") and getattr(Transition, name) == transition_id:
+            return name.removeprefix("TRANSITION_").lower()
+    return "unknown"
 
 
 def main(argv: Sequence[str] | None = None, managed: bool = False) -> int:
