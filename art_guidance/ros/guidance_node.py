@@ -86,6 +86,7 @@ class GuidanceNodeBase:
         self.model_status = ""
         self.budget = ReplanBudget()
         self.recording: SolveRecording | None = None
+        self._recorded_before = False  # a configure of this node run has opened a recorder
         # publishers (_create_publishers), subscriptions and the worker (while planning)
         self.out: NodeOutputs | None = None
         self.nav_sub = self.request_sub = None
@@ -123,7 +124,9 @@ class GuidanceNodeBase:
         self._worker, self._worker_deaths = None, 0
         self.budget = ReplanBudget()
         self.recording = SolveRecording(self.resolve_topic_name, p, self.pipeline,
-                                        self.provider, self.model_status, self.get_logger())
+                                        self.provider, self.model_status, self.get_logger(),
+                                        again=self._recorded_before)
+        self._recorded_before = self.recording.recorder is not None
 
     def _load_model(self) -> tuple[object | None, str]:
         """Load the learned warm start once, at start-up (never in a callback).
@@ -185,6 +188,10 @@ class GuidanceNodeBase:
                                f"{self.params.warm_start}, {self.model_status})")
         self.out.diag("art_guidance/model", OK if self.provider is not None else WARN,
                       self.model_status, self._model_values())
+        where = self.recording.directory
+        self.out.diag("art_guidance/recording", OK,
+                      f"recording to {where}" if where else "not recording",
+                      {"record_dir": where})
 
     def _stop_worker(self) -> None:
         """Stop taking jobs; the running solve finishes (and is recorded and published)."""
@@ -293,6 +300,7 @@ class GuidanceNodeBase:
                        "warm_start_reason": result.warm_start_reason,
                        "solve_time_ms": t["total"], "cvx_ms": round(t["cvx"], 2),
                        "art_ms": round(t["art"], 2), "scp_ms": round(t["scp"], 2),
+                       "record_dir": self.recording.directory,
                        **self._model_values(), **self._proposal_worker_values()})
 
     def _proposal_worker_values(self) -> dict:

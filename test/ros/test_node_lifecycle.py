@@ -16,6 +16,7 @@ from lifecycle_msgs.msg import State, Transition  # noqa: E402
 from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
+from art_guidance.record.replay import read_log  # noqa: E402
 
 pytestmark = pytest.mark.ros
 NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
@@ -154,3 +155,40 @@ def test_invalid_transitions_are_refused_and_node_keeps_serving(ros_env, python_
     assert ("lifecycle transition deactivate (id 4) refused: not valid in state "
             "'unconfigured'") in out, out
     assert "callback_error (id 99) refused" in out and "'finalized'" in out, out
+
+
+def test_configure_after_cleanup_records_a_new_bag_beside_the_first(ros_env, python_exe,
+                                                                    tmp_path):
+    """configure -> cleanup -> configure with an explicit record_dir that now holds a bag: the
+    second configuration records to <record_dir>_2 (the first bag is never written again),
+    and says so in the log and on /diagnostics."""
+    bag, bag2 = tmp_path / "bag", tmp_path / "bag_2"
+    proc = _start(python_exe, ros_env, f"record_dir:={bag}")
+    plans = []
+    with _running(proc) as client:
+        node = Lifecycle(client)
+        for k, where in enumerate((bag, bag2)):
+            assert node.transition(Transition.TRANSITION_CONFIGURE), where
+            assert node.transition(Transition.TRANSITION_ACTIVATE), where
+            assert client.wait_matched(20.0)
+            stamp, decision = client.send_nav(NOMINAL_RTN + [0.0, 300.0 * k, 0, 0, 0, 0])
+            plan = client.plan_for(stamp, 30.0)
+            assert decision == "replanning" and plan is not None, where
+            plans.append(plan)
+            diag = client.wait_for(lambda _, diags: next(
+                (v for _, v, n in diags if n == "art_guidance/plan"
+                 and v.get("nav_stamp_ns") == str(stamp)), None), 10.0)
+            assert diag is not None and diag["record_dir"] == str(where), diag
+            assert node.transition(Transition.TRANSITION_DEACTIVATE), where
+            assert node.transition(Transition.TRANSITION_CLEANUP), where
+            assert node.state() == State.PRIMARY_STATE_UNCONFIGURED
+    out = _stop(proc)
+    assert f"recording every solve to {bag2} (a new bag: {bag} holds" in out, out
+    for where, plan in zip((bag, bag2), plans):
+        log = read_log(where)
+        solves = log.solves()
+        assert [p.plan_id for _, p in solves] == [plan.plan_id], where
+        assert list(solves[0][1].dv_rtn_mps) == pytest.approx(list(plan.dv_rtn_mps), abs=0.0)
+        assert not log.data_lost and not log.truncated, where
+        assert not any(log.unmatched().values()), where
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "bag_2"]
