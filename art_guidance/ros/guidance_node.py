@@ -5,7 +5,9 @@ Subscribes `nav/relative_state` and `guidance/replan_request`; publishes
 runs in one worker thread that always takes the newest job (a queued job is superseded, never
 queued without bound). Every nav message gets a `/diagnostics` status named "art_guidance/nav"
 with `nav_stamp_ns` and `decision` in {replanning, on_plan, rejected}; "replanning" is followed
-by a ManeuverPlan whose header.stamp is that nav stamp.
+by a ManeuverPlan whose header.stamp is that nav stamp. That status, and "art_guidance/stats"
+every STATS_PERIOD_S while planning, carry the counts since configure (`fix_counts`): a client
+tells a fix that never reached the node (dropped by DDS) from one not answered yet.
 """
 from __future__ import annotations
 
@@ -45,6 +47,7 @@ from art_guidance.ros.parameters import (
 from art_guidance.ros.solve_recording import SolveRecording
 
 SPIN_PERIOD_S = 0.1  # the executor wakes this often to notice SIGINT/SIGTERM [s]
+STATS_PERIOD_S = 1.0  # "art_guidance/stats" is published this often while planning [s]
 PARAMETERS = node_parameter_defaults()  # config/guidance_node.yaml: the one table
 
 
@@ -91,6 +94,7 @@ class GuidanceNodeBase:
         self.out: NodeOutputs | None = None
         self.nav_sub = self.request_sub = None
         self._worker: threading.Thread | None = None
+        self._stats_timer = None  # publishes "art_guidance/stats" while planning
         self._worker_deaths = 0  # proposal worker deaths logged so far
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -183,6 +187,7 @@ class GuidanceNodeBase:
         self.core.start()
         self._worker = threading.Thread(target=self._work, name="guidance_worker", daemon=True)
         self._worker.start()
+        self._stats_timer = self.create_timer(STATS_PERIOD_S, self._publish_stats)
         self.get_logger().info(f"guidance_node planning (target {self.core.target.waypoint}, "
                                f"stamp_check {self.params.stamp_check}, warm start "
                                f"{self.params.warm_start}, {self.model_status})")
@@ -197,6 +202,8 @@ class GuidanceNodeBase:
         """Stop taking jobs; the running solve finishes (and is recorded and published)."""
         if self._worker is None:
             return
+        self.destroy_timer(self._stats_timer)
+        self._stats_timer = None
         self.core.stop()
         self._worker.join(timeout=30.0)
         self._worker = None
@@ -230,7 +237,7 @@ class GuidanceNodeBase:
             return
         self.out.publish_deputy(nav, self.get_logger())
         self.out.nav_diag(nav.stamp_ns, OK, decision.value,
-                          {"deviation_sigma": round(deviation, 3)})
+                          {"deviation_sigma": round(deviation, 3), **fix_counts(self.core)})
 
     def _on_request(self, msg: ReplanRequest) -> None:
         try:
@@ -324,7 +331,17 @@ class GuidanceNodeBase:
         self.out.plan_pub.publish(status_plan_msg(stamp_ns, self.core.next_id(),
                                                   ManeuverPlan.STATUS_REJECTED_INPUT, reason,
                                                   self.core.active_id))
-        self.out.nav_diag(stamp_ns, WARN, "rejected", {"reason": reason})
+        self.out.nav_diag(stamp_ns, WARN, "rejected", {"reason": reason,
+                                                       **fix_counts(self.core)})
+
+    def _publish_stats(self) -> None:
+        """The "art_guidance/stats" status (timer callback: nothing escapes it)."""
+        try:
+            counts = fix_counts(self.core)
+            self.out.diag("art_guidance/stats", OK, ", ".join(
+                f"{k.replace('_', ' ')} {v}" for k, v in counts.items()), counts)
+        except Exception as exc:  # a timer callback is a boundary
+            self._log().warning(f"stats not published: {type(exc).__name__}: {exc}")
 
     def shutdown_worker(self) -> None:
         """Stop the worker thread (after the running solve) and finish the recording."""
@@ -432,6 +449,16 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
         self.shutdown_worker()
         self.core = None
         return TransitionCallbackReturn.SUCCESS
+
+
+def fix_counts(core: GuidanceCore) -> dict[str, int]:
+    """What became of the fixes since configure: `fixes_received` (reached the nav callback;
+    fixes a best-effort subscription dropped never do), `fixes_rejected` (of those), and of the
+    replans decided, `replans_superseded` (a queued replan replaced by a newer one, never
+    solved) and `plans_solved` (nav- and request-triggered)."""
+    stats = dict(core.stats)
+    return {"fixes_received": stats["nav"], "fixes_rejected": stats["rejected"],
+            "replans_superseded": stats["superseded"], "plans_solved": stats["plans"]}
 
 
 def _transition_name(transition_id: int) -> str:
