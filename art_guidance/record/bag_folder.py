@@ -26,6 +26,24 @@ def default_log_dir() -> Path:
     return home / "art_guidance_logs" / f"{stamp}_{os.getpid()}"
 
 
+def holds_recording(directory: str | Path) -> bool:
+    """The folder holds MCAP files (finished, torn or partial): a bag never overwritten."""
+    directory = Path(directory)
+    return directory.is_dir() and any(directory.glob("*.mcap*"))
+
+
+def free_bag_dir(directory: str | Path) -> Path:
+    """`directory` if it holds no recording, else the first of `<directory>_2`, `_3`, ...
+    that holds none: where a re-configured node's next bag goes, beside the ones before."""
+    directory = Path(directory)
+    k = 1
+    candidate = directory
+    while holds_recording(candidate):
+        k += 1
+        candidate = directory.with_name(f"{directory.name}_{k}")
+    return candidate
+
+
 def check_record_dir(directory: str | Path) -> Path:
     """Create the bag folder if needed and check that files can be created in it.
 

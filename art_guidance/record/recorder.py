@@ -50,7 +50,8 @@ from art_guidance.errors import ConfigError
 from art_guidance.files import fsync_dir
 # MIN_CAP_FILES, check_record_dir, default_log_dir, MAGIC and PART_SUFFIX are imported from here
 from art_guidance.record.bag_folder import (  # noqa: F401
-    MIN_CAP_FILES, check_cap, check_record_dir, default_log_dir, delete_files, take_over_cap,
+    MIN_CAP_FILES, check_cap, check_record_dir, default_log_dir, delete_files, free_bag_dir,
+    holds_recording, take_over_cap,
 )
 from art_guidance.record.bag_metadata import TopicInfo, write_bag_metadata
 from art_guidance.record.mcap_file import (  # noqa: F401
@@ -102,7 +103,7 @@ class McapRecorder:
                  max_bytes: int = 256 * 1024 * 1024, name: str = "guidance",
                  topics: dict[str, str] | None = None, max_total_bytes: int = 0) -> None:
         self.directory = Path(directory)
-        if self.directory.is_dir() and any(self.directory.glob("*.mcap*")):
+        if holds_recording(self.directory):
             raise ConfigError(f"{self.directory} already holds a recording; choose another "
                               "record_dir (or move that one away): a bag is never overwritten")
         self.max_bytes = int(max_bytes)

@@ -5,7 +5,9 @@ Subscribes `nav/relative_state` and `guidance/replan_request`; publishes
 runs in one worker thread that always takes the newest job (a queued job is superseded, never
 queued without bound). Every nav message gets a `/diagnostics` status named "art_guidance/nav"
 with `nav_stamp_ns` and `decision` in {replanning, on_plan, rejected}; "replanning" is followed
-by a ManeuverPlan whose header.stamp is that nav stamp.
+by a ManeuverPlan whose header.stamp is that nav stamp. That status, and "art_guidance/stats"
+every STATS_PERIOD_S while planning, carry the counts since configure (`fix_counts`): a client
+tells a fix that never reached the node (dropped by DDS) from one not answered yet.
 """
 from __future__ import annotations
 
@@ -19,6 +21,8 @@ from typing import Callable, Sequence
 import numpy as np
 import rclpy
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
@@ -43,6 +47,7 @@ from art_guidance.ros.parameters import (
 from art_guidance.ros.solve_recording import SolveRecording
 
 SPIN_PERIOD_S = 0.1  # the executor wakes this often to notice SIGINT/SIGTERM [s]
+STATS_PERIOD_S = 1.0  # "art_guidance/stats" is published this often while planning [s]
 PARAMETERS = node_parameter_defaults()  # config/guidance_node.yaml: the one table
 
 
@@ -84,10 +89,12 @@ class GuidanceNodeBase:
         self.model_status = ""
         self.budget = ReplanBudget()
         self.recording: SolveRecording | None = None
+        self._recorded_before = False  # a configure of this node run has opened a recorder
         # publishers (_create_publishers), subscriptions and the worker (while planning)
         self.out: NodeOutputs | None = None
         self.nav_sub = self.request_sub = None
         self._worker: threading.Thread | None = None
+        self._stats_timer = None  # publishes "art_guidance/stats" while planning
         self._worker_deaths = 0  # proposal worker deaths logged so far
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -121,7 +128,9 @@ class GuidanceNodeBase:
         self._worker, self._worker_deaths = None, 0
         self.budget = ReplanBudget()
         self.recording = SolveRecording(self.resolve_topic_name, p, self.pipeline,
-                                        self.provider, self.model_status, self.get_logger())
+                                        self.provider, self.model_status, self.get_logger(),
+                                        again=self._recorded_before)
+        self._recorded_before = self.recording.recorder is not None
 
     def _load_model(self) -> tuple[object | None, str]:
         """Load the learned warm start once, at start-up (never in a callback).
@@ -178,16 +187,23 @@ class GuidanceNodeBase:
         self.core.start()
         self._worker = threading.Thread(target=self._work, name="guidance_worker", daemon=True)
         self._worker.start()
+        self._stats_timer = self.create_timer(STATS_PERIOD_S, self._publish_stats)
         self.get_logger().info(f"guidance_node planning (target {self.core.target.waypoint}, "
                                f"stamp_check {self.params.stamp_check}, warm start "
                                f"{self.params.warm_start}, {self.model_status})")
         self.out.diag("art_guidance/model", OK if self.provider is not None else WARN,
                       self.model_status, self._model_values())
+        where = self.recording.directory
+        self.out.diag("art_guidance/recording", OK,
+                      f"recording to {where}" if where else "not recording",
+                      {"record_dir": where})
 
     def _stop_worker(self) -> None:
         """Stop taking jobs; the running solve finishes (and is recorded and published)."""
         if self._worker is None:
             return
+        self.destroy_timer(self._stats_timer)
+        self._stats_timer = None
         self.core.stop()
         self._worker.join(timeout=30.0)
         self._worker = None
@@ -221,7 +237,7 @@ class GuidanceNodeBase:
             return
         self.out.publish_deputy(nav, self.get_logger())
         self.out.nav_diag(nav.stamp_ns, OK, decision.value,
-                          {"deviation_sigma": round(deviation, 3)})
+                          {"deviation_sigma": round(deviation, 3), **fix_counts(self.core)})
 
     def _on_request(self, msg: ReplanRequest) -> None:
         try:
@@ -291,6 +307,7 @@ class GuidanceNodeBase:
                        "warm_start_reason": result.warm_start_reason,
                        "solve_time_ms": t["total"], "cvx_ms": round(t["cvx"], 2),
                        "art_ms": round(t["art"], 2), "scp_ms": round(t["scp"], 2),
+                       "record_dir": self.recording.directory,
                        **self._model_values(), **self._proposal_worker_values()})
 
     def _proposal_worker_values(self) -> dict:
@@ -314,7 +331,17 @@ class GuidanceNodeBase:
         self.out.plan_pub.publish(status_plan_msg(stamp_ns, self.core.next_id(),
                                                   ManeuverPlan.STATUS_REJECTED_INPUT, reason,
                                                   self.core.active_id))
-        self.out.nav_diag(stamp_ns, WARN, "rejected", {"reason": reason})
+        self.out.nav_diag(stamp_ns, WARN, "rejected", {"reason": reason,
+                                                       **fix_counts(self.core)})
+
+    def _publish_stats(self) -> None:
+        """The "art_guidance/stats" status (timer callback: nothing escapes it)."""
+        try:
+            counts = fix_counts(self.core)
+            self.out.diag("art_guidance/stats", OK, ", ".join(
+                f"{k.replace('_', ' ')} {v}" for k, v in counts.items()), counts)
+        except Exception as exc:  # a timer callback is a boundary
+            self._log().warning(f"stats not published: {type(exc).__name__}: {exc}")
 
     def shutdown_worker(self) -> None:
         """Stop the worker thread (after the running solve) and finish the recording."""
@@ -351,10 +378,45 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
     publishers created but silent) --activate--> active (subscribed, planning)
     --deactivate--> inactive (unsubscribed; the running solve finishes) --cleanup-->
     unconfigured (recording finished) --shutdown--> finalized.
+
+    A `change_state` request for a transition the current state does not offer (deactivate
+    while unconfigured, an unknown id, anything once finalized) is refused: success=False and
+    a warning naming the transition and the state; the node keeps serving.
     """
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
+        service = getattr(self, "_service_change_state", None)  # None: no lifecycle services
+        if service is not None:
+            self._rclpy_change_state = service.callback
+            service.callback = self._on_change_state
+
+    def _on_change_state(self, request: ChangeState.Request,
+                         response: ChangeState.Response) -> ChangeState.Response:
+        """The `change_state` service: refuse a transition the current state does not offer.
+
+        rclpy's own handler (Jazzy) raises RCLError "Transition is not registered" for one,
+        out of the executor's spin and the node's main loop; this answers it instead. A valid
+        transition goes to rclpy's handler (which runs the on_* callback)."""
+        state_id, state = self._state_machine.current_state
+        offered = {tid: label for tid, label, *_ in self._state_machine.available_transitions}
+        tid, label = request.transition.id, request.transition.label
+        valid = label in offered.values() if label else tid in offered
+        if not valid:
+            named = repr(label) if label else f"{_transition_name(tid)} (id {tid})"
+            choices = ", ".join(f"{name} (id {i})" for i, name in sorted(offered.items()))
+            self.get_logger().warning(
+                f"lifecycle transition {named} refused: not valid in state {state!r} (id "
+                f"{state_id}); valid there: {choices or 'none'}")
+            response.success = False
+            return response
+        try:
+            return self._rclpy_change_state(request, response)
+        except Exception as exc:  # a service callback is a boundary: answer, never raise
+            self.get_logger().error(f"lifecycle transition {label or tid} from {state!r} "
+                                    f"failed: {type(exc).__name__}: {exc}")
+            response.success = False
+            return response
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
@@ -387,6 +449,25 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
         self.shutdown_worker()
         self.core = None
         return TransitionCallbackReturn.SUCCESS
+
+
+def fix_counts(core: GuidanceCore) -> dict[str, int]:
+    """What became of the fixes since configure: `fixes_received` (reached the nav callback;
+    fixes a best-effort subscription dropped never do), `fixes_rejected` (of those), and of the
+    replans decided, `replans_superseded` (a queued replan replaced by a newer one, never
+    solved) and `plans_solved` (nav- and request-triggered)."""
+    stats = dict(core.stats)
+    return {"fixes_received": stats["nav"], "fixes_rejected": stats["rejected"],
+            "replans_superseded": stats["superseded"], "plans_solved": stats["plans"]}
+
+
+def _transition_name(transition_id: int) -> str:
+    """The lifecycle_msgs/Transition constant named `transition_id` (lower case, without its
+    TRANSITION_ prefix), or "unknown"."""
+    for name in dir(Transition):
+        if name.startswith("TRANSITION_") and getattr(Transition, name) == transition_id:
+            return name.removeprefix("TRANSITION_").lower()
+    return "unknown"
 
 
 def main(argv: Sequence[str] | None = None, managed: bool = False) -> int:

@@ -10,6 +10,7 @@ plan is published.
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 from art_guidance import topics
@@ -17,7 +18,7 @@ from art_guidance.planning import GuidancePipeline, PlanResult
 from art_guidance.planning.guidance import Job
 from art_guidance.record.recorder import (
     NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE, McapRecorder, check_cap,
-    check_record_dir, default_log_dir,
+    check_record_dir, default_log_dir, free_bag_dir,
 )
 from art_guidance.ros.adapters import solve_record_msg, stamp_to_ns
 from art_guidance.ros.node_outputs import VIZ_TYPE_NAMES, VIZ_TYPES
@@ -34,6 +35,10 @@ class SolveRecording:
         provider: the learned warm start, or None.
         model_status: the model in words (recorded).
         log: the node's logger.
+        again: this node run recorded before (a lifecycle configure after a cleanup): a bag
+            folder that already holds a recording is not refused, the new bag goes beside it
+            (`<record_dir>_2`, `_3`, ...: the first that holds none; a bag is never
+            overwritten). On a node's first configure such a folder is refused.
 
     Raises:
         GuidanceError: a record directory or size cap that cannot be used.
@@ -41,7 +46,7 @@ class SolveRecording:
 
     def __init__(self, resolve: Callable[[str], str], params: NodeParameters,
                  pipeline: GuidancePipeline, provider: Any, model_status: str,
-                 log: Any) -> None:
+                 log: Any, again: bool = False) -> None:
         # message type -> resolved topic; the solve record is recorded only, under the node's
         # own namespace
         self.topics = {NAV_TYPE: resolve(topics.NAV), REQUEST_TYPE: resolve(topics.REPLAN_REQUEST),
@@ -55,11 +60,14 @@ class SolveRecording:
         if not params.record:
             return
         check_cap(params.record_max_total_bytes, params.record_max_bytes)
-        directory = check_record_dir(params.record_dir or str(default_log_dir()))
+        directory = Path(params.record_dir or str(default_log_dir()))
+        directory = check_record_dir(free_bag_dir(directory) if again else directory)
         meta = {"config": pipeline.config_json(), "versions": versions(),
                 "model_checksum": provider.sha256 if provider else "none",
                 "model": model_status, "parameters": params.as_dict()}
-        log.info(f"recording every solve to {directory}")
+        log.info(f"recording every solve to {directory}" + (
+            f" (a new bag: {params.record_dir} holds this node's earlier one)"
+            if again and params.record_dir and directory != Path(params.record_dir) else ""))
         recorded = {t: msg_type for msg_type, t in self.topics.items()}
         recorded.update({self.viz_topics[t]: VIZ_TYPE_NAMES[t] for t in self.viz_topics})
         self.recorder = McapRecorder(directory, meta, max_bytes=params.record_max_bytes,
@@ -90,6 +98,11 @@ class SolveRecording:
         if new_request:
             self._recorded_request = request
         return True
+
+    @property
+    def directory(self) -> str:
+        """The bag folder being written ("" when not recording)."""
+        return "" if self.recorder is None else str(self.recorder.directory)
 
     def finish(self, log: Any) -> None:
         """Finish the recording (idempotent), saying where it went."""

@@ -1,9 +1,11 @@
 """The managed (lifecycle) guidance node over real DDS: plans only when configured and active."""
 from __future__ import annotations
 
+import contextlib
 import signal
 import subprocess
 import time
+from typing import Iterator
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from lifecycle_msgs.msg import State, Transition  # noqa: E402
 from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
+from art_guidance.record.replay import read_log  # noqa: E402
 
 pytestmark = pytest.mark.ros
 NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
@@ -26,6 +29,54 @@ def _call(client, srv, request, timeout_s: float = 15.0):
         time.sleep(0.02)
     assert future.done(), f"no answer from {srv.srv_name}"
     return future.result()
+
+
+def _start(python_exe: str, env: dict, *params: str) -> subprocess.Popen:
+    """The managed node in its own process, with `-p` parameters."""
+    args = [arg for param in params for arg in ("-p", param)]
+    return subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--managed",
+                             "--ros-args", *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+
+
+class Lifecycle:
+    """The managed node's change_state / get_state services, from the test client."""
+
+    def __init__(self, client: Client) -> None:
+        self.client = client
+        self.change = client.node.create_client(ChangeState, "/guidance_node/change_state")
+        self.get = client.node.create_client(GetState, "/guidance_node/get_state")
+        assert self.change.wait_for_service(timeout_sec=20.0)
+        assert self.get.wait_for_service(timeout_sec=5.0)
+
+    def state(self) -> int:
+        return _call(self.client, self.get, GetState.Request()).current_state.id
+
+    def transition(self, tid: int = 0, label: str = "") -> bool:
+        return _call(self.client, self.change, ChangeState.Request(
+            transition=Transition(id=tid, label=label))).success
+
+
+@contextlib.contextmanager
+def _running(proc: subprocess.Popen) -> Iterator[Client]:
+    """A test client beside the node process; a failure inside carries the node's output."""
+    client = Client("lifecycle_client")
+    try:
+        yield client
+    except BaseException as exc:
+        client.close()
+        proc.kill()
+        raise AssertionError(f"node output:\n{proc.communicate(timeout=30)[0]}") from exc
+    client.close()
+
+
+def _stop(proc: subprocess.Popen) -> str:
+    """SIGINT the node; its output (asserted: exit 0, no traceback)."""
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out, out
+    return out
 
 
 def test_transitions_gate_planning(ros_env, python_exe, tmp_path):
@@ -76,3 +127,68 @@ def test_transitions_gate_planning(ros_env, python_exe, tmp_path):
         out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, out
     assert "Traceback" not in out, out
+
+
+def test_invalid_transitions_are_refused_and_node_keeps_serving(ros_env, python_exe):
+    """A transition the state does not offer is answered success=False (rclpy's own handler
+    raises out of spin): unknown ids, labels and transitions after shutdown included."""
+    proc = _start(python_exe, ros_env, "record:=false")
+    with _running(proc) as client:
+        node = Lifecycle(client)
+        assert not node.transition(Transition.TRANSITION_DEACTIVATE)  # while unconfigured
+        assert not node.transition(99)  # no such transition
+        assert not node.transition(label="activate")  # by label, while unconfigured
+        assert node.state() == State.PRIMARY_STATE_UNCONFIGURED and proc.poll() is None
+        assert node.transition(Transition.TRANSITION_CONFIGURE)
+        assert not node.transition(Transition.TRANSITION_CONFIGURE)  # already configured
+        assert node.transition(label="activate")
+        assert node.state() == State.PRIMARY_STATE_ACTIVE
+        assert client.wait_matched(20.0)
+        stamp, decision = client.send_nav(NOMINAL_RTN)
+        assert decision == "replanning" and client.plan_for(stamp, 30.0) is not None
+        assert node.transition(Transition.TRANSITION_ACTIVE_SHUTDOWN)
+        assert node.state() == State.PRIMARY_STATE_FINALIZED
+        for tid in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_CLEANUP, 99):
+            assert not node.transition(tid), tid  # nothing after shutdown
+        assert node.state() == State.PRIMARY_STATE_FINALIZED and proc.poll() is None
+    out = _stop(proc)
+    assert ("lifecycle transition deactivate (id 4) refused: not valid in state "
+            "'unconfigured'") in out, out
+    assert "callback_error (id 99) refused" in out and "'finalized'" in out, out
+
+
+def test_configure_after_cleanup_records_a_new_bag_beside_the_first(ros_env, python_exe,
+                                                                    tmp_path):
+    """configure -> cleanup -> configure with an explicit record_dir that now holds a bag: the
+    second configuration records to <record_dir>_2 (the first bag is never written again),
+    and says so in the log and on /diagnostics."""
+    bag, bag2 = tmp_path / "bag", tmp_path / "bag_2"
+    proc = _start(python_exe, ros_env, f"record_dir:={bag}")
+    plans = []
+    with _running(proc) as client:
+        node = Lifecycle(client)
+        for k, where in enumerate((bag, bag2)):
+            assert node.transition(Transition.TRANSITION_CONFIGURE), where
+            assert node.transition(Transition.TRANSITION_ACTIVATE), where
+            assert client.wait_matched(20.0)
+            stamp, decision = client.send_nav(NOMINAL_RTN + [0.0, 300.0 * k, 0, 0, 0, 0])
+            plan = client.plan_for(stamp, 30.0)
+            assert decision == "replanning" and plan is not None, where
+            plans.append(plan)
+            diag = client.wait_for(lambda _, diags: next(
+                (v for _, v, n in diags if n == "art_guidance/plan"
+                 and v.get("nav_stamp_ns") == str(stamp)), None), 10.0)
+            assert diag is not None and diag["record_dir"] == str(where), diag
+            assert node.transition(Transition.TRANSITION_DEACTIVATE), where
+            assert node.transition(Transition.TRANSITION_CLEANUP), where
+            assert node.state() == State.PRIMARY_STATE_UNCONFIGURED
+    out = _stop(proc)
+    assert f"recording every solve to {bag2} (a new bag: {bag} holds" in out, out
+    for where, plan in zip((bag, bag2), plans):
+        log = read_log(where)
+        solves = log.solves()
+        assert [p.plan_id for _, p in solves] == [plan.plan_id], where
+        assert list(solves[0][1].dv_rtn_mps) == pytest.approx(list(plan.dv_rtn_mps), abs=0.0)
+        assert not log.data_lost and not log.truncated, where
+        assert not any(log.unmatched().values()), where
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "bag_2"]

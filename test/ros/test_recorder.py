@@ -22,7 +22,7 @@ from art_guidance.errors import ConfigError, InputError
 from art_guidance.record.bag_metadata import METADATA_VERSION
 from art_guidance.record.recorder import (
     PLAN_TYPE, REQUEST_TYPE, TAIL, TOPICS, McapRecorder, _plain, check_cap, check_record_dir,
-    ros2msg_schema,
+    free_bag_dir, ros2msg_schema,
 )
 from art_guidance.record.reindex import has_summary, repair_bag
 from art_guidance.record.replay import read_log, replay
@@ -281,6 +281,23 @@ def test_an_existing_recording_is_never_overwritten(tmp_path, solves):
     with pytest.raises(ConfigError, match="already holds a recording"):
         McapRecorder(tmp_path / "bag", {"config": pipeline.config_json()})
     assert {p.name: p.read_bytes() for p in (tmp_path / "bag").iterdir()} == before
+
+
+def test_a_new_bag_goes_beside_the_recordings(tmp_path, solves):
+    """free_bag_dir (a re-configured node's next bag): the folder while it holds no
+    recording, then <folder>_2, _3, ...; none is written into twice."""
+    pipeline, msgs = solves
+    bag = tmp_path / "bag"
+    assert free_bag_dir(bag) == bag  # absent
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("{}")  # a bag folder finished without a solve
+    assert free_bag_dir(bag) == bag
+    for k, name in enumerate(["bag", "bag_2", "bag_3"]):
+        target = free_bag_dir(bag)
+        assert target == tmp_path / name
+        _record(target, pipeline, msgs[k:k + 1])
+    assert [len(read_log(tmp_path / n).solves()) for n in ("bag", "bag_2", "bag_3")] == [1, 1, 1]
+    assert free_bag_dir(bag) == tmp_path / "bag_4"
 
 
 def test_replay_of_an_art_warm_started_log(tmp_path):
