@@ -21,8 +21,6 @@ from typing import Callable, Sequence
 import numpy as np
 import rclpy
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
-from lifecycle_msgs.msg import Transition
-from lifecycle_msgs.srv import ChangeState
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
@@ -43,6 +41,9 @@ from art_guidance.ros.adapters import (
 from art_guidance.ros.node_outputs import ERROR, OK, WARN, NodeOutputs
 from art_guidance.ros.parameters import (
     PLANNING_PARAMETERS, SPECS, NodeParameters, check_table, descriptor,
+)
+from art_guidance.ros.node_status import (
+    fix_counts, guard_change_state, load_model, model_values,
 )
 from art_guidance.ros.solve_recording import SolveRecording
 
@@ -110,7 +111,7 @@ class GuidanceNodeBase:
         if p.default_waypoint not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {p.default_waypoint!r} is not one of "
                               f"{sorted(self.scenario.waypoints_rtn)}")
-        self.provider, self.model_status = self._load_model()
+        self.provider, self.model_status = load_model(self.params, self.get_logger())
         self.pipeline = GuidancePipeline(config, provider=self.provider,
                                          deadline_s=p.solve_deadline_s)
         if config.planning.propose_concurrently and self.provider is not None:
@@ -132,38 +133,9 @@ class GuidanceNodeBase:
                                         again=self._recorded_before)
         self._recorded_before = self.recording.recorder is not None
 
-    def _load_model(self) -> tuple[object | None, str]:
-        """Load the learned warm start once, at start-up (never in a callback).
-
-        Returns (provider or None, status in words). A missing, corrupt or mismatched model
-        leaves the node in CVX-only mode with one warning (and the status in every plan
-        diagnostic); it never stops the node.
-        """
-        spec = self.params.model_path
-        if spec.strip().lower() == "none":
-            return None, "cvx-only: model_path is 'none'"
-        try:
-            from art_guidance.art.provider import ArtWarmStart, resolve_model_path
-
-            provider = ArtWarmStart.load(resolve_model_path(spec,
-                                                            self.params.chance_constrained))
-        except Exception as exc:  # a model never takes the node down
-            text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            status = f"cvx-only: the model did not load ({type(exc).__name__}: {text[:300]})"
-            self.get_logger().warning(f"learned warm start unavailable, planning from CVX "
-                                      f"only: {text}")
-            return None, status
-        self.get_logger().info(f"learned warm start: {provider.describe()}, loaded in "
-                               f"{provider.load_ms:.0f} ms")
-        return provider, f"loaded {provider.describe()} in {provider.load_ms:.0f} ms"
-
     def _model_values(self) -> dict:
         """Model key-values for the diagnostics."""
-        values = {"model": self.model_status}
-        if self.provider is not None:
-            values.update(model_sha256=self.provider.sha256,
-                          model_load_ms=round(self.provider.load_ms, 1))
-        return values
+        return model_values(self.provider, self.model_status)
 
     def _create_publishers(self, create: Callable) -> None:
         self.out = NodeOutputs(create, self.params.visualization)
@@ -386,37 +358,7 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
-        service = getattr(self, "_service_change_state", None)  # None: no lifecycle services
-        if service is not None:
-            self._rclpy_change_state = service.callback
-            service.callback = self._on_change_state
-
-    def _on_change_state(self, request: ChangeState.Request,
-                         response: ChangeState.Response) -> ChangeState.Response:
-        """The `change_state` service: refuse a transition the current state does not offer.
-
-        rclpy's own handler (Jazzy) raises RCLError "Transition is not registered" for one,
-        out of the executor's spin and the node's main loop; this answers it instead. A valid
-        transition goes to rclpy's handler (which runs the on_* callback)."""
-        state_id, state = self._state_machine.current_state
-        offered = {tid: label for tid, label, *_ in self._state_machine.available_transitions}
-        tid, label = request.transition.id, request.transition.label
-        valid = label in offered.values() if label else tid in offered
-        if not valid:
-            named = repr(label) if label else f"{_transition_name(tid)} (id {tid})"
-            choices = ", ".join(f"{name} (id {i})" for i, name in sorted(offered.items()))
-            self.get_logger().warning(
-                f"lifecycle transition {named} refused: not valid in state {state!r} (id "
-                f"{state_id}); valid there: {choices or 'none'}")
-            response.success = False
-            return response
-        try:
-            return self._rclpy_change_state(request, response)
-        except Exception as exc:  # a service callback is a boundary: answer, never raise
-            self.get_logger().error(f"lifecycle transition {label or tid} from {state!r} "
-                                    f"failed: {type(exc).__name__}: {exc}")
-            response.success = False
-            return response
+        guard_change_state(self)
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
@@ -449,25 +391,6 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
         self.shutdown_worker()
         self.core = None
         return TransitionCallbackReturn.SUCCESS
-
-
-def fix_counts(core: GuidanceCore) -> dict[str, int]:
-    """What became of the fixes since configure: `fixes_received` (reached the nav callback;
-    fixes a best-effort subscription dropped never do), `fixes_rejected` (of those), and of the
-    replans decided, `replans_superseded` (a queued replan replaced by a newer one, never
-    solved) and `plans_solved` (nav- and request-triggered)."""
-    stats = dict(core.stats)
-    return {"fixes_received": stats["nav"], "fixes_rejected": stats["rejected"],
-            "replans_superseded": stats["superseded"], "plans_solved": stats["plans"]}
-
-
-def _transition_name(transition_id: int) -> str:
-    """The lifecycle_msgs/Transition constant named `transition_id` (lower case, without its
-    TRANSITION_ prefix), or "unknown"."""
-    for name in dir(Transition):
-        if name.startswith("TRANSITION_") and getattr(Transition, name) == transition_id:
-            return name.removeprefix("TRANSITION_").lower()
-    return "unknown"
 
 
 def main(argv: Sequence[str] | None = None, managed: bool = False) -> int:

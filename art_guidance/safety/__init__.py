@@ -3,7 +3,8 @@
 - `passive`: `PassiveSafety` (ellipsoids, the drift maps, the q-sigma margin, its evaluation
   and linearisation for SCVx*);
 - `drift`: the free drift in closed form and its certified continuous minimum (`DriftArcs`);
-- `drift_bounds`: the lower bounds that let that search skip sample intervals.
+- `drift_bounds`: the lower bounds that let that search skip sample intervals;
+- `results`: what `PassiveSafety` returns (`SafetyEvaluation`, `SafetyLinearization`).
 """
 from art_guidance.safety.passive import (  # noqa: F401
     PassiveSafety, SafetyEvaluation, SafetyLinearization,

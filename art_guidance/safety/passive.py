@@ -36,7 +36,6 @@ conservative, and exact (tangent) at the reference since ``d`` is homogeneous of
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
@@ -44,6 +43,9 @@ import numpy as np
 from art_guidance.checks import as_finite_array
 from art_guidance.config import ScenarioConfig, UncertaintyConfig
 from art_guidance.safety.drift import ArcItems, ArcMinimum, DriftArcs
+from art_guidance.safety.results import (  # noqa: F401 (also imported from here)
+    SafetyEvaluation, SafetyLinearization,
+)
 from art_guidance.dynamics import (
     Horizon, mean_arg_latitude, mean_motion, orbital_period_s, propagate_mean_oe,
     psi_from_latitude, stm_j2,
@@ -55,46 +57,6 @@ from art_guidance.uncertainty import (
 
 ROW_DIP = 2.5e-3        # largest dip of the margin between linearisation rows around t* [-]
 ROW_DELTA_MIN_S = 1.0   # smallest spacing of those rows [s]
-
-
-@dataclass(frozen=True)
-class SafetyLinearization:
-    """Linearised passive-safety (chance) constraint ``a[i] @ z_i >= rhs[i]`` at every node.
-
-    Attributes:
-        a: (N, 6) normalised gradient [1/m] with respect to the post-burn ROE z_i [m].
-        rhs: (N,) right-hand side ``1 + beta`` [-].
-        beta: (N,) normalised q-sigma margin ``q sigma_i(tau*)`` [-] (0 when deterministic).
-        t_star_s: (N,) drift offset tau* = t* - t_i of the continuous minimum [s].
-        dist: (N,) ellipsoidal distance of the reference at t* [-].
-    """
-
-    a: np.ndarray
-    rhs: np.ndarray
-    beta: np.ndarray
-    t_star_s: np.ndarray
-    dist: np.ndarray
-
-
-@dataclass(frozen=True)
-class SafetyEvaluation:
-    """Nonlinear passive-safety check of a trajectory.
-
-    Attributes:
-        margin: (N,) normalised margin ``min_tau (d - 1 - q sigma)`` over the continuous drift
-            arc [-] (certified to `drift.CERT_TOL`); >= 0 is safe.
-        margin_m: (N,) the same times the smallest semi-axis of the active ellipsoid [m].
-        violation: (N,) int 0/1, the paper's binary constraint-violation metric (1 = violated,
-            i.e. margin < 0).
-        constraint_to_go: (N,) int, C(t_i) = sum_{j >= i} violation_j.
-        t_star_s: (N,) drift offset tau* of the smallest margin [s].
-    """
-
-    margin: np.ndarray
-    margin_m: np.ndarray
-    violation: np.ndarray
-    constraint_to_go: np.ndarray
-    t_star_s: np.ndarray
 
 
 class PassiveSafety:
