@@ -1,6 +1,7 @@
 """Benchmark of the passive-safety evaluation and linearisation (paper scenario, N=100, S=20).
 
-Times `PassiveSafety.evaluate` and `PassiveSafety.linearize` (chance-constrained, Table II
+Times `PassiveSafety.evaluate`, `PassiveSafety.linearize` and
+`PassiveSafety.linearize_samples` (k = 5 drift samples per node; chance-constrained, Table II
 uncertainty; the one-entry cache is defeated by alternating two inputs) against a naive
 reference: a per-node Python loop over a dense 1 s grid of the drift, with the covariance
 propagated explicitly (Phi X Phi^T). The reference minimum is refined by a parabola through the
@@ -91,9 +92,10 @@ def run(repeats: int = 200) -> dict:
 
     Returns:
         dict with `n_nodes`, `n_samples`, `init_ms`, timing dicts (`median_ms`, `p95_ms`,
-        `repeats`) for `evaluate`, `linearize`, `naive_evaluate` (dense 1 s loop), the median
-        speed-up `speedup_evaluate_vs_naive`, `max_margin_diff` (continuous vs dense) and
-        `max_margin_diff_over_tolerance` (< 1: within the certified tolerance).
+        `repeats`) for `evaluate`, `linearize`, `linearize_samples_5`, `naive_evaluate` (dense
+        1 s loop), the median speed-up `speedup_evaluate_vs_naive`, `max_margin_diff`
+        (continuous vs dense) and `max_margin_diff_over_tolerance` (< 1: within the certified
+        tolerance).
     """
     scenario = ScenarioConfig.from_yaml()
     uncertainty = UncertaintyConfig.from_yaml()
@@ -105,13 +107,15 @@ def run(repeats: int = 200) -> dict:
     calls = iter(range(10**9))
     ev = _time_ms(lambda: ps.evaluate(*inputs[next(calls) % 2]), repeats)
     lin = _time_ms(lambda: ps.linearize(*inputs[next(calls) % 2]), repeats)
+    lin5 = _time_ms(lambda: ps.linearize_samples(*inputs[next(calls) % 2], 5), repeats)
     naive = _time_ms(lambda: naive_margins(ps, roe_m, dv), max(3, repeats // 100))
     reference = naive_margins(ps, roe_m, dv)
     diff = ps.evaluate(roe_m, dv).margin - reference
     tolerance = CERT_TOL + CERT_TOL_REL * np.abs(reference)
     return {
         "n_nodes": ps.n_nodes, "n_samples": ps.n_samples, "init_ms": init_ms,
-        "evaluate": ev, "linearize": lin, "naive_evaluate": naive,
+        "evaluate": ev, "linearize": lin, "linearize_samples_5": lin5,
+        "naive_evaluate": naive,
         "speedup_evaluate_vs_naive": naive["median_ms"] / ev["median_ms"],
         "max_margin_diff": float(np.max(np.abs(diff))),
         "max_margin_diff_over_tolerance": float(np.max(np.abs(diff) / tolerance)),

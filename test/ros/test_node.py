@@ -46,7 +46,7 @@ def node_proc(ros_env, python_exe):
 @pytest.fixture(scope="module")
 def client(node_proc):
     c = Client()
-    assert c.wait_matched(20.0), "guidance node did not match within 20 s"
+    assert c.wait_matched(60.0), "guidance node did not match within 60 s"
     yield c
     c.close()
 
@@ -228,7 +228,7 @@ import json, time, numpy as np
 from helpers.ros_client import Client
 from art_guidance.config import ScenarioConfig
 c = Client('params_probe')
-assert c.wait_matched(20.0)
+assert c.wait_matched(60.0)
 stamp, _ = c.send_nav(np.array(ScenarioConfig().rtn0_nominal))
 plan = c.plan_for(stamp, 60.0)
 print(json.dumps(np.asarray(plan.rtn).reshape(-1, 6)[-1].tolist()))

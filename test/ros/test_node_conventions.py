@@ -41,7 +41,7 @@ def node_proc(ros_env, python_exe):
 @pytest.fixture(scope="module")
 def client(node_proc):
     c = Client("conventions_client")
-    assert c.wait_matched(20.0), "guidance node did not match within 20 s"
+    assert c.wait_matched(60.0), "guidance node did not match within 60 s"
     params = AsyncParameterClient(c.node, "guidance_node")
     assert params.wait_for_services(timeout_sec=10.0)
     c.params = params

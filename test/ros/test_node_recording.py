@@ -43,7 +43,7 @@ def _node_with_client(ros_env, python_exe, record_dir, name, namespace=""):
                             text=True)
     client = Client(name, namespace)
     try:
-        assert client.wait_matched(20.0)
+        assert client.wait_matched(60.0)
         yield proc, client
     finally:
         client.close()

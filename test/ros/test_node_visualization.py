@@ -114,7 +114,7 @@ def test_visualisation_topics_over_dds_and_in_the_bag(ros_env, python_exe, tmp_p
     client = Client("art_guidance_viz_client")
     listener = None
     try:
-        assert client.wait_matched(20.0)
+        assert client.wait_matched(60.0)
         stamp, decision = client.send_nav(NOMINAL_RTN)
         assert decision == "replanning"
         plan = client.plan_for(stamp, timeout_s=60.0)
@@ -194,7 +194,7 @@ def test_visualisation_off_creates_no_topics(ros_env, python_exe, tmp_path):
                             text=True)
     client = Client("art_guidance_viz_off_client")
     try:
-        assert client.wait_matched(20.0)
+        assert client.wait_matched(60.0)
         stamp, decision = client.send_nav(NOMINAL_RTN)
         assert client.plan_for(stamp, timeout_s=60.0) is not None
         names = {n for n, _ in client.node.get_topic_names_and_types()}

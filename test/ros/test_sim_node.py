@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import subprocess
-import time
 
 import numpy as np
 import pytest
@@ -29,9 +27,9 @@ from art_guidance.sim.closed_loop import (  # noqa: E402
 
 pytestmark = pytest.mark.ros
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-# Wall-clock budget of a run (a few seconds on a quiet 2-core machine): a stalled loop fails it.
-# It is meant for a test that has the cores to itself; pytest-xdist workers share them.
-WALL_BUDGET_S = 30.0 * max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+# A run takes a few seconds on a quiet 2-core machine; a stalled loop fails by this timeout (no
+# budget on the run's own time: it depends on the machine and on what shares its cores).
+RUN_TIMEOUT_S = 180.0
 SUMMARY_KEYS = {"miss_m", "velocity_error_mps", "total_dv_mps", "min_safety_margin_m",
                 "n_replans", "n_burns", "final_t_s", "outcome", "reached", "waypoint"}
 
@@ -53,15 +51,14 @@ def _stop(proc: subprocess.Popen) -> str:
 
 
 def _run_sim(ros_env, python_exe, tmp_path, params: dict[str, str],
-             timeout_s: float = 2 * WALL_BUDGET_S):
+             timeout_s: float = RUN_TIMEOUT_S):
     png, summary = tmp_path / "run.png", tmp_path / "summary.json"
     argv = [python_exe, "-m", "art_guidance.ros.sim_node", "--ros-args",
             "-p", f"png_path:={png}", "-p", f"summary_path:={summary}"]
     for name, value in params.items():
         argv += ["-p", f"{name}:={value}"]
-    start = time.monotonic()
     out = subprocess.run(argv, env=ros_env, capture_output=True, text=True, timeout=timeout_s)
-    return out, time.monotonic() - start, png, summary
+    return out, png, summary
 
 
 def _summary_line(stdout: str) -> dict:
@@ -75,7 +72,7 @@ def test_sim_flies_a_handmade_plan(ros_env, python_exe, tmp_path):
     three 1 mm/s burns) and says on_plan afterwards. Measured: ~3 s wall, miss ~1 m."""
     fake = _fake(ros_env, python_exe, "--mode", "handmade")
     try:
-        out, wall, png, summary_path = _run_sim(
+        out, png, summary_path = _run_sim(
             ros_env, python_exe, tmp_path, {"rtn0": "[0.0, 750.0, 0.0, 0.0, 0.0, 0.0]"})
     finally:
         fake_out = _stop(fake)
@@ -92,7 +89,6 @@ def test_sim_flies_a_handmade_plan(ros_env, python_exe, tmp_path):
     assert abs(s["total_dv_mps"] - 3e-3) < 3e-3  # Gates errors: sigma 0.3 mm/s per axis
     assert s["min_safety_margin_m"] < 0  # a 750 m hold is inside the 1000 m approach ellipsoid
     assert png.read_bytes()[:8] == PNG_MAGIC
-    assert wall < WALL_BUDGET_S
     assert fake.returncode == 0, fake_out
 
 
@@ -101,7 +97,7 @@ def test_lost_first_fix_is_sent_again(ros_env, python_exe, tmp_path):
     and fix after 2 s and the run completes as usual. Measured: ~5 s wall."""
     fake = _fake(ros_env, python_exe, "--mode", "handmade", "--drop-first", "1")
     try:
-        out, wall, _, _ = _run_sim(
+        out, _, _ = _run_sim(
             ros_env, python_exe, tmp_path, {"rtn0": "[0.0, 750.0, 0.0, 0.0, 0.0, 0.0]",
                                             "errors": "false"})
     finally:
@@ -111,7 +107,6 @@ def test_lost_first_fix_is_sent_again(ros_env, python_exe, tmp_path):
     s = _summary_line(out.stdout)
     assert s["outcome"] == "final_epoch" and s["n_steps"] == 3 and s["n_replans"] == 1
     assert s["total_dv_mps"] == pytest.approx(3e-3, rel=1e-12)  # errors off: as commanded
-    assert wall < WALL_BUDGET_S
 
 
 @pytest.mark.slow
@@ -121,7 +116,7 @@ def test_closed_loop_reaches_the_waypoint(ros_env, python_exe, tmp_path):
     Measured: miss 6.8 m, 1.97 m/s, min passive-safety margin 117 m, ~4 s loop, ~7 s wall."""
     fake = _fake(ros_env, python_exe, "--mode", "pipeline", "--replan-every", "10")
     try:
-        out, wall, png, _ = _run_sim(ros_env, python_exe, tmp_path, {"seed": "0"})
+        out, png, _ = _run_sim(ros_env, python_exe, tmp_path, {"seed": "0"})
     finally:
         fake_out = _stop(fake)
     assert out.returncode == 0, out.stderr + fake_out
@@ -133,7 +128,6 @@ def test_closed_loop_reaches_the_waypoint(ros_env, python_exe, tmp_path):
     assert s["min_safety_margin_m"] is not None and np.isfinite(s["min_safety_margin_m"])
     assert s["final_t_s"] == pytest.approx(1.29 * 5509.0, rel=0.01)
     assert png.read_bytes()[:8] == PNG_MAGIC
-    assert wall < WALL_BUDGET_S
 
 
 def test_loss_fault_over_dds_reports_the_post_fault_drift(ros_env, python_exe, tmp_path):
@@ -142,9 +136,8 @@ def test_loss_fault_over_dds_reports_the_post_fault_drift(ros_env, python_exe, t
     before node 55); exit 0 because the drift stays outside."""
     fake = _fake(ros_env, python_exe, "--mode", "pipeline", "--replan-every", "10")
     try:
-        out, _, png, summary_path = _run_sim(ros_env, python_exe, tmp_path,
-                                             {"seed": "0", "fault": "loss",
-                                              "fault_node": "30"})
+        out, png, summary_path = _run_sim(ros_env, python_exe, tmp_path,
+                                          {"seed": "0", "fault": "loss", "fault_node": "30"})
     finally:
         fake_out = _stop(fake)
     assert out.returncode == 0, out.stderr + fake_out
@@ -183,7 +176,7 @@ def test_sim_without_guidance_gives_up_and_reports(ros_env, python_exe, tmp_path
 
 
 def test_bad_parameter_exits_2(ros_env, python_exe, tmp_path):
-    out, _, png, _ = _run_sim(ros_env, python_exe, tmp_path, {"waypoint": "nowhere"})
+    out, png, _ = _run_sim(ros_env, python_exe, tmp_path, {"waypoint": "nowhere"})
     assert out.returncode == 2
     err = json.loads(out.stderr.strip().splitlines()[-1])
     assert err["error"] == "InputError" and "waypoint" in err["message"]

@@ -119,4 +119,6 @@ def test_replan_budget_keeps_the_recent_recording_time_out_of_planning(pipeline)
     job = core.take_job(wait=False)
     budget.add_post_solve_s(0.15)
     solved = core.solve(job, Deadline.after(budget.planning_s(0.3)))
-    assert solved.result.timings_ms["total"] <= 1e3 * 0.15 + 100.0
+    # overrun measured ~10 ms on a loaded 2-core machine (one SCVx* iteration and the final
+    # safety evaluation); 300 ms holds where these take three times as long and more
+    assert solved.result.timings_ms["total"] <= 1e3 * 0.15 + 300.0, solved.result.timings_ms

@@ -36,7 +36,8 @@ pytestmark = pytest.mark.slow  # Monte Carlo / SCVx* plans integrated in the tru
 
 SC = ScenarioConfig()
 UNC = UncertaintyConfig()
-N_MC = 60_000
+N_MC = 20_000  # entries measured: 2 at each node (upper bounds 3.2e-4); a rate of 1.5e-3
+# (t* among the drift samples, see above) gives ~30 entries, an upper bound ~2e-3: fails
 DELTA = 1e-3
 STEPS = 553  # RK4 steps per orbit (10 s; 5e-5 m from DOP853 on 1 km arcs)
 CASES = ((17, 54), (11, 78))  # (scenario seed, node)

@@ -29,11 +29,42 @@ FLOOR_MPS = 0.010  # the paper's post hoc floor: auto never worse than CVX by mo
 # scenarios hold ~4 of the scenarios where ART pays, so the chance threshold guards the sign.
 MIN_ACCEPTED = {"chance": 1, "deterministic": 8}
 MIN_TOTAL_GAIN_MPS = {"chance": 0.005, "deterministic": 0.08}
+N_HELDOUT = 50
+
+
+class AutoPlans:
+    """The plans of the default configuration with each mode's default model (warm start
+    `auto`) on the first held-out scenarios, made once for the module: every test here compares
+    another way of planning against these (one pipeline per mode, planning in the order of the
+    scenarios)."""
+
+    def __init__(self) -> None:
+        self.config = GuidanceConfig.load()
+        self._pipelines: dict = {}
+        self._plans: dict = {}
+
+    def requests(self, mode: str, n: int) -> list:
+        return heldout_requests(n, DEFAULT_MODELS[mode])
+
+    def plans(self, mode: str, n: int) -> list:
+        if mode not in self._pipelines:
+            self._pipelines[mode] = GuidancePipeline(
+                self.config, provider=ArtWarmStart.load(default_model_path(mode)))
+            self._plans[mode] = []
+        done = self._plans[mode]
+        for req in self.requests(mode, n)[len(done):]:
+            done.append(self._pipelines[mode].plan(req))
+        return done[:n]
+
+
+@pytest.fixture(scope="module")
+def auto_plans() -> AutoPlans:
+    return AutoPlans()
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", sorted(DEFAULT_MODELS))
-def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(mode):
+def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(mode, auto_plans):
     """50 held-out scenarios per mode, with the mode's default model.
 
     What it guards: the learned warm start pays in flight. The post hoc check accepts ART on
@@ -42,12 +73,10 @@ def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(mode):
     more than 10 mm/s and feasible whenever CVX is holds by construction
     (`also_solve_from_cvx`); it is checked here end to end, so a change that breaks that guard
     fails too."""
-    config = GuidanceConfig.load()
-    auto = GuidancePipeline(config, provider=ArtWarmStart.load(default_model_path(mode)))
-    cvx_only = GuidancePipeline(config)
+    cvx_only = GuidancePipeline(auto_plans.config)
     rows = []
-    for req in heldout_requests(50, DEFAULT_MODELS[mode]):
-        a, c = auto.plan(req), cvx_only.plan(req)
+    for req, a in zip(auto_plans.requests(mode, N_HELDOUT), auto_plans.plans(mode, N_HELDOUT)):
+        c = cvx_only.plan(req)
         rows.append((a.cost_mps - c.cost_mps, a.scp.feasible, c.scp.feasible,
                      a.posthoc is not None and bool(a.posthoc.accepted), a.scp.iterations,
                      c.scp.iterations))
@@ -67,7 +96,7 @@ def test_auto_is_never_worse_than_cvx_warm_start_on_heldout_scenarios(mode):
 
 
 @pytest.mark.parametrize("mode", sorted(DEFAULT_MODELS))
-def test_the_concurrent_proposal_plans_as_the_sequence(mode):
+def test_the_concurrent_proposal_plans_as_the_sequence(mode, auto_plans):
     """`propose_concurrently` (the proposal made in a worker process while SCVx* from CVX is
     solved; off by default) changes the time only: on 12 held-out scenarios per mode every
     plan, its warm start, the decision's reason, the post hoc numbers and the discarded attempt
@@ -76,20 +105,19 @@ def test_the_concurrent_proposal_plans_as_the_sequence(mode):
     same plans) while a new worker starts in the background."""
     import dataclasses
 
-    config = GuidanceConfig.load()
-    provider = ArtWarmStart.load(default_model_path(mode))
+    config = auto_plans.config
     con_config = config.replace(planning=dataclasses.replace(config.planning,
                                                              propose_concurrently=True))
     concurrent = GuidancePipeline(con_config, provider=ArtWarmStart.load(default_model_path(mode)))
-    sequence = GuidancePipeline(config, provider=provider)
     assert concurrent.start_proposal_worker(), concurrent.proposal_worker_error
     accepted = ran = 0
     try:
-        for i, req in enumerate(heldout_requests(12, DEFAULT_MODELS[mode])):
+        for i, (req, b) in enumerate(zip(auto_plans.requests(mode, 12),
+                                         auto_plans.plans(mode, 12))):
             if i == 6:  # the worker dies: proposals in line until its successor is ready
                 concurrent._worker._proc.kill()
                 concurrent._worker._proc.join()
-            a, b = concurrent.plan(req), sequence.plan(req)
+            a = concurrent.plan(req)
             assert a.status == b.status and a.warm_start == b.warm_start, b.warm_start_reason
             assert np.array_equal(a.dv_rtn_mps, b.dv_rtn_mps) and a.cost_mps == b.cost_mps
             assert a.warm_start_reason == b.warm_start_reason and a.posthoc == b.posthoc
@@ -110,7 +138,7 @@ def test_the_concurrent_proposal_plans_as_the_sequence(mode):
 
 
 @pytest.mark.parametrize("mode", sorted(DEFAULT_MODELS))
-def test_also_solving_rejected_proposals_is_never_worse(mode):
+def test_also_solving_rejected_proposals_is_never_worse(mode, auto_plans):
     """`also_solve_from_art` (off by default): where the check rejects the proposal, SCVx* is
     also run from it and the better plan kept by the same rule. On 12 held-out scenarios per
     mode the flown plan is never dearer than with the check alone deciding, the second run is
@@ -118,15 +146,13 @@ def test_also_solving_rejected_proposals_is_never_worse(mode):
     so."""
     import dataclasses
 
-    config = GuidanceConfig.load()
+    config = auto_plans.config
     both = config.replace(planning=dataclasses.replace(config.planning,
                                                        also_solve_from_art=True))
-    provider = ArtWarmStart.load(default_model_path(mode))
-    region_only = GuidancePipeline(config, provider=provider)
     always = GuidancePipeline(both, provider=ArtWarmStart.load(default_model_path(mode)))
     second = 0
-    for req in heldout_requests(12, DEFAULT_MODELS[mode]):
-        a, b = always.plan(req), region_only.plan(req)
+    for req, b in zip(auto_plans.requests(mode, 12), auto_plans.plans(mode, 12)):
+        a = always.plan(req)
         if a.status.feasible and b.status.feasible:
             assert a.cost_mps <= b.cost_mps + 1e-12, (a.warm_start_reason, b.warm_start_reason)
         rejected = b.posthoc is not None and not b.posthoc.accepted and b.warm_start is CVX
