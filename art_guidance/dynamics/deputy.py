@@ -170,32 +170,25 @@ class DeputyLinearization:
         return g.transpose(1, 0, 2).reshape(6, 3 * n)
 
 
-def deputy_post_burn(lat_rad, n: float, a_m: float, inc_rad: float, x: list, u: list,
-                     m=math) -> list:
-    """The post-burn ROE ``z = x + B_d(x) u`` of the deputy-aware model, written once for a
-    single state in float arithmetic (`m` = math: the single-trajectory propagation's loop)
-    and for a batch of states in array arithmetic (`m` = numpy: every other caller).
+def deputy_post_burn(lat_rad: float, n: float, a_m: float, inc_rad: float,
+                     x: list[float], u: list[float]) -> list[float]:
+    """`post_burn_batch` for one state in float arithmetic: ``x + B_d(x) u`` written out
+    element by element (the single-trajectory propagation's loop, `Horizon.propagate_nonlinear`,
+    where numpy's per-call cost would dominate); the same numbers to rounding (tested).
 
     Args:
-        lat_rad: chief mean argument of latitude at the burn [rad] (float, or an array
-            broadcast against the components).
+        lat_rad: chief mean argument of latitude at the burn [rad].
         n, a_m, inc_rad: chief mean motion [rad/s], semi-major axis [m], inclination [rad].
-        x: the six pre-burn a-scaled ROE components [m] (floats, or (B,) arrays).
-        u: the three RTN burn components [m/s] (likewise).
-        m: the module of sin, cos, sqrt and tan for those numbers.
-
-    Returns:
-        The six post-burn components [m], as given (B_d is `control_matrix_deputy`, the
-        Jacobian dz/du).
+        x: the six pre-burn a-scaled ROE [m]; u: the three RTN burn components [m/s].
     """
     inv_a = 1.0 / a_m
     one_x = 1.0 + x[0] * inv_a
-    f = m.sqrt(one_x) / n
-    du = (x[1] - x[5] / m.tan(inc_rad)) * inv_a
-    cd, sd = m.cos(du), m.sin(du)
+    f = math.sqrt(one_x) / n
+    du = (x[1] - x[5] / math.tan(inc_rad)) * inv_a
+    cd, sd = math.cos(du), math.sin(du)
     v_r, v_t = cd * u[0] + sd * u[1], -sd * u[0] + cd * u[1]
-    fs, fc = f * m.sin(lat_rad + du), f * m.cos(lat_rad + du)
-    sin_ratio = m.sin(inc_rad) / m.sin(inc_rad + x[4] * inv_a)
+    fs, fc = f * math.sin(lat_rad + du), f * math.cos(lat_rad + du)
+    sin_ratio = math.sin(inc_rad) / math.sin(inc_rad + x[4] * inv_a)
     return [x[0] + 2.0 * one_x * f * v_t, x[1] - 2.0 * f * v_r,
             x[2] + fs * v_r + 2.0 * fc * v_t, x[3] - fc * v_r + 2.0 * fs * v_t,
             x[4] + fc * u[2], x[5] + fs * sin_ratio * u[2]]
@@ -203,7 +196,12 @@ def deputy_post_burn(lat_rad, n: float, a_m: float, inc_rad: float, x: list, u: 
 
 def post_burn_batch(lat_rad: float | np.ndarray, n: float, a_m: float, inc_rad: float,
                     roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
-    """`deputy_post_burn` of states (..., 6) [m] and burns (..., 3) [m/s] at latitude(s)
-    `lat_rad` (broadcast against the leading axes): (..., 6) [m]."""
-    x, u = np.moveaxis(roe_m, -1, 0), np.moveaxis(dv_rtn_mps, -1, 0)
-    return np.stack(deputy_post_burn(lat_rad, n, a_m, inc_rad, x, u, np), axis=-1)
+    """The post-burn ROE ``z = x + B_d(x) u`` of the deputy-aware model (B_d:
+    `control_matrix_deputy`, at the deputy's own pre-burn state) for states (..., 6) [m] and
+    burns (..., 3) [m/s] at chief latitude(s) `lat_rad` [rad] (broadcast against the leading
+    axes): (..., 6) [m]. Every array caller's form (SCVx*, the safety model, the rollout);
+    `deputy_post_burn` is the same for one state in floats."""
+    b = _control_deputy(lat_rad, n, a_m, inc_rad, roe_m)  # (..., 6, 3)
+    if dv_rtn_mps.ndim == 1:
+        return roe_m + b @ dv_rtn_mps
+    return roe_m + (b @ dv_rtn_mps[..., None])[..., 0]

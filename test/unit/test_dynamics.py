@@ -557,11 +557,11 @@ def test_stm_and_psi_vectorised_match_scalar_calls():
         np.testing.assert_array_equal(psis[k], dyn.psi_from_latitude(float(uk), n))
 
 
-def test_the_deputy_post_burn_is_one_formula_at_every_size():
-    """`deputy_post_burn` is the deputy-aware post-burn state, written once: in floats (the
-    single-trajectory loop) and in arrays (batches) it gives the same numbers, and both equal
-    ``x + B_d(x) u`` with `control_matrix_deputy`, its Jacobian in u (the model is linear in
-    the burn), to 1e-9 m."""
+def test_the_deputy_post_burn_in_floats_is_the_batch_form():
+    """The deputy-aware post-burn state has two speeds of one definition: `post_burn_batch`
+    (``x + B_d(x) u`` with `control_matrix_deputy`, every array caller) and
+    `deputy_post_burn` (the same in floats, the single-trajectory loop); they agree to
+    1e-9 m on random states."""
     from art_guidance.dynamics import control_matrix_deputy
     from art_guidance.dynamics.deputy import deputy_post_burn, post_burn_batch
     from art_guidance.dynamics.elements import mean_arg_latitude, mean_motion
@@ -572,8 +572,9 @@ def test_the_deputy_post_burn_is_one_formula_at_every_size():
     u = rng.normal(0.0, 0.5, (16, 3))
     lat, n, a, inc = float(mean_arg_latitude(chief)), mean_motion(chief[0]), chief[0], chief[2]
     batch = post_burn_batch(lat, n, a, inc, x, u)
-    floats = np.array([deputy_post_burn(lat, n, a, inc, xi.tolist(), ui.tolist(), math)
+    floats = np.array([deputy_post_burn(lat, n, a, inc, xi.tolist(), ui.tolist())
                        for xi, ui in zip(x, u)])
-    matrix = x + (control_matrix_deputy(chief, x) @ u[:, :, None])[:, :, 0]
+    np.testing.assert_array_equal(
+        batch, x + (control_matrix_deputy(chief, x) @ u[:, :, None])[:, :, 0])
     np.testing.assert_allclose(batch, floats, rtol=0.0, atol=1e-9)
-    np.testing.assert_allclose(batch, matrix, rtol=0.0, atol=1e-9)
+    np.testing.assert_array_equal(post_burn_batch(lat, n, a, inc, x[0], u[0]), batch[0])
