@@ -18,6 +18,16 @@ def interrupt(proc: subprocess.Popen, timeout_s: float) -> None:
         proc.kill()
 
 
+def stop_cleanly(proc: subprocess.Popen, timeout_s: float = 30.0) -> str:
+    """SIGINT a node, wait for it and return its output, asserting a clean stop: exit 0 and
+    no Traceback (the process must have been started with stdout piped, text mode)."""
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=timeout_s)
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out, out
+    return out
+
+
 def process_stats(pid: int) -> tuple[float, int, int]:
     """(resident memory [MB], open file descriptors, threads) of a process (Linux /proc)."""
     rss, threads = float("nan"), -1
