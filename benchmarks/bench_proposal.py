@@ -15,7 +15,8 @@ update at every step, then the judging of its candidates), one torch thread, in 
 The two alternate scenario by scenario; the proposals must be identical (controls and
 constraint-to-go), and the numbers are medians of wall and CPU (process) time with the paired
 ratio. The fast path's time is split into the C update (`step_violations`), the candidates'
-terminal corrections, their safety search, and the rest (transformer, dynamics, bookkeeping);
+terminal corrections, their safety search, and the rest (transformer, dynamics, bookkeeping),
+and into the transformer (`CachedDecoder.step`) and the numerics (everything else);
 `sweep_K_ms` times proposals with sweeps of K reward scales (the transformer's work grows
 with the batch: at batch 8 it is arithmetic, not per-call overhead).
 
@@ -121,8 +122,17 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
     request, safety, cvx = cases[0]
     provider.propose(request, safety, cvx, planning)  # warm-up (decoder, caches)
     rows, same = [], 0
-    parts = {"c_update": [], "judge_correction": [], "judge_search": [], "rest": []}
+    parts = {"c_update": [], "judge_correction": [], "judge_search": [], "transformer": [],
+             "numerics": [], "rest": []}
     original = provider_module.judged_trajectory
+    decoder = provider.art.decoder
+    step, step_s = decoder.step, [0.0]
+
+    def timed_step(*args, _f=step, _acc=step_s):
+        t = time.perf_counter()
+        out = _f(*args)
+        _acc[0] += time.perf_counter() - t
+        return out
     for request, safety, cvx in cases:
         ref, ref_wall, ref_cpu = _timed(lambda: provider.propose(request, _Reference(safety),
                                                                  cvx, planning))
@@ -136,10 +146,12 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
             return out
 
         provider_module.judged_trajectory = corrected
+        decoder.step, step_s[0] = timed_step, 0.0
         try:
             fast, wall, cpu = _timed(lambda: provider.propose(request, timed, cvx, planning))
         finally:
             provider_module.judged_trajectory = original
+            decoder.step = step
         same += int(np.array_equal(fast.dv_rtn_mps, ref.dv_rtn_mps)
                     and np.array_equal(fast.constraint_to_go, ref.constraint_to_go))
         rows.append((wall, cpu, ref_wall, ref_cpu))
@@ -147,6 +159,8 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
         parts["judge_correction"].append(1e3 * corr[0])
         parts["judge_search"].append(1e3 * timed.judge_eval_s)
         parts["rest"].append(wall - 1e3 * (timed.c_update_s + corr[0] + timed.judge_eval_s))
+        parts["transformer"].append(1e3 * step_s[0])  # the KV-cached decoder's steps
+        parts["numerics"].append(wall - 1e3 * step_s[0])  # everything but the transformer
     wall, cpu, ref_wall, ref_cpu = (np.array(x) for x in zip(*rows))
     out = {"scenarios": len(rows), "first_seed": int(first_seed),
            "identical_proposals": same,
