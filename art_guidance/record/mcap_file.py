@@ -22,8 +22,7 @@ from mcap.writer import CompressionType, Writer
 
 from art_guidance.files import fsync_dir
 from art_guidance.record.bag_metadata import FileInfo
-
-MAGIC = b"\x89MCAP0\r\n"
+from art_guidance.record.mcap_records import MAGIC
 
 
 def provisional_tail() -> bytes:

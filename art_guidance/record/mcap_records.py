@@ -21,10 +21,8 @@ from mcap.records import (
 MAGIC = b"\x89MCAP0\r\n"
 FRAME_BYTES = 9  # opcode (1) and record length (8)
 FOOTER_BYTES = FRAME_BYTES + 20
-DATA_END_BYTES = FRAME_BYTES + 4
 OPCODES = frozenset(int(op) for op in Opcode)
 _IN_CHUNK = (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE)
-_COMPRESSIONS = ("", "zstd")
 _READERS = {
     Opcode.HEADER: Header.read, Opcode.SCHEMA: Schema.read, Opcode.CHANNEL: Channel.read,
     Opcode.METADATA: Metadata.read, Opcode.CHUNK: Chunk.read, Opcode.CHUNK_INDEX: ChunkIndex.read,

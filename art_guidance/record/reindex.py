@@ -34,10 +34,11 @@ from art_guidance.record.bag_metadata import (
     METADATA_FILE, FileInfo, TopicInfo, bag_files, write_bag_metadata,
 )
 from art_guidance.record.loss import account, describe
-from art_guidance.record.recorder import MAGIC
+from art_guidance.record.mcap_records import FOOTER_BYTES as FOOTER_RECORD_BYTES
+from art_guidance.record.mcap_records import MAGIC
 from art_guidance.record.scan import Damage, FileScan, lend_channels, scan_file
 
-FOOTER_BYTES = 9 + 20 + len(MAGIC)  # footer record (opcode, length, 8 + 8 + 4) and the magic
+FOOTER_BYTES = FOOTER_RECORD_BYTES + len(MAGIC)  # the footer record and the closing magic
 ORIG_SUFFIX = ".orig"
 
 
