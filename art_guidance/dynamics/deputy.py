@@ -201,7 +201,12 @@ def post_burn_batch(lat_rad: float | np.ndarray, n: float, a_m: float, inc_rad: 
     burns (..., 3) [m/s] at chief latitude(s) `lat_rad` [rad] (broadcast against the leading
     axes): (..., 6) [m]. Every array caller's form (SCVx*, the safety model, the rollout);
     `deputy_post_burn` is the same for one state in floats."""
-    b = _control_deputy(lat_rad, n, a_m, inc_rad, roe_m)  # (..., 6, 3)
+    return post_burn_with(_control_deputy(lat_rad, n, a_m, inc_rad, roe_m), roe_m, dv_rtn_mps)
+
+
+def post_burn_with(b: np.ndarray, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
+    """`post_burn_batch` with its control matrices B_d(x) (..., 6, 3) [s] already built (the
+    linearisation needs them too)."""
     if dv_rtn_mps.ndim == 1:
         return roe_m + b @ dv_rtn_mps
     return roe_m + (b @ dv_rtn_mps[..., None])[..., 0]

@@ -11,7 +11,7 @@ import numpy as np
 from art_guidance.checks import as_finite_array
 from art_guidance.dynamics.deputy import (
     DeputyLinearization, _control_deputy, _curvature_slope, _deputy_burn_jacobian,
-    along_track_curvature_m, deputy_post_burn, post_burn_batch,
+    along_track_curvature_m, deputy_post_burn, post_burn_batch, post_burn_with,
 )
 from art_guidance.dynamics.elements import (
     check_oe, mean_arg_latitude, mean_motion, orbital_period_s, propagate_mean_oe,
@@ -175,7 +175,7 @@ class Horizon:
         lat, n, a, inc = self._deputy_constants()
         b = _control_deputy(lat, n, a, inc, x)
         jac = _deputy_burn_jacobian(lat, n, a, inc, x, u)
-        z = post_burn_batch(lat, n, a, inc, x, u)
+        z = post_burn_with(b, x, u)
         e = jac + np.eye(6)
         p = self.stm.copy()
         p[:, 1, 0] += _curvature_slope(a, z[:-1, 0], np.diff(self.epochs_s))
