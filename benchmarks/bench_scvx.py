@@ -14,7 +14,8 @@ same process, each path first on a third of the seeds:
   threshold); what current changes beyond that is what its tolerances change.
 
 All paths run the same dynamics and safety code. Timed: `Scvx(...)` and `solve`, as in
-`plan`'s `timings_ms.scp` (the pooled subproblems built before the first timed run).
+`plan`'s `timings_ms.scp` (the subproblems, from one `SubproblemPool` as the pipeline
+holds, built before the first timed run).
 
 Reports per mode and path the medians [ms], iterations, converged and feasible shares, and per
 pair (current or equivalent against reference) the paired time ratios, the problems converged by
@@ -34,7 +35,7 @@ from tqdm import tqdm
 from art_guidance.config import GuidanceConfig
 from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.optim import ScpStatus, Scvx, solve_cvx
-from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions
+from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions, SubproblemPool
 from art_guidance.safety import PassiveSafety
 from art_guidance.scenarios import sample_scenario
 
@@ -71,8 +72,9 @@ def compare(current: SubproblemOptions, reference: SubproblemOptions, repeats: i
         safety = PassiveSafety(horizon, config.scenario,
                                config.uncertainty if mode == "chance" else None)
         seeds = range(first_seed, first_seed + count)
-        _solve_both(config, safety, chief, first_seed, options, mode)  # builds both pools
-        mode_rows = [_solve_both(config, safety, chief, seed, options, mode)
+        pool = SubproblemPool()
+        _solve_both(config, safety, chief, first_seed, options, mode, pool)  # builds them
+        mode_rows = [_solve_both(config, safety, chief, seed, options, mode, pool)
                      for seed in tqdm(seeds, desc=f"bench scvx {mode}", unit="scenario")]
         summary[mode] = _summarise(mode_rows, config.scp.eps_opt)
         rows += mode_rows
@@ -86,7 +88,7 @@ def compare(current: SubproblemOptions, reference: SubproblemOptions, repeats: i
 
 
 def _solve_both(config: GuidanceConfig, safety: PassiveSafety, chief: np.ndarray, seed: int,
-                options: dict, mode: str) -> dict:
+                options: dict, mode: str, pool: SubproblemPool) -> dict:
     """One problem solved by both paths, in an order that alternates with the seed."""
     horizon = safety.horizon
     s = sample_scenario(config.scenario, seed)
@@ -98,7 +100,7 @@ def _solve_both(config: GuidanceConfig, safety: PassiveSafety, chief: np.ndarray
     for name in order:
         t = time.perf_counter()
         res = Scvx(safety, x0, xf, config.scp, samples_per_node=config.planning.samples_per_node,
-                   subproblem=options[name]).solve(warm)
+                   subproblem=options[name], pool=pool).solve(warm)
         ms = 1e3 * (time.perf_counter() - t)
         row[name] = {"ms": ms, "status": res.status.name, "iterations": res.iterations,
                      "cost_mps": res.cost_mps,

@@ -25,6 +25,7 @@ from art_guidance.config import MODES, GuidanceConfig, ScenarioConfig, Uncertain
 from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.optim import ScpStatus, Scvx, solve_cvx
+from art_guidance.optim.problem import SubproblemPool
 from art_guidance.safety import PassiveSafety
 from art_guidance.scenarios import SEED_RULE, SEED_STRIDE, sample_scenario, sample_seed
 
@@ -141,6 +142,7 @@ class _Models:
     horizon: Horizon
     collision: PassiveSafety   # stage 2: deterministic, T_safety = 0
     passive: PassiveSafety     # stage 3: the mode's model (deterministic or chance)
+    pool: SubproblemPool       # both stages' SCVx* subproblems, set up once per process
 
 
 _MODELS: dict[str, _Models] = {}
@@ -154,7 +156,7 @@ def _models(spec: GenerationSpec) -> _Models:
         horizon = Horizon.build(chief, time_grid_s(chief[0], sc.n_orbits, sc.n_nodes))
         _MODELS.clear()
         _MODELS[key] = _Models(chief, horizon, PassiveSafety(horizon, sc, None, t_safety_s=0.0),
-                               PassiveSafety(horizon, sc, spec.uncertainty))
+                               PassiveSafety(horizon, sc, spec.uncertainty), SubproblemPool())
     return _MODELS[key]
 
 
@@ -188,11 +190,12 @@ def _run_cvx(horizon: Horizon, roe0: np.ndarray, roe_f: np.ndarray) -> Stage:
 
 
 def _run_scp(spec: GenerationSpec, safety: PassiveSafety, roe0: np.ndarray, roe_f: np.ndarray,
-             warm: np.ndarray) -> Stage:
+             warm: np.ndarray, pool: SubproblemPool | None) -> Stage:
     t0 = time.perf_counter()
     try:
         res = Scvx(safety, roe0, roe_f, spec.config.scp,
-                   samples_per_node=spec.config.planning.samples_per_node).solve(warm)
+                   samples_per_node=spec.config.planning.samples_per_node,
+                   pool=pool).solve(warm)
     except GuidanceError:
         return Stage(ScpStatus.SOLVER_ERROR, None, None, math.nan, 0,
                      1e3 * (time.perf_counter() - t0))
@@ -201,7 +204,8 @@ def _run_scp(spec: GenerationSpec, safety: PassiveSafety, roe0: np.ndarray, roe_
 
 
 def solve_stages(spec: GenerationSpec, collision: PassiveSafety, passive: PassiveSafety,
-                 roe0: np.ndarray, roe_f: np.ndarray) -> tuple[tuple[Stage, Stage, Stage], int]:
+                 roe0: np.ndarray, roe_f: np.ndarray, pool: SubproblemPool | None = None
+                 ) -> tuple[tuple[Stage, Stage, Stage], int]:
     """The three stages of the pipeline on one horizon (that of `passive`).
 
     Stage 1 solves the convex TPBVP (CVX); stage 2 the collision-avoidance SCP `collision`
@@ -214,6 +218,7 @@ def solve_stages(spec: GenerationSpec, collision: PassiveSafety, passive: Passiv
         passive: stage-3 model on the same horizon.
         roe0: (6,) pre-burn a-scaled ROE at the first node [m].
         roe_f: (6,) terminal post-burn a-scaled ROE [m].
+        pool: the caller's SCVx* subproblems (None: each stage sets up its own).
 
     Returns:
         (cvx, collision avoidance, passive safety) stages and the kept stage: 3 if stage 3 is
@@ -223,9 +228,9 @@ def solve_stages(spec: GenerationSpec, collision: PassiveSafety, passive: Passiv
     horizon = passive.horizon
     cvx = _run_cvx(horizon, roe0, roe_f)
     warm = cvx.dv_rtn_mps if cvx.dv_rtn_mps is not None else np.zeros((horizon.n_nodes, 3))
-    ca = _run_scp(spec, collision, roe0, roe_f, warm)
+    ca = _run_scp(spec, collision, roe0, roe_f, warm, pool)
     ps = _run_scp(spec, passive, roe0, roe_f,
-                  ca.dv_rtn_mps if ca.dv_rtn_mps is not None else warm)
+                  ca.dv_rtn_mps if ca.dv_rtn_mps is not None else warm, pool)
     kept = 3 if ps.feasible else 2 if ca.feasible else KEPT_INFEASIBLE
     return (cvx, ca, ps), kept
 
@@ -253,7 +258,7 @@ def solve_sample(spec: GenerationSpec, index: int) -> dict[str, np.ndarray]:
     sample = sample_scenario(spec.scenario, sample_seed(spec.base_seed, index))
     roe0 = roe_from_rtn_linear(m.chief, sample.rtn0)
     roe_f = np.linalg.solve(m.horizon.psi[-1], sample.target_rtn)
-    stages, kept = solve_stages(spec, m.collision, m.passive, roe0, roe_f)
+    stages, kept = solve_stages(spec, m.collision, m.passive, roe0, roe_f, m.pool)
     cvx = stages[0]
     rec = {
         "index": np.int64(index), "seed": np.int64(sample.seed),

@@ -46,6 +46,7 @@ from art_guidance.eval.inputs import (
 )
 from art_guidance.eval.results import build_summary, log_run, render, write_summary
 from art_guidance.jobs import check_run_options, run_missing
+from art_guidance.optim.problem import SubproblemPool
 
 
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -97,11 +98,12 @@ def evaluate_chunk(spec: EvaluationSpec, indices: Sequence[int]) -> dict[str, np
     single_thread()
     idx = np.asarray(indices, dtype=np.int64)
     rows, ms = [], []
+    pool = SubproblemPool()  # SCVx*'s subproblems, set up once per model's horizon
     for i in idx:
         provider, safety = load_model(spec.models[spec.model[i]], spec.single_rollout)
         t0 = time.perf_counter()
         request = request_of(spec.roe0_m[i], spec.target_rtn[i], safety)
-        rows.append(compare(request, safety, provider, spec.config))
+        rows.append(compare(request, safety, provider, spec.config, pool))
         ms.append(1e3 * (time.perf_counter() - t0))
     return {"index": idx, "model": spec.model[idx], "dataset": spec.dataset[idx],
             "sample": spec.sample[idx], "roe0_m": spec.roe0_m[idx],

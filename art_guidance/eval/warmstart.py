@@ -31,6 +31,7 @@ import numpy as np
 from art_guidance.config import GuidanceConfig
 from art_guidance.errors import GuidanceError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
+from art_guidance.optim.problem import SubproblemPool
 from art_guidance.planning.pipeline import keep_first_plan, second_run
 from art_guidance.planning.posthoc import check_proposal, posthoc_check
 from art_guidance.planning.types import (
@@ -140,7 +141,7 @@ class WarmStartRun:
 
 
 def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
-               config: GuidanceConfig) -> WarmStartRun:
+               config: GuidanceConfig, pool: SubproblemPool | None = None) -> WarmStartRun:
     """Both warm starts and both SCVx* runs for one request on `safety.horizon`.
 
     Args:
@@ -148,6 +149,8 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
         safety: the passive-safety model (deterministic or chance-constrained).
         provider: a `WarmStartProvider` (e.g. `art.provider.ArtWarmStart`).
         config: SCP, post hoc and planning settings.
+        pool: the caller's SCVx* subproblems, reused over requests on one horizon (None: set
+            up for this request).
 
     Raises:
         GuidanceError: CVX or the rollout failed (a SCVx* failure is a SOLVER_ERROR result).
@@ -166,7 +169,7 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
         posthoc_check(art_dv, art_roe, cvx.cost_mps, safety, config.planning.posthoc)
     c_cvx = int(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0])
     scvx = Scvx(safety, request.roe0_m, roe_f, config.scp,
-                samples_per_node=config.planning.samples_per_node)
+                samples_per_node=config.planning.samples_per_node, pool=pool)
     from_cvx = _solve(scvx, cvx.dv_rtn_mps)
     from_art = _solve(scvx, art_dv)
     source = WarmStartSource.ART if ph.accepted else WarmStartSource.CVX
@@ -181,9 +184,9 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
 
 
 def compare(request: PlanRequest, safety: PassiveSafety, provider: object,
-            config: GuidanceConfig) -> WarmStartRow:
+            config: GuidanceConfig, pool: SubproblemPool | None = None) -> WarmStartRow:
     """Both warm starts for one request on `safety.horizon` (see `solve_both`)."""
-    return solve_both(request, safety, provider, config).row()
+    return solve_both(request, safety, provider, config, pool).row()
 
 
 def _solve(scvx: Scvx, warm_dv: np.ndarray) -> ScpResult:

@@ -17,10 +17,10 @@ of the convex problem (E = I, B = B(0), P = Phi, r = j = 0).
 
 The sparsity pattern is built once per horizon; per iteration only the dynamics and safety
 coefficients, the right-hand sides, the penalty multipliers and the weight change (updated in
-place). `pooled_subproblem` keeps the last subproblem (and its solver) of every shape per thread,
-so that consecutive SCVx* runs over one horizon (the dataset's stages, the pipeline's two warm
-starts) update it instead of assembling and factorising the pattern again: the solutions are
-bit-identical to a fresh build's (`test/unit/test_problem_pool.py`).
+place). A `SubproblemPool`, owned by its caller, keeps the last subproblem (and its solver) of
+every shape, so that consecutive SCVx* runs over one horizon (the dataset's stages, the
+pipeline's two warm starts) update it instead of assembling and factorising the pattern again:
+the solutions are bit-identical to a fresh build's (`test/unit/test_problem_pool.py`).
 
 The control rows of the trust region are implied by its state rows
 (`SubproblemOptions.drop_idle_control_box`). Between any feasible point and the reference, the
@@ -37,7 +37,6 @@ feasible set and optimum (11 % fewer KKT rows, 1.5 fewer interior-point iteratio
 """
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -358,28 +357,33 @@ def _control_box_gains(p: np.ndarray, e: np.ndarray, b: np.ndarray
     return np.abs(pinv).sum(axis=2).max(axis=1), x_gain
 
 
-_POOL = threading.local()
+class SubproblemPool:
+    """The subproblems of one caller, set up once per horizon and shape and updated between
+    solves (the solver's lifecycle: set up, update, solve).
 
-
-def pooled_subproblem(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
-                      norm: str = "l2", solver: str = "clarabel",
-                      samples_per_node: int = 1,
-                      options: SubproblemOptions | None = None) -> ScpSubproblem:
-    """A subproblem for `horizon`, reused from the last one this thread built of that shape.
-
-    One subproblem per (norm, solver, rows per node, options) is kept per thread, for the last
-    horizon object it was built on (`roe0_m`, `roe_f_m` only serve a new build). A reused one
-    holds the numbers of its last problem: the caller sets all of them before each run
-    (`Scvx.solve`: `set_boundary`, `set_dynamics`, then per iteration `set_reference`,
-    `set_safety`, `set_penalty`), so runs of several problems may share it in one thread.
+    It keeps one subproblem per (norm, solver, rows per node, options), for the last horizon
+    object it was built on (`roe0_m`, `roe_f_m` only serve a new build). A reused one holds the
+    numbers of its last problem: its user sets all of them before each run (`Scvx.solve`:
+    `set_boundary`, `set_dynamics`, then per iteration `set_reference`, `set_safety`,
+    `set_penalty`), so consecutive runs of several problems share it. The caller owns the pool
+    and uses it from one thread at a time (the pipeline holds one; its proposal worker, a
+    process, holds its own); an `Scvx` built without one sets up a subproblem of its own.
     """
-    pool = getattr(_POOL, "subproblems", None)
-    if pool is None:
-        pool = _POOL.subproblems = {}
-    options = options or SubproblemOptions()
-    key = (norm, solver, int(samples_per_node), options)
-    sub = pool.get(key)
-    if sub is None or sub.horizon is not horizon:
-        sub = pool[key] = ScpSubproblem(horizon, roe0_m, roe_f_m, norm, solver,
-                                        samples_per_node, options)
-    return sub
+
+    def __init__(self) -> None:
+        self._subproblems: dict[tuple, ScpSubproblem] = {}
+
+    def get(self, horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
+            norm: str = "l2", solver: str = "clarabel", samples_per_node: int = 1,
+            options: SubproblemOptions | None = None) -> ScpSubproblem:
+        """The subproblem of this shape over `horizon`: the last one built, or a new one."""
+        options = options or SubproblemOptions()
+        key = (norm, solver, int(samples_per_node), options)
+        sub = self._subproblems.get(key)
+        if sub is None or sub.horizon is not horizon:
+            sub = self._subproblems[key] = ScpSubproblem(horizon, roe0_m, roe_f_m, norm, solver,
+                                                         samples_per_node, options)
+        return sub
+
+    def __len__(self) -> int:
+        return len(self._subproblems)

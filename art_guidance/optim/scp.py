@@ -43,7 +43,7 @@ from art_guidance.config import ScpConfig
 from art_guidance.dynamics import DeputyLinearization, Horizon
 from art_guidance.deadline import Deadline
 from art_guidance.optim.cvx import control_cost, terminal_maps
-from art_guidance.optim.problem import SubproblemOptions, pooled_subproblem
+from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
 from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus
 from art_guidance.safety import PassiveSafety
 
@@ -130,13 +130,38 @@ def to_terminal(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
     return dv, roe
 
 
+@dataclass
+class ScvxState:
+    """The loop state of one SCVx* run: the reference iterate and its linearisations, the
+    best feasible iterate, the augmented-Lagrangian multipliers, the trust region, the
+    stationarity tolerance and the history."""
+
+    ref: _Iterate
+    best: _Iterate | None
+    mu: np.ndarray            # (N,) multipliers
+    w: float                  # penalty weight
+    radius: float             # trust radius
+    delta: float              # stationarity tolerance of the multiplier update
+    lin_dyn: DeputyLinearization
+    lin: tuple[np.ndarray, np.ndarray]  # safety rows (a, rhs + tightening) about `ref`
+    history: list[ScpIteration]
+    status: ScpStatus | None = None
+
+
 class Scvx:
-    """SCVx* solver bound to one problem instance (horizon, boundary conditions, safety)."""
+    """SCVx* bound to one problem instance (horizon, boundary conditions, safety).
+
+    What a run depends on: the safety model (its horizon gives the dynamics), the boundary
+    conditions, the SCVx* parameters and one `ScpSubproblem` (set up once per horizon and shape,
+    updated and solved every iteration), taken from the caller's `SubproblemPool` or set up for
+    this instance alone. A run's loop state is one `ScvxState`.
+    """
 
     def __init__(self, safety: PassiveSafety, roe0_m: np.ndarray, roe_f_m: np.ndarray,
                  config: ScpConfig | None = None, norm: str = "l2",
                  solver: str = "clarabel", samples_per_node: int = 1,
-                 subproblem: SubproblemOptions | None = None) -> None:
+                 subproblem: SubproblemOptions | None = None,
+                 pool: SubproblemPool | None = None) -> None:
         """Args:
             safety: the passive-safety model (its horizon is the plan's).
             roe0_m, roe_f_m: (6,) initial pre-burn and terminal post-burn ROE [m].
@@ -146,6 +171,8 @@ class Scvx:
             samples_per_node: drift instants linearised per node.
             subproblem: how the subproblem is posed (`optim.problem.SubproblemOptions`;
                 `REFERENCE_OPTIONS` is the earlier, slower form, kept as the oracle).
+            pool: the caller's subproblems, reused across runs over one horizon (None: this
+                instance sets up its own).
         """
         self.safety = safety
         self.horizon = safety.horizon
@@ -159,9 +186,8 @@ class Scvx:
         self.k = int(min(k + 2 if k > 1 else 1, safety.n_samples))
         # The convex model is tightened so converged plans keep a nonlinear margin >= 0.
         self.tighten = self.cfg.tightening
-        # reused across runs over this horizon (same pattern and solver, numbers updated)
-        self.sub = pooled_subproblem(self.horizon, self.roe0_m, self.roe_f_m, norm, solver,
-                                     self.k, subproblem)
+        self.sub = (pool if pool is not None else SubproblemPool()).get(
+            self.horizon, self.roe0_m, self.roe_f_m, norm, solver, self.k, subproblem)
 
     # ------------------------------------------------------------------ dynamics
     def _propagate(self, dv_rtn_mps: np.ndarray) -> np.ndarray:
@@ -185,6 +211,7 @@ class Scvx:
         gp = np.maximum(it.g, 0.0)
         return it.cost + float(mu @ gp) + 0.5 * w * float(gp @ gp)
 
+    # ------------------------------------------------------------------ the run
     def solve(self, dv_warm_rtn_mps: np.ndarray, multipliers: dict | None = None,
               deadline: Deadline | None = None,
               projected: tuple[np.ndarray, np.ndarray] | None = None) -> ScpResult:
@@ -200,69 +227,87 @@ class Scvx:
                 as the first reference instead of computing it again; None: computed here.
         """
         t_start = time.perf_counter()
+        st = self._start(dv_warm_rtn_mps, multipliers, projected)
+        for it_no in range(1, self.cfg.max_iterations + 1):
+            if deadline is not None and deadline.passed():
+                st.status = ScpStatus.TIMEOUT
+                break
+            if not self._step(st, it_no):
+                break
+        return self._result(st, t_start)
+
+    def _start(self, dv_warm_rtn_mps: np.ndarray, multipliers: dict | None,
+               projected: tuple[np.ndarray, np.ndarray] | None) -> ScvxState:
+        """The first reference (the warm start on the terminal condition), its
+        linearisations, the multipliers; the subproblem set to this problem."""
         cfg, n = self.cfg, self.horizon.n_nodes
         ref = self._iterate(*(projected if projected is not None else terminal_warm_start(
             self.horizon, self.roe0_m, self.roe_f_m,
             np.asarray(dv_warm_rtn_mps, float).reshape(n, 3))))
         m = multipliers or {}
-        mu = np.asarray(m.get("mu", np.zeros(n)), float).copy()
-        w = float(m.get("w", cfg.w0))
-        radius = float(m.get("trust_radius", cfg.trust_radius0))
-        delta = math.inf
-        best = ref if ref.violation <= cfg.eps_feas else None
-        history: list[ScpIteration] = []
-        status = None
         lin_dyn = self._linearize_dynamics(ref.roe_m, ref.dv_rtn_mps)
-        self.sub.set_boundary(self.roe0_m, self.roe_f_m)  # the subproblem may be shared
+        self.sub.set_boundary(self.roe0_m, self.roe_f_m)  # a pooled one held another problem
         self.sub.set_dynamics(lin_dyn)
-        lin = self._linearize(ref)
-        for it_no in range(1, cfg.max_iterations + 1):
-            if deadline is not None and deadline.passed():
-                status = ScpStatus.TIMEOUT
-                break
-            self.sub.set_reference(ref.roe_m, ref.dv_rtn_mps, radius)
-            self.sub.set_safety(*lin)
-            self.sub.set_penalty(mu, w)
-            sol = self.sub.solve()
-            if not sol.output.ok:
-                status = ScpStatus.SOLVER_ERROR
-                break
-            cand = self._iterate(*to_terminal(self.horizon, self.roe0_m, self.roe_f_m,
-                                              sol.dv_rtn_mps, lin_dyn))
-            j_ref = self._merit(ref, mu, w)
-            l_cand = sol.cost_mps + float(mu @ sol.zeta) + 0.5 * w * float(sol.zeta @ sol.zeta)
-            d_pred = j_ref - l_cand
-            d_act = j_ref - self._merit(cand, mu, w)
-            ratio = d_act / d_pred if abs(d_pred) > 1e-12 else 1.0
-            converged = abs(d_pred) <= cfg.eps_opt and cand.violation <= cfg.eps_feas
-            accepted = converged or ratio >= cfg.rho0
-            history.append(ScpIteration(it_no, cand.cost, d_pred, d_act, ratio, radius, w,
-                                        cand.violation, accepted, sol.output.solve_time_ms))
-            if accepted:
-                ref = cand
-                if ref.violation <= cfg.eps_feas and (best is None or ref.cost < best.cost):
-                    best = ref
-                if converged:
-                    status = ScpStatus.CONVERGED
-                    break
-                lin_dyn = self._linearize_dynamics(ref.roe_m, ref.dv_rtn_mps)
-                self.sub.set_dynamics(lin_dyn)
-                lin = self._linearize(ref)
-                if abs(d_act) <= delta:
-                    mu = np.maximum(0.0, mu + w * ref.g)
-                    w = min(cfg.beta * w, cfg.w_max)
-                    delta = cfg.gamma * (abs(d_act) if math.isinf(delta) else delta)
-            if ratio < cfg.rho1:
-                radius = max(radius / cfg.alpha1, cfg.trust_radius_min)
-            elif ratio >= cfg.rho2:
-                radius = min(radius * cfg.alpha2, cfg.trust_radius_max)
+        return ScvxState(ref, ref if ref.violation <= cfg.eps_feas else None,
+                         np.asarray(m.get("mu", np.zeros(n)), float).copy(),
+                         float(m.get("w", cfg.w0)),
+                         float(m.get("trust_radius", cfg.trust_radius0)), math.inf, lin_dyn,
+                         self._linearize(ref), [])
+
+    def _step(self, st: ScvxState, it_no: int) -> bool:
+        """One iteration: solve the subproblem about the reference, judge the step by the
+        ratio of actual to predicted merit decrease, update the state. False: stop."""
+        cfg, ref = self.cfg, st.ref
+        self.sub.set_reference(ref.roe_m, ref.dv_rtn_mps, st.radius)
+        self.sub.set_safety(*st.lin)
+        self.sub.set_penalty(st.mu, st.w)
+        sol = self.sub.solve()
+        if not sol.output.ok:
+            st.status = ScpStatus.SOLVER_ERROR
+            return False
+        cand = self._iterate(*to_terminal(self.horizon, self.roe0_m, self.roe_f_m,
+                                          sol.dv_rtn_mps, st.lin_dyn))
+        mu, w = st.mu, st.w
+        j_ref = self._merit(ref, mu, w)
+        l_cand = sol.cost_mps + float(mu @ sol.zeta) + 0.5 * w * float(sol.zeta @ sol.zeta)
+        d_pred = j_ref - l_cand
+        d_act = j_ref - self._merit(cand, mu, w)
+        ratio = d_act / d_pred if abs(d_pred) > 1e-12 else 1.0
+        converged = abs(d_pred) <= cfg.eps_opt and cand.violation <= cfg.eps_feas
+        accepted = converged or ratio >= cfg.rho0
+        st.history.append(ScpIteration(it_no, cand.cost, d_pred, d_act, ratio, st.radius, w,
+                                       cand.violation, accepted, sol.output.solve_time_ms))
+        if accepted:
+            st.ref = ref = cand
+            if ref.violation <= cfg.eps_feas and (st.best is None or ref.cost < st.best.cost):
+                st.best = ref
+            if converged:
+                st.status = ScpStatus.CONVERGED
+                return False
+            st.lin_dyn = self._linearize_dynamics(ref.roe_m, ref.dv_rtn_mps)
+            self.sub.set_dynamics(st.lin_dyn)
+            st.lin = self._linearize(ref)
+            if abs(d_act) <= st.delta:
+                st.mu = np.maximum(0.0, mu + w * ref.g)
+                st.w = min(cfg.beta * w, cfg.w_max)
+                st.delta = cfg.gamma * (abs(d_act) if math.isinf(st.delta) else st.delta)
+        if ratio < cfg.rho1:
+            st.radius = max(st.radius / cfg.alpha1, cfg.trust_radius_min)
+        elif ratio >= cfg.rho2:
+            st.radius = min(st.radius * cfg.alpha2, cfg.trust_radius_max)
+        return True
+
+    def _result(self, st: ScvxState, t_start: float) -> ScpResult:
+        """The result of a run that stopped (or ran out of iterations)."""
+        cfg = self.cfg
+        status = st.status
         if status is None:
-            status = (ScpStatus.MAX_ITERATIONS if ref.violation <= cfg.eps_feas
+            status = (ScpStatus.MAX_ITERATIONS if st.ref.violation <= cfg.eps_feas
                       else ScpStatus.INFEASIBLE)
-        out = ref
-        if status in (ScpStatus.TIMEOUT, ScpStatus.SOLVER_ERROR) and best is not None:
-            out = best
-        return ScpResult(status, out.roe_m, out.dv_rtn_mps, out.cost, len(history),
-                         out.violation, tuple(history),
-                         {"mu": mu.tolist(), "w": w, "trust_radius": radius},
+        out = st.ref
+        if status in (ScpStatus.TIMEOUT, ScpStatus.SOLVER_ERROR) and st.best is not None:
+            out = st.best
+        return ScpResult(status, out.roe_m, out.dv_rtn_mps, out.cost, len(st.history),
+                         out.violation, tuple(st.history),
+                         {"mu": st.mu.tolist(), "w": st.w, "trust_radius": st.radius},
                          1e3 * (time.perf_counter() - t_start))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import threading
 import time
 
 import numpy as np
@@ -22,7 +23,7 @@ from art_guidance.config import GuidanceConfig
 from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
-from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions
+from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions, SubproblemPool
 from art_guidance.planning.learned import (
     Learned, cvx_is_safe, error_text, timed_learned_warm_start,
 )
@@ -64,6 +65,10 @@ class GuidancePipeline:
         self.subproblem = subproblem or SubproblemOptions()
         self._worker: ProposalProcess | None = None
         self._transfers = Transfers(self.scenario, self.uncertainty)
+        # SCVx*'s subproblems, set up once per horizon and shape and updated run after run;
+        # one pool per plan in progress (plans on several threads never share one)
+        self._pools: list[SubproblemPool] = []
+        self._pools_lock = threading.Lock()
 
     def config_json(self) -> dict:
         """The configuration this pipeline plans with (recorded with every run), sealed by
@@ -115,6 +120,17 @@ class GuidancePipeline:
         It is overrun by at most one SCVx* iteration, one rollout step and the final safety
         evaluation.
         """
+        with self._pools_lock:
+            pool = self._pools.pop() if self._pools else SubproblemPool()
+        try:
+            return self._plan(request, deadline, pool)
+        finally:
+            with self._pools_lock:
+                self._pools.append(pool)
+
+    def _plan(self, request: PlanRequest, deadline: Deadline | None,
+              pool: SubproblemPool) -> PlanResult:
+        """`plan` with the caller's SCVx* subproblems."""
         t0 = time.perf_counter()
         if deadline is None and self.deadline_s is not None:
             deadline = Deadline(t0 + self.deadline_s)
@@ -126,7 +142,8 @@ class GuidancePipeline:
         cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
             else np.zeros((horizon.n_nodes, 3))
         scvx = Scvx(safety, request.roe0_m, roe_f, self.scp_config,
-                    samples_per_node=self.samples_per_node, subproblem=self.subproblem)
+                    samples_per_node=self.samples_per_node, subproblem=self.subproblem,
+                    pool=pool)
         early, learned, art_ms = self._propose(transfer, cvx, cvx_dv, scvx, deadline)
         t_art = time.perf_counter()
         source, reason, discarded = learned.source, learned.reason, None

@@ -124,12 +124,11 @@ def test_options_are_validated_and_pooled_apart(setup):
         SubproblemOptions(tol=0.0)
     x0, xf, _ = problems[SEEDS[0]]
     horizon = safety["cc"].horizon
-    a = problem.pooled_subproblem(horizon, x0, xf, samples_per_node=3)
-    b = problem.pooled_subproblem(horizon, x0, xf, samples_per_node=3,
-                                  options=REFERENCE_OPTIONS)
+    pool = problem.SubproblemPool()
+    a = pool.get(horizon, x0, xf, samples_per_node=3)
+    b = pool.get(horizon, x0, xf, samples_per_node=3, options=REFERENCE_OPTIONS)
     assert a is not b and a.options == SubproblemOptions() and b.options == REFERENCE_OPTIONS
-    assert problem.pooled_subproblem(horizon, x0, xf, samples_per_node=3,
-                                     options=SubproblemOptions()) is a
+    assert pool.get(horizon, x0, xf, samples_per_node=3, options=SubproblemOptions()) is a
 
 
 def test_the_pipeline_records_its_subproblem_and_replays_older_records_as_solved():
