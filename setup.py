@@ -9,7 +9,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
-    package_data={PACKAGE: ["models/*.pt", "models/*.json"]},
+    package_data={PACKAGE: ["models/*.pt", "models/*.onnx", "models/*.json"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -25,6 +25,9 @@ setup(
         "clarabel>=0.9",
         "osqp>=1.0",
         "torch==2.13.0",
+        # the torch-free runtime of exported models (`art-guidance export`, art_runtime onnx)
+        "onnxruntime==1.30.0",
+        "onnx==1.23.1",
         # the recorder uses Writer.flush() and the private mcap_ros2._dynamic encoder: bounded
         # to the minor versions tested (.ci/constraints.txt pins mcap 1.6.0, support 0.6.0)
         "mcap>=1.6,<1.7",

@@ -17,23 +17,18 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import re
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from art_guidance.art.checkpoint_header import FORMAT_VERSION, HEADER_RE, MAGIC, MAX_HEADER
 from art_guidance.art.config import ArtConfig
 from art_guidance.art.kv_cache import CachedDecoder
 from art_guidance.art.model import ArtModel
 from art_guidance.art.normalization import Normalizer
 from art_guidance.errors import CheckpointError, ConfigError
 from art_guidance.files import write_atomic
-
-FORMAT_VERSION = 1
-MAGIC = "ART-GUIDANCE-CHECKPOINT"
-_HEADER_RE = re.compile(rb"^ART-GUIDANCE-CHECKPOINT v(\d+) sha256=([0-9a-f]{64}) bytes=(\d+)\n")
-_MAX_HEADER = 160
 
 
 class TrainedArt:
@@ -49,7 +44,10 @@ class TrainedArt:
         meta: provenance (dataset manifests and scenario, training command and history).
         path: the file it was loaded from (None if built in memory).
         sha256: sha256 of the checkpoint payload (None if built in memory).
+        runtime: "torch" (an exported model flies on "onnx": `onnx_art.ExportedArt`).
     """
+
+    runtime = "torch"
 
     def __init__(self, model: ArtModel, normalizer: Normalizer, meta: dict | None = None,
                  path: str | None = None, sha256: str | None = None) -> None:
@@ -60,6 +58,11 @@ class TrainedArt:
         self.path = path
         self.sha256 = sha256
         self._decoder: CachedDecoder | None = None
+
+    @property
+    def n_parameters(self) -> int:
+        """The model's parameter count."""
+        return self.model.n_parameters()
 
     @property
     def decoder(self) -> CachedDecoder:
@@ -82,7 +85,7 @@ def save(path: str | Path, payload: dict[str, Any]) -> str:
     """Atomically write `payload` as a checkpoint file; returns the payload's sha256."""
     blob = encode(payload)
     write_atomic(path, blob)
-    return _HEADER_RE.match(blob[:_MAX_HEADER]).group(2).decode()
+    return HEADER_RE.match(blob[:MAX_HEADER]).group(2).decode()
 
 
 def read_payload(path: str | Path, expected_sha256: str | None = None
@@ -98,7 +101,7 @@ def read_payload(path: str | Path, expected_sha256: str | None = None
         blob = Path(path).read_bytes()
     except OSError as exc:
         raise CheckpointError(path, f"cannot read the checkpoint ({exc.strerror or exc})") from exc
-    match = _HEADER_RE.match(blob[:_MAX_HEADER])
+    match = HEADER_RE.match(blob[:MAX_HEADER])
     if match is None:
         raise CheckpointError(path, f"not an art_guidance checkpoint (no '{MAGIC} v<n> "
                                     "sha256=... bytes=...' header line)")

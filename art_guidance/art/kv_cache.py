@@ -65,6 +65,7 @@ class CachedDecoder:
         self._mask.masked_fill_(~causal, float("-inf"))  # additive: faster than bool on CPU
         self._kv: list[torch.Tensor] = []
         self._bias = self._bias_table
+        self.np_dtype = torch.empty(0, dtype=self.dtype).numpy().dtype
 
     def reset(self, batch: int, n_steps: int, t0: int) -> None:
         """Start a new batch of rollouts of `n_steps` steps whose first time index is `t0`.
@@ -106,6 +107,15 @@ class CachedDecoder:
             h = self._block(h, layer, self._kv[i], b, n, p0, mask if i < last else None)
         h = torch.layer_norm(h, self._shape, *self._ln_f, self._eps)  # (B, d)
         return torch.addmm(*self._head_t[:1], h, self._head_t[1])  # (B, 3)
+
+    def step_numpy(self, feats, p0: int):
+        """`step` on a numpy view (B, n, 17) of `np_dtype` (shared, not copied); returns the
+        (B, 3) or (B, 4) control as numpy (the interface `onnx_art.OnnxDecoder` shares)."""
+        x = torch.from_numpy(feats)
+        with torch.inference_mode():
+            if self.device.type != "cpu":
+                x = x.to(self.device)
+            return self.step(x, p0).cpu().numpy()
 
     def _block(self, h: torch.Tensor, layer: tuple, kv: torch.Tensor, b: int, n: int, p0: int,
                mask: torch.Tensor | None) -> torch.Tensor:

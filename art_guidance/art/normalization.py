@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from art_guidance.art.config import MODALITIES
 
@@ -96,8 +95,9 @@ class Normalizer:
         mean, std = self._stats(name, t)
         return z * std + mean
 
-    def to_dict(self) -> dict[str, torch.Tensor]:
+    def to_dict(self) -> dict:
         """Tensors for the checkpoint: {"mean.<modality>": (F,), "std.<modality>": (F,)}."""
+        import torch  # the checkpoint's; inference reads numpy (`from_dict`, `to_json`)
         out = {}
         for name in MODALITIES:
             out[f"mean.{name}"] = torch.from_numpy(self.mean[name].copy())
@@ -105,8 +105,8 @@ class Normalizer:
         return out
 
     @classmethod
-    def from_dict(cls, data: dict[str, torch.Tensor]) -> "Normalizer":
-        """Inverse of `to_dict`.
+    def from_dict(cls, data: dict) -> "Normalizer":
+        """Inverse of `to_dict` (or of `to_json`: tensors, arrays or nested lists).
 
         Raises:
             ValueError: missing modality, wrong size, non-finite or non-positive std.
@@ -127,6 +127,14 @@ class Normalizer:
                 raise ValueError(f"normalisation of {name} is not finite or has std <= 0")
             mean[name], std[name] = m, s
         return cls(mean, std)
+
+    def to_json(self) -> dict[str, list]:
+        """`to_dict` as plain lists (an exported model's metadata), read back by `from_dict`."""
+        out = {}
+        for name in MODALITIES:
+            out[f"mean.{name}"] = self.mean[name].tolist()
+            out[f"std.{name}"] = self.std[name].tolist()
+        return out
 
 
 def _floor(s: np.ndarray) -> np.ndarray:

@@ -18,12 +18,16 @@ the region in 38 % (13 %), at about twice the rollout time; judging the terminal
 adds one correction and one safety evaluation per candidate (docs/art_training.md).
 
 The model is loaded once (`load`, typically at node start-up) and checked against its
-checksum. The rollout runs torch on `threads` threads (default 1: at batch 1 that is the
-fastest, and the result does not depend on the machine's core count, so a replay on another
-machine reproduces it).
+checksum. It runs on one of two runtimes (`runtime`): "torch" (the checkpoint, `TrainedArt`,
+on `threads` threads, default 1: at batch 1 that is the fastest, and the result does not depend
+on the machine's core count, so a replay on another machine reproduces it) or "onnx" (the
+exported file beside it, `onnx_art.ExportedArt`, on ONNX Runtime with one thread, without
+torch). "auto" takes "onnx" where ONNX Runtime is installed and the checkpoint's exported file
+is there, else "torch" (`resolve_runtime`).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 import time
@@ -31,15 +35,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from art_guidance.art.checkpoint import TrainedArt
-from art_guidance.art.checkpoint import load as load_checkpoint
+from art_guidance.art.checkpoint_header import header_sha256
+from art_guidance.art.onnx_art import (
+    ONNX_SUFFIX, RUNTIMES, exported_path, installed, load_exported,
+)
 from art_guidance.art.rollout import RolloutResult, rollout, training_config
 from art_guidance.config import PlanningConfig, PosthocThresholds, mode_name
 from art_guidance.deadline import Deadline
 from art_guidance.dynamics import orbital_period_s
-from art_guidance.errors import ModelError
+from art_guidance.errors import CheckpointError, InputError, ModelError
 from art_guidance.optim import ConvexSolution
 from art_guidance.planning.posthoc import judged_trajectory
 from art_guidance.planning.types import PlanRequest, WarmStartProposal
@@ -92,12 +97,21 @@ def shipped_models() -> dict[str, dict]:
 
 
 def pinned_sha256(path: str | Path) -> str | None:
-    """The checksum a shipped model must have (None for a file that is not a shipped model)."""
+    """The checksum a shipped model must have (None for a file that is not a shipped model):
+    a checkpoint's payload sha256, or an exported file's sha256 (its checkpoint's entry in
+    models.json lists it under "export")."""
     path = Path(path).resolve()
     if path.parent != models_dir():
         return None
-    entry = shipped_models().get(path.name)
-    return None if not isinstance(entry, dict) else entry.get("sha256")
+    for name, entry in shipped_models().items():
+        if not isinstance(entry, dict):
+            continue
+        if name == path.name:
+            return entry.get("sha256")
+        export = entry.get("export")
+        if isinstance(export, dict) and export.get("file") == path.name:
+            return export.get("sha256")
+    return None
 
 
 def resolve_model_path(spec: str | None, chance_constrained: bool = True) -> Path | None:
@@ -111,12 +125,43 @@ def resolve_model_path(spec: str | None, chance_constrained: bool = True) -> Pat
     return Path(spec).expanduser()
 
 
+def resolve_runtime(runtime: str, path: str | Path) -> str:
+    """The runtime a model file flies on: "torch" or "onnx" (module docstring).
+
+    Raises:
+        InputError: an unknown runtime, or "torch" asked of an exported (.onnx) file.
+        ModelError: the runtime is not installed.
+    """
+    if runtime not in RUNTIMES:
+        raise InputError("art_runtime", f"must be one of {', '.join(RUNTIMES)}", runtime)
+    path = Path(path)
+    onnx_ok = installed("onnxruntime") and installed("onnx")
+    if path.suffix == ONNX_SUFFIX:
+        if runtime == "torch":
+            raise InputError("art_runtime", f"{path.name} is an exported model: it runs on the "
+                             "onnx runtime (give the checkpoint for torch)", runtime)
+        runtime = "onnx"
+    elif runtime == "auto":
+        runtime = "onnx" if onnx_ok and exported_path(path).is_file() else "torch"
+    if runtime == "torch" and not installed("torch"):
+        raise ModelError("the torch runtime needs torch, which is not installed: fly an "
+                         "exported model on the onnx runtime (art-guidance export)")
+    if runtime == "onnx" and not onnx_ok:
+        raise ModelError("the onnx runtime needs the Python packages onnxruntime and onnx, "
+                         "which are not installed")
+    return runtime
+
+
 class ArtWarmStart:
     """Proposes ART rollouts as SCP warm starts (a `planning.WarmStartProvider`).
 
     Attributes:
-        art: the trained model.
-        sha256: its checkpoint's payload checksum ("" if built in memory).
+        art: the trained model (`TrainedArt`) or its exported file (`ExportedArt`).
+        runtime: "torch" or "onnx".
+        sha256: its checkpoint's payload checksum, the model's identity on either runtime
+            ("" if built in memory).
+        runtime_sha256: the checksum of what the runtime runs: the exported file's on "onnx",
+            the checkpoint's on "torch".
         path: the file it was loaded from ("" if built in memory).
         load_ms: wall time of loading and checking the checkpoint [ms].
         node_spacing_s: node spacing of the training horizon [s] (None: not recorded).
@@ -124,14 +169,16 @@ class ArtWarmStart:
             rollout; the best candidate is proposed).
     """
 
-    def __init__(self, art: TrainedArt, load_ms: float = 0.0, threads: int = 1,
+    def __init__(self, art, load_ms: float = 0.0, threads: int = 1,
                  reward_scales: tuple[float, ...] = DEFAULT_REWARD_SCALES) -> None:
         scales = tuple(float(x) for x in reward_scales)
         if not scales or not all(np.isfinite(x) and x > 0 for x in scales):
             raise ModelError(f"reward_scales must be positive numbers, got {reward_scales!r}")
         self.reward_scales = scales
         self.art = art
+        self.runtime = getattr(art, "runtime", "torch")
         self.sha256 = art.sha256 or ""
+        self.runtime_sha256 = getattr(art, "file_sha256", self.sha256)
         self.path = art.path or ""
         self.load_ms = float(load_ms)
         self.threads = int(threads)
@@ -140,29 +187,47 @@ class ArtWarmStart:
 
     @classmethod
     def load(cls, path: str | Path | None = None, expected_sha256: str | None = None,
-             threads: int = 1,
-             reward_scales: tuple[float, ...] = DEFAULT_REWARD_SCALES) -> "ArtWarmStart":
-        """Load and check a checkpoint (default: the shipped model). A shipped model is also
-        checked against the checksum pinned in `models/models.json`, so a swapped or
-        damaged file is refused.
+             threads: int = 1, reward_scales: tuple[float, ...] = DEFAULT_REWARD_SCALES,
+             runtime: str = "auto") -> "ArtWarmStart":
+        """Load and check a model (default: the shipped model) for a runtime
+        (`resolve_runtime`). A shipped file is also checked against the checksum pinned in
+        `models/models.json`, so a swapped or damaged file is refused. On "onnx" the exported
+        file (the .onnx given, or the one beside the checkpoint) must have been exported from
+        the checkpoint (`expected_sha256`, else the pinned or the checkpoint header's checksum).
 
         Raises:
+            InputError: an unknown runtime, or torch asked of an exported file.
+            ModelError: the runtime is not installed.
             CheckpointError: missing, corrupt, truncated, tampered, wrong-version or
-                wrong-shape file (the message names the file and the reason).
+                wrong-shape file, or an exported file of another checkpoint (the message names
+                the file and the reason).
         """
         t0 = time.perf_counter()
         path = Path(path or default_model_path())
-        art = load_checkpoint(path, expected_sha256=expected_sha256 or pinned_sha256(path))
-        art.decoder  # pack the cached decoder now, not in the first plan
+        runtime = resolve_runtime(runtime, path)
+        expected = expected_sha256 or pinned_sha256(path)
+        if runtime == "onnx":
+            if path.suffix != ONNX_SUFFIX:
+                expected = expected or header_sha256(path)
+                path = exported_path(path)
+                if not path.is_file():
+                    raise CheckpointError(path, "no exported model here: run `art-guidance "
+                                                "export` on the checkpoint")
+            art = load_exported(path, expected, pinned_sha256(path))
+        else:
+            from art_guidance.art.checkpoint import load as load_checkpoint
+
+            art = load_checkpoint(path, expected_sha256=expected)
+            art.decoder  # pack the cached decoder now, not in the first plan
         return cls(art, 1e3 * (time.perf_counter() - t0), threads, reward_scales)
 
     def describe(self) -> str:
-        """One line: file, preset size, representation, checksum."""
+        """One line: file, preset size, representation, checksum, runtime."""
         cfg = self.art.config
-        n_params = self.art.model.n_parameters()
+        n_params = self.art.n_parameters
         return (f"{Path(self.path).name or 'in-memory model'}: {cfg.n_layers}x{cfg.width} "
                 f"({n_params / 1e6:.2f} M parameters), {cfg.representation.upper()} states, "
-                f"sha256 {self.sha256[:12] or '-'}")
+                f"sha256 {self.sha256[:12] or '-'}, runtime {self.runtime}")
 
     def check_domain(self, safety: PassiveSafety) -> None:
         """Raise ModelError if the horizon is outside what the model was trained on."""
@@ -197,15 +262,10 @@ class ArtWarmStart:
         t0 = time.perf_counter()
         j_cvx = float(cvx.cost_mps)
         k = len(self.reward_scales)
-        with self._lock:
-            threads = torch.get_num_threads()
-            torch.set_num_threads(self.threads)
-            try:
-                res = rollout(self.art, safety, np.tile(request.roe0_m, (k, 1)),
-                              request.target_rtn, -j_cvx * np.array(self.reward_scales), 0.0,
-                              deadline=None if deadline is None else deadline.at_s)
-            finally:
-                torch.set_num_threads(threads)
+        with self._lock, _threads(self.runtime, self.threads):
+            res = rollout(self.art, safety, np.tile(request.roe0_m, (k, 1)),
+                          request.target_rtn, -j_cvx * np.array(self.reward_scales), 0.0,
+                          deadline=None if deadline is None else deadline.at_s)
         planning = planning or PlanningConfig()
         judged = judge_candidates(res, request, safety, planning.posthoc_subject)
         b = best_candidate(judged.cost_mps, judged.c_t1, j_cvx, planning.posthoc)
@@ -309,7 +369,23 @@ def best_candidate(cost_mps: np.ndarray, c_t1: np.ndarray, j_cvx: float,
     return int(order[0])
 
 
-def _training_spacing_s(art: TrainedArt) -> float | None:
+@contextlib.contextmanager
+def _threads(runtime: str, threads: int):
+    """torch on `threads` threads for the block (ONNX Runtime's session has its own: 1)."""
+    if runtime != "torch":
+        yield
+        return
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _training_spacing_s(art) -> float | None:
     """Node spacing of the horizon the model's dataset was generated on [s]."""
     try:
         config = training_config(art)

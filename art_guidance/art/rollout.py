@@ -29,9 +29,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
-from art_guidance.art.checkpoint import TrainedArt
 from art_guidance.art.config import FEATURES, SLOTS, TOKENS_PER_STEP
 from art_guidance.checks import as_finite_array
 from art_guidance.config import GuidanceConfig
@@ -80,7 +78,7 @@ class RolloutResult:
         return np.cumsum(self.violation[:, ::-1], axis=1)[:, ::-1]
 
 
-def training_config(art: TrainedArt) -> GuidanceConfig | None:
+def training_config(art) -> GuidanceConfig | None:
     """The configuration bundle of the dataset the model was trained on (None if the
     checkpoint does not record one).
 
@@ -91,7 +89,7 @@ def training_config(art: TrainedArt) -> GuidanceConfig | None:
     return GuidanceConfig.from_json(bundle) if bundle else None
 
 
-def build_safety(art: TrainedArt, chance_constrained: bool | None = None) -> PassiveSafety:
+def build_safety(art, chance_constrained: bool | None = None) -> PassiveSafety:
     """The horizon and passive-safety model of the dataset the model was trained on.
 
     Args:
@@ -112,17 +110,16 @@ _R_COL, _C_COL = SLOTS["reward"].start, SLOTS["constraint"].start
 
 
 class _CachedPolicy:
-    """Feeds each step's new tokens through the KV-cached decoder."""
+    """Feeds each step's new tokens through the KV-cached decoder (torch's `CachedDecoder` or
+    ONNX Runtime's `OnnxDecoder`: both take numpy)."""
 
-    def __init__(self, art: TrainedArt, goal_n: np.ndarray, t0: int, n_steps: int) -> None:
+    def __init__(self, art, goal_n: np.ndarray, t0: int, n_steps: int) -> None:
         self.dec = art.decoder
         b = goal_n.shape[0]
         self.dec.reset(b, n_steps, t0)
-        dtype = torch.empty(0, dtype=self.dec.dtype).numpy().dtype
-        self.feats = np.zeros((b, n_steps * TOKENS_PER_STEP, FEATURES), dtype)  # (B, 5T, 17)
+        self.feats = np.zeros((b, n_steps * TOKENS_PER_STEP, FEATURES),
+                              self.dec.np_dtype)  # (B, 5T, 17)
         self.feats[:, 0::TOKENS_PER_STEP, SLOTS["goal"]] = goal_n[:, None]
-        self.feats_t = torch.from_numpy(self.feats)  # shares memory with self.feats
-        self.on_cpu = self.dec.device.type == "cpu"
 
     def control(self, j: int, reward_n: np.ndarray, constraint_n: np.ndarray,
                 state_n: np.ndarray, prev_control_n: np.ndarray | None) -> np.ndarray:
@@ -135,16 +132,16 @@ class _CachedPolicy:
         if j:
             f[:, base - 1, SLOTS["control"]] = prev_control_n
             p0 = base - 1
-        x = self.feats_t[:, p0:base + 4]  # (B, n, 17)
-        if not self.on_cpu:
-            x = x.to(self.dec.device)
-        return self.dec.step(x, p0).cpu().numpy()  # (B, 3), (B, 4) with a burn gate
+        return self.dec.step_numpy(f[:, p0:base + 4], p0)  # (B, 3), (B, 4) with a burn gate
 
 
 class _RecomputePolicy:
-    """Feeds the whole context again at every step through the module's forward pass."""
+    """Feeds the whole context again at every step through the module's forward pass (torch
+    only)."""
 
-    def __init__(self, art: TrainedArt, goal_n: np.ndarray, t0: int, n_steps: int) -> None:
+    def __init__(self, art, goal_n: np.ndarray, t0: int, n_steps: int) -> None:
+        import torch
+
         self.model = art.model
         p = next(self.model.parameters())
         b = goal_n.shape[0]
@@ -165,9 +162,16 @@ class _RecomputePolicy:
         if j:
             self.ctrl[:, j - 1] = as_t(prev_control_n)
         s = slice(0, j + 1)
-        u_pred, _ = self.model(self.goal[:, s], self.reward[:, s], self.constraint[:, s],
-                               self.state[:, s], self.ctrl[:, s], self.time[:, s])
+        with _inference_mode():
+            u_pred, _ = self.model(self.goal[:, s], self.reward[:, s], self.constraint[:, s],
+                                   self.state[:, s], self.ctrl[:, s], self.time[:, s])
         return u_pred[:, j].cpu().numpy()  # (B, 3), (B, 4) with a burn gate
+
+
+def _inference_mode():
+    import torch
+
+    return torch.inference_mode()
 
 
 def _batch(field: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
@@ -179,13 +183,14 @@ def _batch(field: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
     return as_finite_array(field, arr, shape).copy()
 
 
-def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: object,
+def rollout(art, safety: PassiveSafety, roe_m: object, target_rtn: object,
             reward_mps: object, constraint: object = 0.0, start_node: int = 0,
             use_cache: bool = True, deadline: float | None = None) -> RolloutResult:
     """Roll the model out over nodes start_node .. N - 1 of `safety.horizon` for a batch.
 
     Args:
-        art: the trained model.
+        art: the trained model (`TrainedArt`, torch) or an exported one (`ExportedArt`, ONNX
+            Runtime; KV-cached only).
         safety: passive-safety model of the horizon (chance-constrained or deterministic); its
             `horizon` gives the dynamics and Psi.
         roe_m: (B, 6) or (6,) pre-burn a-scaled ROE at `start_node` [m].
@@ -213,24 +218,25 @@ def rollout(art: TrainedArt, safety: PassiveSafety, roe_m: object, target_rtn: o
     norm = art.normalizer
     t0 = art.config.context - n_steps  # time-step index of the first planned node
     gate = art.config.burn_gate
-    with torch.inference_mode():
-        policy = (_CachedPolicy if use_cache else _RecomputePolicy)(
-            art, norm.normalize("goal", goal), t0, n_steps)
-        prev = [None]
+    if not use_cache and getattr(art, "runtime", "torch") != "torch":
+        raise InputError("use_cache", "recomputing the whole context needs the torch model",
+                         use_cache)
+    policy = (_CachedPolicy if use_cache else _RecomputePolicy)(
+        art, norm.normalize("goal", goal), t0, n_steps)
+    prev = [None]
 
-        def control(j: int, node: int, x: np.ndarray, r: np.ndarray, c: np.ndarray
-                    ) -> np.ndarray:
-            t = t0 + j
-            state = x @ horizon.psi[node].T if rtn_repr else x  # (B, 6)
-            out = policy.control(j, norm.normalize("reward", r), norm.normalize("constraint", c),
-                                 norm.normalize("state", state, t), prev[0])  # (B, 3 (+1))
-            u = norm.denormalize("control", out[:, :3].astype(float), t)  # (B, 3) [m/s]
-            if gate:  # coast where the gate says no burn
-                u[out[:, 3] <= GATE_LOGIT_THRESHOLD] = 0.0
-            prev[0] = norm.normalize("control", u, t)  # the applied control, as fed back
-            return u
+    def control(j: int, node: int, x: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+        t = t0 + j
+        state = x @ horizon.psi[node].T if rtn_repr else x  # (B, 6)
+        out = policy.control(j, norm.normalize("reward", r), norm.normalize("constraint", c),
+                             norm.normalize("state", state, t), prev[0])  # (B, 3 (+1))
+        u = norm.denormalize("control", out[:, :3].astype(float), t)  # (B, 3) [m/s]
+        if gate:  # coast where the gate says no burn
+            u[out[:, 3] <= GATE_LOGIT_THRESHOLD] = 0.0
+        prev[0] = norm.normalize("control", u, t)  # the applied control, as fed back
+        return u
 
-        return _run(safety, x, r, c, start, control, deadline)
+    return _run(safety, x, r, c, start, control, deadline)
 
 
 def replay(safety: PassiveSafety, roe_m: object, dv_rtn_mps: object, reward_mps: object,

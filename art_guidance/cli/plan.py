@@ -34,7 +34,9 @@ def run(args: argparse.Namespace) -> int:
     data = result.to_json()
     data.update(seed=args.seed, waypoint=args.waypoint or sample.waypoint,
                 mode=mode_name(not args.deterministic), model=model_text,
-                model_sha256=getattr(provider, "sha256", None))
+                model_sha256=getattr(provider, "sha256", None),
+                art_runtime=getattr(provider, "runtime", None),
+                art_runtime_sha256=getattr(provider, "runtime_sha256", None))
     write_json_atomic(args.json, data)
     t = result.timings_ms
     print(f"warm starts: CVX {result.cvx.cost_mps:.4f} m/s"
@@ -62,7 +64,7 @@ def _provider(args: argparse.Namespace) -> tuple[object | None, str]:
             raise InputError("model", "--warm-start art needs a model", args.model)
         return None, "none (--model none)"
     try:
-        provider = ArtWarmStart.load(path)
+        provider = ArtWarmStart.load(path, runtime=args.art_runtime)
     except GuidanceError as exc:
         if args.warm_start == "art":
             raise
@@ -85,9 +87,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="warm start for SCP: auto = ART if its rollout passes the post hoc "
                    "check, else CVX; art = ART even if the check fails; cvx = CVX (no model "
                    "loaded)")
-    p.add_argument("--model", default="", help="ART checkpoint ('' = the shipped default of the "
-                   "mode: chance-constrained or, with --deterministic, deterministic; 'none' = "
-                   "no model)")
+    p.add_argument("--model", default="", help="ART checkpoint or exported .onnx file ('' = the "
+                   "shipped default of the mode: chance-constrained or, with --deterministic, "
+                   "deterministic; 'none' = no model)")
+    p.add_argument("--art-runtime", default="auto", choices=["auto", "torch", "onnx"],
+                   help="what runs the model: torch (the checkpoint), onnx (its exported .onnx "
+                   "file beside it, on ONNX Runtime, no torch needed) or auto (onnx where ONNX "
+                   "Runtime and the exported file are there, else torch)")
     p.add_argument("--waypoint", default=None, help="override the sampled waypoint")
     p.add_argument("--scenario", default=None, help="scenario YAML (default: packaged)")
     p.add_argument("--json", required=True, help="output path of the plan JSON")

@@ -40,14 +40,15 @@ def restart_delay_s(failed_starts: int) -> float:
 
 
 def model_key(provider: object) -> tuple | None:
-    """What the worker needs to load the same model: (path, sha256, threads, reward scales),
-    or None when the provider is not a model loaded from a checked file."""
+    """What the worker needs to load the same model: (path, sha256, threads, reward scales,
+    runtime), or None when the provider is not a model loaded from a checked file."""
     path = getattr(provider, "path", "")
     sha = getattr(provider, "sha256", "")
     if not path or not sha or not hasattr(provider, "reward_scales"):
         return None
     return (str(path), str(sha), int(getattr(provider, "threads", 1)),
-            tuple(float(s) for s in provider.reward_scales))
+            tuple(float(s) for s in provider.reward_scales),
+            str(getattr(provider, "runtime", "torch")))
 
 
 def _serve(conn: Any) -> None:
@@ -59,8 +60,6 @@ def _serve(conn: Any) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    import torch
-
     state: dict = {}
     while True:
         try:
@@ -70,7 +69,7 @@ def _serve(conn: Any) -> None:
         if job is None:
             return
         try:
-            answer = ("ok", *_run(job, state, torch))
+            answer = ("ok", *_run(job, state))
         except BaseException as exc:  # reported to the planner, which proposes in line
             answer = ("error", f"{type(exc).__name__}: {exc}")
         try:
@@ -79,7 +78,7 @@ def _serve(conn: Any) -> None:
             return
 
 
-def _run(job: dict, state: dict, torch: Any) -> tuple:
+def _run(job: dict, state: dict) -> tuple:
     """One job: ("warm_up",) loads the model; a plan job returns (decision, wall ms)."""
     from art_guidance.art.provider import ArtWarmStart
     from art_guidance.config import GuidanceConfig
@@ -89,10 +88,9 @@ def _run(job: dict, state: dict, torch: Any) -> tuple:
 
     key = (job["config_sha256"], job["model"])
     if state.get("key") != key:
-        path, sha, threads, scales = job["model"]
-        torch.set_num_threads(threads)
+        path, sha, threads, scales, runtime = job["model"]
         provider = ArtWarmStart.load(path, expected_sha256=sha, threads=threads,
-                                     reward_scales=scales)
+                                     reward_scales=scales, runtime=runtime)
         config = GuidanceConfig.from_json(job["config"])
         state.update(key=key, provider=provider, config=config,
                      transfers=Transfers(config.scenario, config.uncertainty))

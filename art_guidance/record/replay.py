@@ -201,8 +201,9 @@ def _replay_provider(log: RecordedLog, model: str | Path | None) -> tuple[object
 
     path = Path(model) if model else (shipped_model_with_sha256(recorded)
                                       or default_model_path(recorded_mode(log)))
+    runtime = str(log.metadata.get("art_runtime", "torch") or "torch")  # older logs: torch
     try:
-        provider = ArtWarmStart.load(path)
+        provider = ArtWarmStart.load(path, runtime=runtime)
     except GuidanceError as exc:
         raise InputError("model", f"the log was recorded with model sha256 {recorded[:16]}..., "
                          f"which could not be loaded for replay: {exc}") from exc
@@ -210,7 +211,13 @@ def _replay_provider(log: RecordedLog, model: str | Path | None) -> tuple[object
         return provider, (f"recorded with model sha256 {recorded[:16]}..., replayed with "
                           f"{path.name} sha256 {provider.sha256[:16]}...: solves that used "
                           "the learned warm start are not compared")
-    return provider, f"replayed with the recorded model {path.name} (sha256 matches)"
+    ran = str(log.metadata.get("art_runtime_checksum", "") or "")
+    if runtime == "onnx" and ran and provider.runtime_sha256 != ran:
+        return provider, (f"replayed with the recorded model {path.name} on the onnx runtime, "
+                          f"but the exported file differs (sha256 {ran[:16]}... recorded, "
+                          f"{provider.runtime_sha256[:16]}... here)")
+    return provider, (f"replayed with the recorded model {path.name} on the {runtime} runtime "
+                      "(sha256 matches)")
 
 
 def _art_rows(record: object, result: object) -> dict:

@@ -13,11 +13,11 @@ from art_guidance.planning.guidance import GuidanceCore
 
 def load_model(params: Any, log: Any) -> tuple[object | None, str]:
     """Load the learned warm start named by the node parameters `params` (`model_path`,
-    `chance_constrained`) once, at start-up (never in a callback).
+    `art_runtime`, `chance_constrained`) once, at start-up (never in a callback).
 
-    Returns (provider or None, status in words). A missing, corrupt or mismatched model
-    leaves the node in CVX-only mode with one warning on `log` (and the status in every plan
-    diagnostic); it never stops the node.
+    Returns (provider or None, status in words). A missing, corrupt or mismatched model, an
+    unknown runtime or one that is not installed leaves the node in CVX-only mode with one
+    warning on `log` (and the status in every plan diagnostic); it never stops the node.
     """
     spec = params.model_path
     if spec.strip().lower() == "none":
@@ -25,7 +25,8 @@ def load_model(params: Any, log: Any) -> tuple[object | None, str]:
     try:
         from art_guidance.art.provider import ArtWarmStart, resolve_model_path
 
-        provider = ArtWarmStart.load(resolve_model_path(spec, params.chance_constrained))
+        provider = ArtWarmStart.load(resolve_model_path(spec, params.chance_constrained),
+                                     runtime=params.art_runtime)
     except Exception as exc:  # a model never takes the node down
         text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         status = f"cvx-only: the model did not load ({type(exc).__name__}: {text[:300]})"
@@ -39,7 +40,8 @@ def model_values(provider: Any, status: str) -> dict:
     """The model's key-values for the diagnostics."""
     values = {"model": status}
     if provider is not None:
-        values.update(model_sha256=provider.sha256, model_load_ms=round(provider.load_ms, 1))
+        values.update(model_sha256=provider.sha256, model_load_ms=round(provider.load_ms, 1),
+                      art_runtime=provider.runtime, art_runtime_sha256=provider.runtime_sha256)
     return values
 
 

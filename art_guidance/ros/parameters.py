@@ -92,6 +92,11 @@ SPECS: dict[str, ParamSpec] = {
                             "once at start-up ('' = the shipped default model of the "
                             "chance_constrained mode, 'none' = CVX only); a model that fails "
                             "to load leaves the node in CVX-only mode with a warning", "str"),
+    "art_runtime": ParamSpec("what runs the model: 'torch' (the checkpoint), 'onnx' (its "
+                             "exported .onnx file beside it or given as model_path, on ONNX "
+                             "Runtime, no torch needed) or 'auto' (onnx where ONNX Runtime and "
+                             "the exported file are there, else torch); an unknown or missing "
+                             "runtime leaves the node in CVX-only mode with a warning", "str"),
     "replan_sigma_threshold": ParamSpec("replan when any ROE axis deviates from the plan by "
                                         "more than this [navigation sigma]", "float",
                                         minimum=0.0, exclusive_minimum=True, dynamic=True),
@@ -157,6 +162,7 @@ class NodeParameters:
     chance_constrained: bool
     warm_start: str
     model_path: str
+    art_runtime: str
     replan_sigma_threshold: float
     replan_period_s: float
     stamp_check: str

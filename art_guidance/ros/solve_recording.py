@@ -64,6 +64,8 @@ class SolveRecording:
         directory = check_record_dir(free_bag_dir(directory) if again else directory)
         meta = {"config": pipeline.config_json(), "versions": versions(),
                 "model_checksum": provider.sha256 if provider else "none",
+                "art_runtime": provider.runtime if provider else "none",
+                "art_runtime_checksum": provider.runtime_sha256 if provider else "none",
                 "model": model_status, "parameters": params.as_dict()}
         log.info(f"recording every solve to {directory}" + (
             f" (a new bag: {params.record_dir} holds this node's earlier one)"

@@ -26,7 +26,7 @@ def test_restart_delay_doubles_up_to_its_cap():
 
 def test_a_failed_worker_is_started_again_with_backoff(tmp_path, monkeypatch):
     config = GuidanceConfig.load()
-    model = (str(tmp_path / "missing.pt"), "0" * 64, 1, (1.0,))
+    model = (str(tmp_path / "missing.pt"), "0" * 64, 1, (1.0,), "torch")
     worker = ProposalProcess()
     try:
         assert worker.start(config.to_json(), config.sha256(), model) is False

@@ -1,0 +1,251 @@
+"""An exported ART flown on ONNX Runtime, without torch (`art-guidance export` writes the file).
+
+`load_exported(path)` reads an exported model (`onnx_export`) and checks it before it is
+flown: the file parses as ONNX, its metadata is this format, the sha256 of its weights is the
+one recorded at export (a changed weight is refused), the source checkpoint is the expected one
+when the caller names it, and ONNX Runtime reproduces the probe torch computed at export (to
+`PROBE_TOL`). The result, `ExportedArt`, has what `rollout` reads of a `TrainedArt` (config,
+normalizer, meta, decoder) and imports neither torch nor the training code.
+
+`OnnxDecoder` is `kv_cache.CachedDecoder` on ONNX Runtime: one session per batch size (the
+batch is folded into the attention heads), one thread, no spinning; the key/value caches are
+bound as both input and output of every step, so a step writes only its new tokens' keys and
+values (no copy of the cache).
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+
+from art_guidance.art.config import FEATURES, TOKENS_PER_STEP, ArtConfig
+from art_guidance.art.normalization import Normalizer
+from art_guidance.errors import CheckpointError, ConfigError, ModelError
+
+FORMAT = "art-guidance-onnx-step"
+FORMAT_VERSION = 1
+METADATA_KEY = "art_guidance"
+PROBE_BATCH, PROBE_TOKENS = 2, 4
+PROBE_TOL = 1e-4  # largest |difference| of the probe's normalised control, ONNX vs torch [-]
+RUNTIMES = ("auto", "torch", "onnx")
+ONNX_SUFFIX = ".onnx"
+
+
+def installed(module: str) -> bool:
+    """Whether `module` can be imported here (found, not imported)."""
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def weights_sha256(initializers: list) -> str:
+    """sha256 over a graph's weights (name, then raw bytes, in graph order)."""
+    h = hashlib.sha256()
+    for t in initializers:
+        h.update(t.name.encode())
+        h.update(t.raw_data)
+    return h.hexdigest()
+
+
+class OnnxDecoder:
+    """The KV-cached decoding step on ONNX Runtime (see the module docstring).
+
+    Attributes:
+        np_dtype: float32, the features' dtype.
+    """
+
+    np_dtype = np.dtype(np.float32)
+
+    def __init__(self, model, config: ArtConfig) -> None:
+        """`model`: the parsed ONNX model (its attention nodes carry one sample's heads)."""
+        self._model, self._cfg = model, config
+        self._sessions: dict[int, object] = {}
+        self._io = None
+        self._t0 = 0
+
+    def _session(self, batch: int):
+        """The session of a batch size: the attention nodes get batch x heads."""
+        sess = self._sessions.get(batch)
+        if sess is None:
+            import onnxruntime as ort
+            from onnx import helper
+
+            model = type(self._model)()
+            model.CopyFrom(self._model)
+            heads = batch * self._cfg.n_heads
+            for node in model.graph.node:
+                if node.op_type == "GroupQueryAttention":
+                    del node.attribute[:]
+                    node.attribute.extend([helper.make_attribute("num_heads", heads),
+                                           helper.make_attribute("kv_num_heads", heads)])
+            opts = ort.SessionOptions()
+            opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+            opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+            opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+            opts.log_severity_level = 3
+            sess = ort.InferenceSession(model.SerializeToString(), opts,
+                                        providers=["CPUExecutionProvider"])
+            self._sessions[batch] = sess
+        return sess
+
+    def reset(self, batch: int, n_steps: int, t0: int) -> None:
+        """Start a new batch of rollouts of `n_steps` steps whose first time index is `t0`.
+
+        Raises:
+            ValueError: if the steps do not fit the context (t0 + n_steps > K).
+        """
+        import onnxruntime as ort
+
+        cfg = self._cfg
+        if not (0 <= t0 and n_steps >= 1 and t0 + n_steps <= cfg.context):
+            raise ValueError(f"time steps {t0}..{t0 + n_steps - 1} do not fit the context "
+                             f"K = {cfg.context}")
+        sess = self._session(batch)
+        n_tok = n_steps * TOKENS_PER_STEP
+        io = sess.io_binding()
+        self._control = ort.OrtValue.ortvalue_from_shape_and_type(
+            [batch, sess.get_outputs()[0].shape[1]], np.float32)
+        io.bind_ortvalue_output("control", self._control)
+        self._caches = []
+        for i in range(cfg.n_layers):
+            for kv in "kv":
+                cache = ort.OrtValue.ortvalue_from_numpy(
+                    np.zeros((1, batch * cfg.n_heads, n_tok, cfg.head_dim), np.float32))
+                io.bind_ortvalue_input(f"past_{kv}{i}", cache)
+                io.bind_ortvalue_output(f"present_{kv}{i}", cache)
+                self._caches.append(cache)
+        self._io, self._sess, self._t0 = io, sess, TOKENS_PER_STEP * t0
+
+    def step_numpy(self, feats: np.ndarray, p0: int) -> np.ndarray:
+        """Feed the tokens at positions p0 .. p0 + n - 1 and predict the control of the last
+        (see `CachedDecoder.step`): `feats` (B, n, 17) float32; returns (B, 3) or (B, 4)."""
+        n = feats.shape[1]
+        p1 = p0 + n
+        inputs = (np.ascontiguousarray(feats, np.float32),
+                  np.arange(self._t0 + p0, self._t0 + p1, dtype=np.int64),
+                  np.array([p1 - 1], np.int32), np.array(p1, np.int32))
+        for name, arr in zip(("feats", "positions", "seqlens_k", "total_len"), inputs):
+            self._io.bind_cpu_input(name, arr)  # `inputs` keeps the arrays alive for the run
+        self._sess.run_with_iobinding(self._io)
+        return self._control.numpy().copy()
+
+
+class ExportedArt:
+    """An exported model ready for rollouts (what `rollout` reads of a `TrainedArt`).
+
+    Attributes:
+        runtime: "onnx".
+        config, normalizer, meta: as recorded at export.
+        path: the file; file_sha256: its sha256.
+        sha256: the source checkpoint's payload sha256 (the model's identity, as a
+            `TrainedArt`'s).
+        checkpoint_file: the source checkpoint's file name.
+        n_parameters: the model's parameter count.
+        decoder: its `OnnxDecoder`.
+    """
+
+    runtime = "onnx"
+
+    def __init__(self, path: Path, blob: bytes, model, meta: dict) -> None:
+        try:
+            self.config = ArtConfig.from_dict(dict(meta["config"]))
+            self.normalizer = Normalizer.from_dict(meta["normalization"])
+        except (KeyError, TypeError, ValueError, ConfigError) as exc:
+            raise CheckpointError(path, f"malformed config or normalisation: {exc}") from exc
+        self.meta = meta.get("meta") if isinstance(meta.get("meta"), dict) else {}
+        self.path = str(path)
+        self.file_sha256 = hashlib.sha256(blob).hexdigest()
+        self.sha256 = str(meta.get("checkpoint_sha256", ""))
+        self.checkpoint_file = str(meta.get("checkpoint_file", ""))
+        self.n_parameters = int(meta.get("n_parameters", 0))
+        self.decoder = OnnxDecoder(model, self.config)
+
+
+def load_exported(path: str | Path, expected_checkpoint_sha256: str | None = None,
+                  expected_file_sha256: str | None = None) -> ExportedArt:
+    """Read and check an exported model (module docstring).
+
+    Args:
+        path: the file `art-guidance export` wrote.
+        expected_checkpoint_sha256: the checkpoint it must have been exported from (None: any).
+        expected_file_sha256: pin the file itself (e.g. a shipped one; None: not pinned).
+
+    Raises:
+        ModelError: ONNX Runtime or onnx is not installed.
+        CheckpointError: unreadable, not ONNX (corrupt, truncated), not this format, altered
+            weights, another checkpoint than expected, a pinned checksum that differs, or a
+            probe ONNX Runtime does not reproduce.
+    """
+    for module in ("onnxruntime", "onnx"):
+        if not installed(module):
+            raise ModelError(f"the ONNX runtime needs the Python package {module}, which is "
+                             "not installed (pip install art_guidance brings it)")
+    import onnx
+
+    path = Path(path)
+    try:
+        blob = path.read_bytes()
+    except OSError as exc:
+        raise CheckpointError(path, f"cannot read the exported model ({exc.strerror or exc})"
+                              ) from exc
+    digest = hashlib.sha256(blob).hexdigest()
+    if expected_file_sha256 is not None and digest != expected_file_sha256:
+        raise CheckpointError(path, f"not the expected file: sha256 {digest[:16]}..., "
+                                    f"expected {expected_file_sha256[:16]}...")
+    try:
+        model = onnx.load_model_from_string(blob)
+        props = {p.key: p.value for p in model.metadata_props}
+        meta = json.loads(props[METADATA_KEY])
+    except Exception as exc:  # DecodeError, KeyError, ValueError: all a refusal
+        raise CheckpointError(path, "not an exported art_guidance model (corrupt, truncated "
+                                    "or another ONNX file): "
+                                    f"{str(exc).splitlines()[0][:200] if str(exc) else exc!r}"
+                              ) from exc
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT \
+            or meta.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(path, f"not format {FORMAT} v{FORMAT_VERSION}")
+    if weights_sha256(model.graph.initializer) != meta.get("weights_sha256"):
+        raise CheckpointError(path, "its weights are not those recorded at export (altered "
+                                    "after `art-guidance export`)")
+    source = str(meta.get("checkpoint_sha256", ""))
+    if expected_checkpoint_sha256 is not None and source != expected_checkpoint_sha256:
+        raise CheckpointError(path, f"not the expected model: exported from checkpoint "
+                                    f"{source[:16] or '?'}..., expected "
+                                    f"{expected_checkpoint_sha256[:16]}...")
+    art = ExportedArt(path, blob, model, meta)
+    _check_probe(path, art, meta.get("probe"))
+    return art
+
+
+def _check_probe(path: Path, art: ExportedArt, probe: object) -> None:
+    """Run the probe recorded at export; refuse a runtime that does not reproduce it."""
+    try:
+        feats = np.asarray(probe["feats"], np.float32)
+        expected = np.asarray(probe["control"], np.float64)
+        ok = feats.shape == (PROBE_BATCH, PROBE_TOKENS, FEATURES) \
+            and expected.shape[0] == PROBE_BATCH
+    except (KeyError, TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise CheckpointError(path, "no valid probe in its metadata")
+    dec = art.decoder
+    try:
+        dec.reset(PROBE_BATCH, 1, 0)
+        got = dec.step_numpy(feats, 0)
+    except Exception as exc:  # the graph does not run here: a refusal, not a crash
+        raise CheckpointError(path, f"ONNX Runtime cannot run it: "
+                                    f"{str(exc).splitlines()[0][:200]}") from exc
+    err = float(np.max(np.abs(got - expected))) if got.shape == expected.shape else np.inf
+    if not err <= PROBE_TOL:
+        raise CheckpointError(path, f"ONNX Runtime does not reproduce the export's probe "
+                                    f"(largest difference {err:.3g} > {PROBE_TOL:g})")
+
+
+def exported_path(checkpoint: str | Path) -> Path:
+    """Where the exported file of a checkpoint lies by convention: beside it, `.onnx`."""
+    return Path(checkpoint).with_suffix(ONNX_SUFFIX)

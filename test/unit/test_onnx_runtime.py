@@ -1,0 +1,219 @@
+"""The exported model on ONNX Runtime: the same proposals as torch, checked files, clear refusals,
+and a flight without torch.
+
+Torch (the checkpoint) is the oracle: on held-out scenarios of each shipped model's dataset the
+learned step on ONNX Runtime gives the same constraint-to-go and the same decision, with
+controls within `DV_TOL_MPS` (measured: 3e-5 m/s; `art-guidance bench runtime` runs 100
+scenarios per mode). A bad exported file, an unknown runtime or one that is not installed is
+refused with a message that names it; the planner then flies the CVX warm start.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from helpers.shipped import heldout_requests
+
+from art_guidance.art.onnx_art import METADATA_KEY, load_exported
+from art_guidance.art.provider import (
+    DEFAULT_MODELS, ArtWarmStart, default_model_path, pinned_sha256, resolve_runtime,
+)
+from art_guidance.cli import main as cli_main
+from art_guidance.config import GuidanceConfig
+from art_guidance.errors import CheckpointError, InputError
+from art_guidance.optim import solve_cvx
+from art_guidance.planning import GuidancePipeline
+from art_guidance.planning.learned import learned_warm_start
+
+DV_TOL_MPS = 1e-3   # largest difference of a proposed control, ONNX vs torch [m/s]
+N_SCENARIOS = 12    # held-out scenarios per mode here (the benchmark runs 100)
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def chance_onnx() -> Path:
+    return default_model_path("chance").with_suffix(".onnx")
+
+
+def _python(code: str, block: str, tmp_path: Path, timeout: float = 300.0):
+    """Run `code` in a fresh interpreter in which importing `block` fails."""
+    site = tmp_path / "site"
+    site.mkdir(exist_ok=True)
+    (site / "sitecustomize.py").write_text(
+        "import sys\n"
+        "class _Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        f"        if name == {block!r} or name.startswith({block + '.'!r}):\n"
+        f"            raise ImportError('{block} is not installed here')\n"
+        "sys.meta_path.insert(0, _Block())\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(ROOT)]),
+           "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize("mode", sorted(DEFAULT_MODELS))
+def test_onnx_proposals_match_torch_on_heldout_scenarios(mode):
+    """The learned step (sweep, C update, judging, post hoc check) on both runtimes, on
+    held-out scenarios of the shipped model's dataset."""
+    path = default_model_path(mode)
+    torch_p = ArtWarmStart.load(path, runtime="torch")
+    onnx_p = ArtWarmStart.load(path, runtime="onnx")
+    assert onnx_p.sha256 == torch_p.sha256 and onnx_p.runtime == "onnx"
+    assert onnx_p.runtime_sha256 == pinned_sha256(path.with_suffix(".onnx"))
+    config = GuidanceConfig.load()
+    pipeline = GuidancePipeline(config)
+    compared = 0
+    for request in heldout_requests(N_SCENARIOS, DEFAULT_MODELS[mode]):
+        transfer = pipeline.transfer(request)
+        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
+        if not cvx.status.feasible:
+            continue
+        a = learned_warm_start(torch_p, transfer, cvx, config.planning, cvx_unsafe=True)
+        b = learned_warm_start(onnx_p, transfer, cvx, config.planning, cvx_unsafe=True)
+        assert a.source is b.source and a.posthoc.accepted == b.posthoc.accepted
+        assert np.array_equal(a.proposal.constraint_to_go, b.proposal.constraint_to_go)
+        assert np.abs(a.proposal.dv_rtn_mps - b.proposal.dv_rtn_mps).max() <= DV_TOL_MPS
+        compared += 1
+    assert compared >= N_SCENARIOS - 2
+
+
+def test_the_shipped_exports_are_pinned_and_name_their_checkpoints():
+    for mode in DEFAULT_MODELS:
+        pt = default_model_path(mode)
+        art = load_exported(pt.with_suffix(".onnx"), pinned_sha256(pt),
+                            pinned_sha256(pt.with_suffix(".onnx")))
+        assert art.sha256 == pinned_sha256(pt) and art.checkpoint_file == pt.name
+        assert art.config.width == 96 and art.n_parameters > 0
+
+
+def test_auto_takes_onnx_where_the_export_is_there_and_torch_elsewhere(tmp_path):
+    assert resolve_runtime("auto", default_model_path("chance")) == "onnx"
+    assert resolve_runtime("auto", tmp_path / "trained.pt") == "torch"  # no export beside it
+    assert resolve_runtime("auto", tmp_path / "trained.onnx") == "onnx"
+    with pytest.raises(InputError, match="art_runtime"):
+        resolve_runtime("tensorrt", default_model_path("chance"))
+    with pytest.raises(InputError, match="exported model"):
+        resolve_runtime("torch", tmp_path / "trained.onnx")
+
+
+def _refused(path: Path, match: str, **kw) -> None:
+    with pytest.raises(CheckpointError, match=match):
+        ArtWarmStart.load(path, runtime="onnx", **kw)
+
+
+def test_bad_exported_files_are_refused_with_the_reason(tmp_path, chance_onnx):
+    import onnx
+
+    blob = chance_onnx.read_bytes()
+    cases = {"truncated.onnx": blob[:len(blob) // 2]}
+    flipped = bytearray(blob)  # a byte of a weight (the middle of the file is weights)
+    flipped[len(blob) // 2] ^= 0xFF
+    cases["flipped.onnx"] = bytes(flipped)
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+    _refused(tmp_path / "truncated.onnx", "corrupt, truncated")
+    _refused(tmp_path / "flipped.onnx", "weights are not those recorded|corrupt, truncated")
+    _refused(tmp_path / "missing.onnx", "cannot read")
+    model = onnx.load_model_from_string(blob)
+    meta = json.loads(model.metadata_props[0].value)
+
+    def variant(name: str, **changes) -> Path:
+        m = onnx.ModelProto()
+        m.CopyFrom(model)
+        m.metadata_props[0].value = json.dumps({**meta, **changes})
+        (tmp_path / name).write_bytes(m.SerializeToString())
+        return tmp_path / name
+    _refused(variant("other.onnx", checkpoint_sha256="0" * 64), "exported from checkpoint",
+             expected_sha256=meta["checkpoint_sha256"])
+    probe = dict(meta["probe"], control=(np.array(meta["probe"]["control"]) + 0.01).tolist())
+    _refused(variant("probe.onnx", probe=probe), "does not reproduce the export's probe")
+    _refused(variant("format.onnx", format="something-else"), "not format")
+    m = onnx.ModelProto()
+    m.CopyFrom(model)
+    del m.metadata_props[:]
+    (tmp_path / "plain.onnx").write_bytes(m.SerializeToString())
+    _refused(tmp_path / "plain.onnx", "not an exported art_guidance model")
+    assert METADATA_KEY == model.metadata_props[0].key
+    # beside a checkpoint, the export of another checkpoint is refused
+    (tmp_path / "art.pt").write_bytes(default_model_path("deterministic").read_bytes())
+    (tmp_path / "art.onnx").write_bytes(blob)
+    _refused(tmp_path / "art.pt", "exported from checkpoint")
+
+
+def test_the_node_and_plan_fly_cvx_when_the_runtime_cannot_be_used(tmp_path, capsys):
+    from art_guidance.ros.node_status import load_model
+
+    warnings: list[str] = []
+    log = SimpleNamespace(warning=warnings.append, info=lambda text: None)
+    for runtime, path, why in (("tensorrt", "", "art_runtime"),
+                               ("onnx", str(tmp_path / "none.pt"), "cannot read")):
+        params = SimpleNamespace(model_path=path, art_runtime=runtime, chance_constrained=True)
+        provider, status = load_model(params, log)
+        assert provider is None and status.startswith("cvx-only") and why in status
+    assert len(warnings) == 2
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not onnx")
+    code = cli_main(["plan", "--seed", "3", "--model", str(bad), "--json",
+                     str(tmp_path / "plan.json")])
+    assert code in (0, 1) and "planning from CVX only" in capsys.readouterr().err
+    data = json.loads((tmp_path / "plan.json").read_text())
+    assert data["warm_start"] == "cvx" and data["art_runtime"] is None
+    assert cli_main(["plan", "--seed", "3", "--warm-start", "art", "--model", str(bad),
+                     "--json", str(tmp_path / "p2.json")]) == 2
+
+
+def test_plan_flies_the_learned_warm_start_where_torch_cannot_be_imported(tmp_path):
+    out = tmp_path / "plan.json"
+    code = ("import sys\n"
+            "try:\n    import torch\nexcept ImportError:\n    pass\n"
+            "else:\n    sys.exit('torch imported')\n"
+            "from art_guidance.cli import main\n"
+            "code = main(['plan', '--seed', '3', '--warm-start', 'art', '--json', "
+            f"{str(out)!r}])\n"
+            "assert 'torch' not in sys.modules, 'torch was imported'\n"
+            "sys.exit(code)\n")
+    run = _python(code, "torch", tmp_path)
+    assert run.returncode in (0, 1), run.stderr[-2000:]
+    data = json.loads(out.read_text())
+    assert data["art_runtime"] == "onnx" and data["warm_start"] == "art"
+    assert data["art_cost_mps"] is not None and data["model_sha256"] == pinned_sha256(
+        default_model_path("chance"))
+
+
+def test_a_missing_onnxruntime_is_named_and_auto_keeps_torch(tmp_path):
+    code = ("from art_guidance.art.provider import ArtWarmStart, default_model_path\n"
+            "from art_guidance.errors import ModelError\n"
+            "assert ArtWarmStart.load(default_model_path(), runtime='auto').runtime == 'torch'\n"
+            "try:\n    ArtWarmStart.load(default_model_path(), runtime='onnx')\n"
+            "except ModelError as exc:\n    print(exc)\n")
+    run = _python(code, "onnxruntime", tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "onnxruntime" in run.stdout and "not installed" in run.stdout
+
+
+def test_export_writes_whole_files_and_never_overwrites_without_force(tmp_path, capsys):
+    pt = tmp_path / "model.pt"
+    pt.write_bytes(default_model_path("chance").read_bytes())
+    assert cli_main(["export", str(pt)]) == 0
+    onnx_file = pt.with_suffix(".onnx")
+    first = onnx_file.read_bytes()
+    report = json.loads(capsys.readouterr().out)
+    assert report["out"] == str(onnx_file) and report["checkpoint_sha256"] == pinned_sha256(
+        default_model_path("chance"))
+    onnx_file.write_bytes(b"keep me")
+    assert cli_main(["export", str(pt)]) == 2  # exists, no --force
+    assert onnx_file.read_bytes() == b"keep me"
+    assert cli_main(["export", str(pt), "--force"]) == 0
+    assert onnx_file.read_bytes() == first  # the same model gives the same file
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.onnx", "model.pt"]
+    assert ArtWarmStart.load(pt, runtime="auto").runtime == "onnx"
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"no checkpoint")
+    assert cli_main(["export", str(bad)]) == 2 and not bad.with_suffix(".onnx").exists()
