@@ -15,8 +15,8 @@ from typing import Sequence
 from art_guidance import __version__
 from art_guidance.errors import GuidanceError
 
-SUBCOMMANDS = ("demo", "plan", "generate", "train", "dagger", "evaluate", "export", "replay",
-               "bag", "bench", "node", "sim")
+SUBCOMMANDS = ("demo", "plan", "generate", "train", "distill", "dagger", "evaluate", "export",
+               "replay", "bag", "bench", "node", "sim")
 
 
 def build_parser() -> argparse.ArgumentParser:
