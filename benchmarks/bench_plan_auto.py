@@ -27,17 +27,17 @@ from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import GuidancePipeline, PlanRequest, WarmStartSource
 
 
-def run(repeats: int = 40, first_seed: int = 0) -> dict:
-    """Seeds first_seed.. (repeats of them), `auto` with the shipped default against CVX only,
-    paired."""
+def run(repeats: int = 40, first_seed: int = 0, model: str | None = None) -> dict:
+    """Seeds first_seed.. (repeats of them), `auto` with the shipped default (or `model`)
+    against CVX only, paired."""
     torch.set_num_threads(1)
     scenario = ScenarioConfig.from_yaml()
     chief = np.array(scenario.chief_oe)
-    provider = ArtWarmStart.load()
+    provider = ArtWarmStart.load(model or None)
     auto = GuidancePipeline(provider=provider)
     config = GuidanceConfig.load()
     concurrent = GuidancePipeline(config.replace(planning=dataclasses.replace(
-        config.planning, propose_concurrently=True)), provider=ArtWarmStart.load())
+        config.planning, propose_concurrently=True)), provider=ArtWarmStart.load(model or None))
     concurrent.start_proposal_worker()
     cvx_only = GuidancePipeline()
     rows, t_con = [], []

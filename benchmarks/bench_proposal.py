@@ -3,7 +3,8 @@
 For chance-constrained `plan` scenarios (seeds FIRST.., held out from the shipped models'
 training data) on which CVX is not passively safe (`auto` runs ART only there), the shipped
 default model proposes a warm start (`ArtWarmStart.propose`: the conditioning sweep with the C
-update at every step, then the judging of its candidates), one torch thread, in one process:
+update at every step, then the judging of its candidates), on the default runtime
+(`art_runtime` auto), one thread, in one process:
 
 - `fast`: the planner's path;
 - `reference`: the same proposal through the previous safety path, the K = 1 oracles of the
@@ -16,7 +17,7 @@ The two alternate scenario by scenario; the proposals must be identical (control
 constraint-to-go), and the numbers are medians of wall and CPU (process) time with the paired
 ratio. The fast path's time is split into the C update (`step_violations`), the candidates'
 terminal corrections, their safety search, and the rest (transformer, dynamics, bookkeeping),
-and into the transformer (`CachedDecoder.step`) and the numerics (everything else);
+and into the transformer (the decoder's `step_numpy`) and the numerics (everything else);
 `sweep_K_ms` times proposals with sweeps of K reward scales (the transformer's work grows
 with the batch: at batch 8 it is arithmetic, not per-call overhead).
 
@@ -86,8 +87,9 @@ class _Timed:
         return out
 
 
-def _scenarios(pipeline: GuidancePipeline, first: int, n: int) -> list:
-    """(request, safety, cvx) of the first `n` seeds from `first` on which CVX is unsafe."""
+def unsafe_cases(pipeline: GuidancePipeline, chance: bool, first: int, n: int) -> list:
+    """(transfer, cvx) of the first `n` seeds from `first` on which CVX is feasible and unsafe
+    (where `auto` runs ART); also read by bench runtime and bench slim."""
     sc = ScenarioConfig()
     chief = np.array(sc.chief_oe)
     out, seed = [], first
@@ -95,14 +97,17 @@ def _scenarios(pipeline: GuidancePipeline, first: int, n: int) -> list:
         s = sample_scenario(sc, seed)
         seed += 1
         request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
-                              chance_constrained=True)
+                              chance_constrained=chance)
         transfer = pipeline.transfer(request)
-        horizon, safety = transfer.horizon, transfer.safety
-        cvx = solve_cvx(horizon, request.roe0_m,
-                        np.linalg.solve(horizon.psi[-1], request.target_rtn))
-        if cvx.status.feasible and not cvx_is_safe(cvx, safety):
-            out.append((request, safety, cvx))
+        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
+        if cvx.status.feasible and not cvx_is_safe(cvx, transfer.safety):
+            out.append((transfer, cvx))
     return out
+
+
+def _scenarios(pipeline: GuidancePipeline, first: int, n: int) -> list:
+    """(request, safety, cvx) of the first `n` chance-constrained `unsafe_cases`."""
+    return [(t.request, t.safety, cvx) for t, cvx in unsafe_cases(pipeline, True, first, n)]
 
 
 def _timed(fn) -> tuple[object, float, float]:
@@ -126,7 +131,7 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
              "numerics": [], "rest": []}
     original = provider_module.judged_trajectory
     decoder = provider.art.decoder
-    step, step_s = decoder.step, [0.0]
+    step, step_s = decoder.step_numpy, [0.0]
 
     def timed_step(*args, _f=step, _acc=step_s):
         t = time.perf_counter()
@@ -146,12 +151,12 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
             return out
 
         provider_module.judged_trajectory = corrected
-        decoder.step, step_s[0] = timed_step, 0.0
+        decoder.step_numpy, step_s[0] = timed_step, 0.0
         try:
             fast, wall, cpu = _timed(lambda: provider.propose(request, timed, cvx, planning))
         finally:
             provider_module.judged_trajectory = original
-            decoder.step = step
+            decoder.step_numpy = step
         same += int(np.array_equal(fast.dv_rtn_mps, ref.dv_rtn_mps)
                     and np.array_equal(fast.constraint_to_go, ref.constraint_to_go))
         rows.append((wall, cpu, ref_wall, ref_cpu))

@@ -24,29 +24,10 @@ import time
 import numpy as np
 
 from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart, default_model_path
-from art_guidance.config import GuidanceConfig, ScenarioConfig
-from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.optim import solve_cvx
-from art_guidance.planning import GuidancePipeline, PlanRequest
-from art_guidance.planning.learned import cvx_is_safe, learned_warm_start
-from art_guidance.scenarios import sample_scenario
-
-
-def _cases(pipeline: GuidancePipeline, chance: bool, first: int, n: int) -> list:
-    """(transfer, cvx) of the first `n` seeds from `first` on which CVX is feasible and unsafe."""
-    sc = ScenarioConfig()
-    chief = np.array(sc.chief_oe)
-    out, seed = [], first
-    while len(out) < n and seed < first + 20 * n:
-        s = sample_scenario(sc, seed)
-        seed += 1
-        request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
-                              chance_constrained=chance)
-        transfer = pipeline.transfer(request)
-        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
-        if cvx.status.feasible and not cvx_is_safe(cvx, transfer.safety):
-            out.append((transfer, cvx))
-    return out
+from art_guidance.config import GuidanceConfig
+from art_guidance.planning import GuidancePipeline
+from art_guidance.planning.learned import learned_warm_start
+from bench_proposal import unsafe_cases
 
 
 class _StepTimer:
@@ -71,7 +52,7 @@ def _mode(mode: str, repeats: int, first_seed: int) -> dict:
         timers[rt] = _StepTimer(provider.art.decoder)
         provider.art.decoder.step_numpy = timers[rt]
     pipeline = GuidancePipeline(config)
-    cases = _cases(pipeline, mode == "chance", first_seed, repeats)
+    cases = unsafe_cases(pipeline, mode == "chance", first_seed, repeats)
     for provider in models.values():  # warm-up (sessions, caches)
         learned_warm_start(provider, cases[0][0], cases[0][1], config.planning, cvx_unsafe=True)
     cpu = {rt: [] for rt in models}

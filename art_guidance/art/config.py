@@ -211,6 +211,13 @@ class TrainConfig:
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
 
 
+def check_steps(cfg: ArtConfig, n_steps: int, t0: int) -> None:
+    """Raise ValueError unless decoding steps t0 .. t0 + n_steps - 1 fit the context K."""
+    if not (0 <= t0 and n_steps >= 1 and t0 + n_steps <= cfg.context):
+        raise ValueError(f"time steps {t0}..{t0 + n_steps - 1} do not fit the context "
+                         f"K = {cfg.context}")
+
+
 PRESETS: dict[str, tuple[ArtConfig, TrainConfig]] = {
     "paper": (ArtConfig(n_layers=6, n_heads=6, width=384, context=100, dropout=0.1,
                         attn_dropout=0.1),

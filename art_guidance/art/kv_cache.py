@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from art_guidance.art.config import FEATURES, MODALITIES, SLOTS, TOKENS_PER_STEP
+from art_guidance.art.config import FEATURES, MODALITIES, SLOTS, TOKENS_PER_STEP, check_steps
 from art_guidance.art.model import ArtModel
 
 _LAYER_NAMES = ("ln1.weight", "ln1.bias", "qkv.weight", "qkv.bias", "proj.weight", "proj.bias",
@@ -74,9 +74,7 @@ class CachedDecoder:
             ValueError: if the steps do not fit the context (t0 + n_steps > K).
         """
         cfg = self._cfg
-        if not (0 <= t0 and n_steps >= 1 and t0 + n_steps <= cfg.context):
-            raise ValueError(f"time steps {t0}..{t0 + n_steps - 1} do not fit the context "
-                             f"K = {cfg.context}")
+        check_steps(cfg, n_steps, t0)
         n_tok = n_steps * TOKENS_PER_STEP
         shape = (2, batch, cfg.n_heads, n_tok, cfg.head_dim)
         if not self._kv or self._kv[0].shape[1] != batch or self._kv[0].shape[3] < n_tok:

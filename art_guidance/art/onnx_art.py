@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from art_guidance.art.config import FEATURES, TOKENS_PER_STEP, ArtConfig
+from art_guidance.art.config import FEATURES, TOKENS_PER_STEP, ArtConfig, check_steps
 from art_guidance.art.normalization import Normalizer
 from art_guidance.errors import CheckpointError, ConfigError, ModelError
 
@@ -102,9 +102,7 @@ class OnnxDecoder:
         import onnxruntime as ort
 
         cfg = self._cfg
-        if not (0 <= t0 and n_steps >= 1 and t0 + n_steps <= cfg.context):
-            raise ValueError(f"time steps {t0}..{t0 + n_steps - 1} do not fit the context "
-                             f"K = {cfg.context}")
+        check_steps(cfg, n_steps, t0)
         sess = self._session(batch)
         n_tok = n_steps * TOKENS_PER_STEP
         io = sess.io_binding()

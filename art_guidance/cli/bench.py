@@ -48,7 +48,8 @@ def run(args: argparse.Namespace) -> int:
 
 _PASSED = {"out": "--out", "workers": "--workers", "engine": "--engine",
            "ray_address": "--ray-address", "seeds": "--seeds",
-           "missed_per_seed": "--missed-per-seed", "first_seed": "--first-seed"}
+           "missed_per_seed": "--missed-per-seed", "first_seed": "--first-seed",
+           "model": "--model"}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -71,4 +72,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="first seed of a seed range (closed_loop: seeds FIRST..FIRST+repeats-1)")
     p.add_argument("--missed-per-seed", type=int, default=None,
                    help="missed-burn flights per configuration and seed")
+    p.add_argument("--model", default=None, help="the model a benchmark flies instead of the "
+                   "shipped default (plan_auto), e.g. art_guidance/models/art_slim_chance_rtn.pt")
     p.set_defaults(func=run)

@@ -1,0 +1,81 @@
+"""Benchmark: the distilled slim ART against its teacher, the shipped chance-constrained default.
+
+For chance-constrained `plan` scenarios (seeds FIRST.., held out from every training set) on
+which CVX is not passively safe (where `auto` runs ART), the learned step as the pipeline makes
+it (`planning.learned.learned_warm_start`: the sweep of 8 with the C update, the judging, the
+post hoc check) with the teacher and with the distilled student
+(`results/slim/art_slim_chance_rtn.pt`, not a default), both on ONNX Runtime (the default
+runtime), alternated scenario by scenario, one thread, in one process; SCVx* from CVX on the
+same scenario is timed beside them (the reference of the <= 0.25x target). Reported: medians
+of CPU time per learned step and of the transformer alone, the paired ratios student / teacher
+and learned step / SCVx* from CVX, and how often the two models' proposals are accepted by the
+post hoc check.
+
+What the student is worth as a warm start (the plans flown from it) is measured by the
+warm-start analysis (`art-guidance evaluate` + `benchmarks/default_models.py`), not here.
+
+    art-guidance bench slim --repeats 60 --first-seed 40000 --json out/slim.json
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from art_guidance.art.provider import ArtWarmStart, default_model_path
+from art_guidance.config import GuidanceConfig
+from art_guidance.optim import Scvx
+from art_guidance.planning import GuidancePipeline
+from art_guidance.planning.learned import learned_warm_start
+
+SLIM_MODEL = Path(__file__).resolve().parent / "results" / "slim" / "art_slim_chance_rtn.pt"
+
+
+def run(repeats: int = 30, first_seed: int = 40000) -> dict:
+    """Teacher and student alternated over `repeats` scenarios; medians [ms]."""
+    import torch
+
+    from bench_proposal import unsafe_cases
+    from bench_runtime import _StepTimer
+
+    torch.set_num_threads(1)
+    config = GuidanceConfig.load()
+    models = {"teacher": ArtWarmStart.load(default_model_path("chance")),
+              "student": ArtWarmStart.load(SLIM_MODEL)}
+    timers = {}
+    for name, provider in models.items():
+        timers[name] = _StepTimer(provider.art.decoder)
+        provider.art.decoder.step_numpy = timers[name]
+    cases = unsafe_cases(GuidancePipeline(config), True, int(first_seed),
+                         max(int(repeats), 1))
+    for provider in models.values():  # warm-up
+        learned_warm_start(provider, cases[0][0], cases[0][1], config.planning, cvx_unsafe=True)
+    cpu = {n: [] for n in models}
+    net = {n: [] for n in models}
+    accepted = {n: 0 for n in models}
+    scvx_ms = []
+    for i, (transfer, cvx) in enumerate(cases):
+        for name in (("teacher", "student") if i % 2 == 0 else ("student", "teacher")):
+            timers[name].s = 0.0
+            t = time.process_time()
+            out = learned_warm_start(models[name], transfer, cvx, config.planning,
+                                     cvx_unsafe=True)
+            cpu[name].append(1e3 * (time.process_time() - t))
+            net[name].append(1e3 * timers[name].s)
+            accepted[name] += int(out.posthoc is not None and out.posthoc.accepted)
+        t = time.process_time()
+        Scvx(transfer.safety, transfer.request.roe0_m, transfer.roe_f_m, config.scp,
+             samples_per_node=config.planning.samples_per_node).solve(cvx.dv_rtn_mps)
+        scvx_ms.append(1e3 * (time.process_time() - t))
+    t, s, c = (np.array(x) for x in (cpu["teacher"], cpu["student"], scvx_ms))
+    return {"scenarios": len(cases), "first_seed": int(first_seed),
+            "runtime": models["student"].runtime,
+            "teacher_cpu_ms": float(np.median(t)), "student_cpu_ms": float(np.median(s)),
+            "ratio_paired_cpu": float(np.median(s / t)),
+            "teacher_transformer_ms": float(np.median(net["teacher"])),
+            "student_transformer_ms": float(np.median(net["student"])),
+            "scvx_from_cvx_cpu_ms": float(np.median(c)),
+            "teacher_over_scvx": float(np.median(t / c)),
+            "student_over_scvx": float(np.median(s / c)),
+            "teacher_accepted": accepted["teacher"], "student_accepted": accepted["student"]}
