@@ -211,6 +211,10 @@ class TrainConfig:
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
 
 
+# first scenario seed of `art-guidance distill` (apart from every dataset and benchmark)
+DISTILL_FIRST_SEED = 9_000_000
+
+
 def check_steps(cfg: ArtConfig, n_steps: int, t0: int) -> None:
     """Raise ValueError unless decoding steps t0 .. t0 + n_steps - 1 fit the context K."""
     if not (0 <= t0 and n_steps >= 1 and t0 + n_steps <= cfg.context):

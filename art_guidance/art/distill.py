@@ -31,11 +31,10 @@ import torch
 
 from art_guidance import __version__
 from art_guidance.art import checkpoint
-from art_guidance.art.config import FEATURES, ArtConfig, preset
+from art_guidance.art.config import DISTILL_FIRST_SEED, FEATURES, ArtConfig, preset
 from art_guidance.art.model import ArtModel, combined_loss, loss_counts, loss_terms
 from art_guidance.errors import InputError
 
-DISTILL_FIRST_SEED = 9_000_000  # scenario seeds no dataset or benchmark of this project uses
 VAL_FRACTION = 0.05
 GATE_WEIGHT = 0.1
 BURN_THRESHOLD_MPS = 1e-3

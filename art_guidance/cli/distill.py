@@ -24,7 +24,7 @@ def run(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    from art_guidance.art.distill import DISTILL_FIRST_SEED
+    from art_guidance.art.config import DISTILL_FIRST_SEED  # torch-free (--help, plan)
 
     p = sub.add_parser("distill", help="distil a slim ART from a trained one",
                        description=run.__doc__ + " The teacher's rollouts are kept beside the "

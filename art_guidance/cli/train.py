@@ -5,7 +5,8 @@ import argparse
 import shlex
 import sys
 
-_PRESETS = ("small", "medium", "paper", "tiny")  # art_guidance.art.config.PRESETS (import-free)
+# art_guidance.art.config.PRESETS (import-free)
+_PRESETS = ("small", "medium", "paper", "slim", "tiny")
 _DAGGER_REWARDS = ("hindsight", "fed")  # art_guidance.art.config.DAGGER_REWARDS (import-free)
 
 
