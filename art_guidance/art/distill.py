@@ -31,7 +31,7 @@ import torch
 
 from art_guidance import __version__
 from art_guidance.art import checkpoint
-from art_guidance.art.config import DISTILL_FIRST_SEED, FEATURES, ArtConfig, preset
+from art_guidance.art.config import DISTILL_FIRST_SEED, FEATURES, preset
 from art_guidance.art.model import ArtModel, combined_loss, loss_counts, loss_terms
 from art_guidance.errors import InputError
 
@@ -233,8 +233,9 @@ def distill(teacher_path: str | Path, out: str | Path, student: str = "slim",
         if val_loss < best[0]:
             best = (val_loss, epoch, {k: v.detach().clone() for k, v in
                                       model.state_dict().items()})
-        meta = _meta(teacher, cfg, data, first_seed, scenarios, epochs, batch_size, lr, seed,
-                     threads, workers, history, best, gen_s, time.perf_counter() - t1, command)
+        meta = _meta(teacher, model.n_parameters(), data, first_seed, scenarios, epochs,
+                     batch_size, lr, seed, threads, workers, history, best, gen_s,
+                     time.perf_counter() - t1, command)
         checkpoint.save(out, checkpoint.model_payload(model, teacher.art.normalizer, meta,
                                                       state_dict=best[2]))
     bar.close()
@@ -245,7 +246,7 @@ def distill(teacher_path: str | Path, out: str | Path, student: str = "slim",
             "n_parameters": model.n_parameters()}
 
 
-def _meta(teacher, cfg: ArtConfig, data: dict, first_seed: int, scenarios: int, epochs: int,
+def _meta(teacher, n_parameters: int, data: dict, first_seed: int, scenarios: int, epochs: int,
           batch_size: int, lr: float, seed: int, threads: int, workers: int, history: list,
           best: tuple, gen_s: float, train_s: float, command: str) -> dict[str, Any]:
     """The student's provenance (its dataset is the teacher's: the configuration the
@@ -260,7 +261,7 @@ def _meta(teacher, cfg: ArtConfig, data: dict, first_seed: int, scenarios: int, 
         "seed": int(seed), "threads": int(threads), "workers": int(workers),
         "history_epoch_train_val": history, "best_val_loss": best[0], "best_epoch": best[1],
         "teacher_rollouts_wall_s": round(gen_s, 1), "train_wall_s": round(train_s, 1),
-        "n_parameters": sum(p.numel() for p in ArtModel(cfg).parameters()),
+        "n_parameters": int(n_parameters),
         "hardware": f"{platform.machine()} CPU, {multiprocessing.cpu_count()} cores, no GPU",
         "torch_version": str(torch.__version__), "art_guidance_version": __version__,
         "command": command}, "training": {"preset": "distilled", "features": FEATURES}}

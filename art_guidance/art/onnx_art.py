@@ -63,61 +63,73 @@ class OnnxDecoder:
     def __init__(self, model, config: ArtConfig) -> None:
         """`model`: the parsed ONNX model (its attention nodes carry one sample's heads)."""
         self._model, self._cfg = model, config
-        self._sessions: dict[int, object] = {}
-        self._io = None
+        # batch -> (session, binding, control, capacity, caches): the caches' wrappers keep
+        # their numpy buffers alive while the binding points at them
+        self._bound: dict[int, tuple] = {}
+        self._sess = self._io = self._control = None
         self._t0 = 0
 
     def _session(self, batch: int):
-        """The session of a batch size: the attention nodes get batch x heads."""
-        sess = self._sessions.get(batch)
-        if sess is None:
-            import onnxruntime as ort
-            from onnx import helper
+        """A new session for a batch size: the attention nodes get batch x heads."""
+        import onnxruntime as ort
+        from onnx import helper
 
-            model = type(self._model)()
-            model.CopyFrom(self._model)
-            heads = batch * self._cfg.n_heads
-            for node in model.graph.node:
-                if node.op_type == "GroupQueryAttention":
-                    del node.attribute[:]
-                    node.attribute.extend([helper.make_attribute("num_heads", heads),
-                                           helper.make_attribute("kv_num_heads", heads)])
-            opts = ort.SessionOptions()
-            opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-            opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-            opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
-            opts.log_severity_level = 3
-            sess = ort.InferenceSession(model.SerializeToString(), opts,
-                                        providers=["CPUExecutionProvider"])
-            self._sessions[batch] = sess
-        return sess
+        model = type(self._model)()
+        model.CopyFrom(self._model)
+        heads = batch * self._cfg.n_heads
+        for node in model.graph.node:
+            if node.op_type == "GroupQueryAttention":
+                del node.attribute[:]
+                node.attribute.extend([helper.make_attribute("num_heads", heads),
+                                       helper.make_attribute("kv_num_heads", heads)])
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+        opts.log_severity_level = 3
+        return ort.InferenceSession(model.SerializeToString(), opts,
+                                    providers=["CPUExecutionProvider"])
 
     def reset(self, batch: int, n_steps: int, t0: int) -> None:
         """Start a new batch of rollouts of `n_steps` steps whose first time index is `t0`.
 
+        The session, its binding and the caches of a batch size are kept and reused while
+        they hold the tokens (as `CachedDecoder`'s buffers): a step reads only the positions
+        written in this rollout (`seqlens_k`), so what earlier rollouts left there is not read.
+
         Raises:
             ValueError: if the steps do not fit the context (t0 + n_steps > K).
         """
+        cfg = self._cfg
+        check_steps(cfg, n_steps, t0)
+        n_tok = n_steps * TOKENS_PER_STEP
+        bound = self._bound.get(batch)
+        if bound is None or bound[3] < n_tok:
+            bound = self._bind(bound[0] if bound else self._session(batch), batch, n_tok)
+            self._bound[batch] = bound
+        self._sess, self._io, self._control = bound[:3]
+        self._t0 = TOKENS_PER_STEP * t0
+
+    def _bind(self, sess, batch: int, n_tok: int) -> tuple:
+        """A binding of `sess` with its control output and key/value caches for `n_tok`
+        tokens, each cache bound as both the past input and the present output."""
         import onnxruntime as ort
 
         cfg = self._cfg
-        check_steps(cfg, n_steps, t0)
-        sess = self._session(batch)
-        n_tok = n_steps * TOKENS_PER_STEP
         io = sess.io_binding()
-        self._control = ort.OrtValue.ortvalue_from_shape_and_type(
+        control = ort.OrtValue.ortvalue_from_shape_and_type(
             [batch, sess.get_outputs()[0].shape[1]], np.float32)
-        io.bind_ortvalue_output("control", self._control)
-        self._caches = []
+        io.bind_ortvalue_output("control", control)
+        caches = []
         for i in range(cfg.n_layers):
             for kv in "kv":
                 cache = ort.OrtValue.ortvalue_from_numpy(
                     np.zeros((1, batch * cfg.n_heads, n_tok, cfg.head_dim), np.float32))
                 io.bind_ortvalue_input(f"past_{kv}{i}", cache)
                 io.bind_ortvalue_output(f"present_{kv}{i}", cache)
-                self._caches.append(cache)
-        self._io, self._sess, self._t0 = io, sess, TOKENS_PER_STEP * t0
+                caches.append(cache)
+        return sess, io, control, n_tok, caches
 
     def step_numpy(self, feats: np.ndarray, p0: int) -> np.ndarray:
         """Feed the tokens at positions p0 .. p0 + n - 1 and predict the control of the last

@@ -142,6 +142,7 @@ class _RecomputePolicy:
     def __init__(self, art, goal_n: np.ndarray, t0: int, n_steps: int) -> None:
         import torch
 
+        self._inference_mode = torch.inference_mode
         self.model = art.model
         p = next(self.model.parameters())
         b = goal_n.shape[0]
@@ -162,16 +163,10 @@ class _RecomputePolicy:
         if j:
             self.ctrl[:, j - 1] = as_t(prev_control_n)
         s = slice(0, j + 1)
-        with _inference_mode():
+        with self._inference_mode():
             u_pred, _ = self.model(self.goal[:, s], self.reward[:, s], self.constraint[:, s],
                                    self.state[:, s], self.ctrl[:, s], self.time[:, s])
         return u_pred[:, j].cpu().numpy()  # (B, 3), (B, 4) with a burn gate
-
-
-def _inference_mode():
-    import torch
-
-    return torch.inference_mode()
 
 
 def _batch(field: str, value: object, shape: tuple[int, ...]) -> np.ndarray:

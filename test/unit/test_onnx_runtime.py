@@ -217,3 +217,23 @@ def test_export_writes_whole_files_and_never_overwrites_without_force(tmp_path, 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"no checkpoint")
     assert cli_main(["export", str(bad)]) == 2 and not bad.with_suffix(".onnx").exists()
+
+
+def test_a_reused_decoder_reads_nothing_earlier_rollouts_left():
+    """The ONNX decoder keeps its caches across rollouts (as torch's does): a replan over the
+    last nodes, rolled out after a full-horizon rollout, equals the same replan on a fresh
+    decoder bit for bit, and torch's within DV_TOL_MPS."""
+    from art_guidance.art.rollout import build_safety, rollout
+
+    path = default_model_path("chance")
+    used, torch_p = (ArtWarmStart.load(path, runtime=rt) for rt in ("onnx", "torch"))
+    safety = build_safety(used.art)
+    request = heldout_requests(1, DEFAULT_MODELS["chance"])[0]
+    x0, target = np.tile(request.roe0_m, (8, 1)), request.target_rtn
+    rollout(used.art, safety, x0, target, -8.0, 0.0)  # fills the caches, 100 steps
+    tail = rollout(used.art, safety, x0, target, -3.0, 0.0, start_node=60)
+    fresh = ArtWarmStart.load(path, runtime="onnx")  # a decoder of its own
+    again = rollout(fresh.art, safety, x0, target, -3.0, 0.0, start_node=60)
+    oracle = rollout(torch_p.art, safety, x0, target, -3.0, 0.0, start_node=60)
+    assert np.array_equal(tail.dv_rtn_mps, again.dv_rtn_mps)
+    assert np.abs(tail.dv_rtn_mps - oracle.dv_rtn_mps).max() <= DV_TOL_MPS
