@@ -6,18 +6,22 @@ default model proposes a warm start (`ArtWarmStart.propose`: the conditioning sw
 update at every step, then the judging of its candidates), on the default runtime
 (`art_runtime` auto), one thread, in one process:
 
-- `fast`: the planner's path;
-- `reference`: the same proposal through the previous safety path, the K = 1 oracles of the
-  fast one: every rollout step's violations decided by the certified sign-only minimum
+- `fast`: the planner's path (the speculative rollout: several steps decoded, then their
+  violations searched at once, `rollout(speculate=True)`);
+- `step`: the same with one step at a time (`speculate=False`, the speculative rollout's
+  oracle), to measure what speculation saves;
+- `reference`: the step-by-step proposal through the previous safety path, the K = 1 oracles
+  of the fast one: every rollout step's violations decided by the certified sign-only minimum
   (`DriftArcs.minimum(sign_only=True)`, with its t* and candidate bookkeeping) instead of
   `DriftArcs.violated`, every candidate judged by its own full `PassiveSafety.evaluate`
   instead of one sign-only `evaluate_batch` over all of them.
 
-The two alternate scenario by scenario; the proposals must be identical (controls and
+The three alternate scenario by scenario; the proposals must be identical (controls and
 constraint-to-go), and the numbers are medians of wall and CPU (process) time with the paired
-ratio. The fast path's time is split into the C update (`step_violations`), the candidates'
+ratios. The fast path's time is split into the C update (`steps_violations`), the candidates'
 terminal corrections, their safety search, and the rest (transformer, dynamics, bookkeeping),
-and into the transformer (the decoder's `step_numpy`) and the numerics (everything else);
+and into the transformer (the decoder's `step_numpy`, decoded steps counted: speculation
+decodes again the steps after a missed prediction) and the numerics (everything else);
 `sweep_K_ms` times proposals with sweeps of K reward scales (the transformer's work grows
 with the batch: at batch 8 it is arithmetic, not per-call overhead).
 
@@ -26,6 +30,7 @@ with the batch: at batch 8 it is arithmetic, not per-call overhead).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import numpy as np
@@ -80,6 +85,12 @@ class _Timed:
         self.c_update_s += time.perf_counter() - t
         return out
 
+    def steps_violations(self, *args):
+        t = time.perf_counter()
+        out = self._safety.steps_violations(*args)
+        self.c_update_s += time.perf_counter() - t
+        return out
+
     def evaluate_batch(self, *args, **kwargs):
         t = time.perf_counter()
         out = self._safety.evaluate_batch(*args, **kwargs)
@@ -128,19 +139,31 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
     provider.propose(request, safety, cvx, planning)  # warm-up (decoder, caches)
     rows, same = [], 0
     parts = {"c_update": [], "judge_correction": [], "judge_search": [], "transformer": [],
-             "numerics": [], "rest": []}
+             "numerics": [], "rest": [], "decoded_steps": []}
     original = provider_module.judged_trajectory
     decoder = provider.art.decoder
-    step, step_s = decoder.step_numpy, [0.0]
+    step, step_s = decoder.step_numpy, [0.0, 0]
+    speculative = provider_module.rollout
 
     def timed_step(*args, _f=step, _acc=step_s):
         t = time.perf_counter()
         out = _f(*args)
         _acc[0] += time.perf_counter() - t
+        _acc[1] += 1
         return out
+
+    def one_step(fn):  # a proposal whose rollout goes one step at a time
+        provider_module.rollout = functools.partial(speculative, speculate=False)
+        try:
+            return _timed(fn)
+        finally:
+            provider_module.rollout = speculative
+    steps = []
     for request, safety, cvx in cases:
-        ref, ref_wall, ref_cpu = _timed(lambda: provider.propose(request, _Reference(safety),
-                                                                 cvx, planning))
+        ref, ref_wall, ref_cpu = one_step(lambda: provider.propose(request, _Reference(safety),
+                                                                   cvx, planning))
+        plain, step_wall, step_cpu = one_step(lambda: provider.propose(request, safety, cvx,
+                                                                       planning))
         timed = _Timed(safety)
         corr = [0.0]
 
@@ -151,15 +174,18 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
             return out
 
         provider_module.judged_trajectory = corrected
-        decoder.step_numpy, step_s[0] = timed_step, 0.0
+        decoder.step_numpy, step_s[:] = timed_step, [0.0, 0]
         try:
             fast, wall, cpu = _timed(lambda: provider.propose(request, timed, cvx, planning))
         finally:
             provider_module.judged_trajectory = original
             decoder.step_numpy = step
-        same += int(np.array_equal(fast.dv_rtn_mps, ref.dv_rtn_mps)
-                    and np.array_equal(fast.constraint_to_go, ref.constraint_to_go))
+        same += int(all(np.array_equal(fast.dv_rtn_mps, p.dv_rtn_mps)
+                        and np.array_equal(fast.constraint_to_go, p.constraint_to_go)
+                        for p in (ref, plain)))
         rows.append((wall, cpu, ref_wall, ref_cpu))
+        steps.append((step_wall, step_cpu))
+        parts["decoded_steps"].append(step_s[1])
         parts["c_update"].append(1e3 * timed.c_update_s)
         parts["judge_correction"].append(1e3 * corr[0])
         parts["judge_search"].append(1e3 * timed.judge_eval_s)
@@ -167,10 +193,13 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
         parts["transformer"].append(1e3 * step_s[0])  # the KV-cached decoder's steps
         parts["numerics"].append(wall - 1e3 * step_s[0])  # everything but the transformer
     wall, cpu, ref_wall, ref_cpu = (np.array(x) for x in zip(*rows))
+    step_wall, step_cpu = (np.array(x) for x in zip(*steps))
     out = {"scenarios": len(rows), "first_seed": int(first_seed),
            "identical_proposals": same,
            "fast_ms": float(np.median(wall)), "reference_ms": float(np.median(ref_wall)),
            "fast_cpu_ms": float(np.median(cpu)), "reference_cpu_ms": float(np.median(ref_cpu)),
+           "step_ms": float(np.median(step_wall)), "step_cpu_ms": float(np.median(step_cpu)),
+           "speculation_paired_cpu": float(np.median(cpu / step_cpu)),
            "speedup_paired_cpu": float(np.median(ref_cpu / cpu)),
            "speedup_paired_wall": float(np.median(ref_wall / wall))}
     out.update({f"fast_{k}_ms": float(np.median(v)) for k, v in parts.items()})

@@ -180,7 +180,8 @@ def _batch(field: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
 
 def rollout(art, safety: PassiveSafety, roe_m: object, target_rtn: object,
             reward_mps: object, constraint: object = 0.0, start_node: int = 0,
-            use_cache: bool = True, deadline: float | None = None) -> RolloutResult:
+            use_cache: bool = True, deadline: float | None = None,
+            speculate: bool = True) -> RolloutResult:
     """Roll the model out over nodes start_node .. N - 1 of `safety.horizon` for a batch.
 
     Args:
@@ -196,6 +197,9 @@ def rollout(art, safety: PassiveSafety, roe_m: object, target_rtn: object,
         use_cache: KV-cached incremental decoding (default) or recompute the whole context.
         deadline: a `time.perf_counter()` instant after which no further step is started
             (None: no limit).
+        speculate: decode several steps ahead and decide their violations in one search
+            (`_run_speculative`, the default with the cache); False: one step at a time
+            (`_run`, its oracle: the same result bit for bit, tested).
 
     Returns:
         RolloutResult over the T = N - start_node planned nodes.
@@ -218,20 +222,21 @@ def rollout(art, safety: PassiveSafety, roe_m: object, target_rtn: object,
                          use_cache)
     policy = (_CachedPolicy if use_cache else _RecomputePolicy)(
         art, norm.normalize("goal", goal), t0, n_steps)
-    prev = [None]
 
-    def control(j: int, node: int, x: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    def control(j: int, node: int, x: np.ndarray, r: np.ndarray, c: np.ndarray,
+                u_prev: np.ndarray | None) -> np.ndarray:
         t = t0 + j
         state = x @ horizon.psi[node].T if rtn_repr else x  # (B, 6)
+        prev = None if u_prev is None else norm.normalize("control", u_prev, t - 1)
         out = policy.control(j, norm.normalize("reward", r), norm.normalize("constraint", c),
-                             norm.normalize("state", state, t), prev[0])  # (B, 3 (+1))
+                             norm.normalize("state", state, t), prev)  # (B, 3 (+1))
         u = norm.denormalize("control", out[:, :3].astype(float), t)  # (B, 3) [m/s]
         if gate:  # coast where the gate says no burn
             u[out[:, 3] <= GATE_LOGIT_THRESHOLD] = 0.0
-        prev[0] = norm.normalize("control", u, t)  # the applied control, as fed back
         return u
 
-    return _run(safety, x, r, c, start, control, deadline)
+    run = _run_speculative if speculate and use_cache else _run
+    return run(safety, x, r, c, start, control, deadline)
 
 
 def replay(safety: PassiveSafety, roe_m: object, dv_rtn_mps: object, reward_mps: object,
@@ -258,7 +263,7 @@ def replay(safety: PassiveSafety, roe_m: object, dv_rtn_mps: object, reward_mps:
     n_steps = horizon.n_nodes - start
     u = np.asarray(dv_rtn_mps, dtype=float)
     u = as_finite_array("dv_rtn_mps", u[None] if u.ndim == 2 else u, (x.shape[0], n_steps, 3))
-    return _run(safety, x, r, c, start, lambda j, node, x, r, c: u[:, j])
+    return _run(safety, x, r, c, start, lambda j, node, x, r, c, u_prev: u[:, j])
 
 
 def _inputs(horizon: Horizon, roe_m: object, target_rtn: object, reward_mps: object,
@@ -280,8 +285,9 @@ def _run(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.ndarray, sta
          control, deadline: float | None = None) -> RolloutResult:
     """The rollout loop: control, violation, R/C update, deputy-aware propagation.
 
-    `control(j, node, x, r, c)` returns the (B, 3) burn [m/s] of step j at `node`; a step is
-    not started after `deadline` (a `time.perf_counter()` instant; DeadlineError).
+    `control(j, node, x, r, c, u_prev)` returns the (B, 3) burn [m/s] of step j at `node`
+    (`u_prev`: the burn applied at step j - 1, None at step 0); a step is not started after
+    `deadline` (a `time.perf_counter()` instant; DeadlineError).
     """
     horizon = safety.horizon
     n_nodes = horizon.n_nodes
@@ -293,7 +299,7 @@ def _run(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.ndarray, sta
         if deadline is not None and time.perf_counter() > deadline:
             raise DeadlineError(f"rollout stopped at step {j} of {n_steps}: the deadline "
                                 "passed")
-        u = control(j, node, x, r, c)  # (B, 3) [m/s]
+        u = control(j, node, x, r, c, dv[:, j - 1] if j else None)  # (B, 3) [m/s]
         z = horizon.post_burn_step(node, x, u)  # (B, 6) post-burn, deputy-aware
         v = safety.step_violations(node, x, u, z)  # (B,) bool, = node_violations(node, x, u)
         dv[:, j], roe[:, j], rs[:, j], cs[:, j], viol[:, j] = u, x, r, c, v
@@ -302,3 +308,64 @@ def _run(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.ndarray, sta
         if node < n_nodes - 1:
             x = horizon.drift_step(node, z)  # (B, 6): one step of propagate_nonlinear
     return RolloutResult(np.arange(start, n_nodes), dv, roe, rs, cs, viol)
+
+
+# Speculative steps decoded before their violations are searched: the window doubles while
+# the predictions hold, up to this many steps, and starts again from one after a miss.
+SPECULATE_MAX_STEPS = 16
+
+
+def _run_speculative(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.ndarray,
+                     start: int, control, deadline: float | None = None) -> RolloutResult:
+    """`_run`'s result, with the violations of several steps decided in one search.
+
+    Only C feeds a step's violation back into the model, and violations come in runs: a
+    window of steps is decoded and propagated with each candidate's C updated by its last
+    decided v_i (the prediction), then the window's arcs are searched at once
+    (`PassiveSafety.steps_violations`, a few dozen numpy calls instead of a few hundred per
+    step). The steps up to and including the first where a prediction missed are kept; the
+    rollout goes on from the next, whose C is now known. The decoders write the tokens by
+    position, so decoding a step again overwrites what the miss left. A kept step had the
+    inputs `_run` would have given it, hence the same numbers.
+    """
+    horizon = safety.horizon
+    n_nodes = horizon.n_nodes
+    b, n_steps = x.shape[0], n_nodes - start
+    dv, roe = np.empty((b, n_steps, 3)), np.empty((b, n_steps, 6))
+    rs, cs = np.empty((b, n_steps)), np.empty((b, n_steps))
+    z_all = np.empty((b, n_steps, 6))
+    viol = np.empty((b, n_steps), dtype=int)
+    v_last = np.zeros(b, dtype=bool)  # the last decided violation of each candidate
+    nodes = np.arange(start, n_nodes)
+    j, width = 0, 1
+    while j < n_steps:
+        end = min(j + width, n_steps)
+        xk, rk, ck = x, r, c
+        for k in range(j, end):
+            if deadline is not None and time.perf_counter() > deadline:
+                raise DeadlineError(f"rollout stopped at step {k} of {n_steps}: the deadline "
+                                    "passed")
+            node = start + k
+            u = control(k, node, xk, rk, ck, dv[:, k - 1] if k else None)  # (B, 3) [m/s]
+            z = horizon.post_burn_step(node, xk, u)  # (B, 6) post-burn, deputy-aware
+            dv[:, k], roe[:, k], rs[:, k], cs[:, k], z_all[:, k] = u, xk, rk, ck, z
+            rk = rk + np.sqrt(np.einsum("bi,bi->b", u, u))
+            ck = ck - v_last  # predicted: C(t_{k+1}) = C(t_k) - v_k with v_k = v_last
+            if node < n_nodes - 1:
+                xk = horizon.drift_step(node, z)
+        w = end - j
+        v = safety.steps_violations(np.repeat(nodes[j:end][None], b, 0).ravel(),
+                                    roe[:, j:end].reshape(-1, 6), dv[:, j:end].reshape(-1, 3),
+                                    z_all[:, j:end].reshape(-1, 6)).reshape(b, w)
+        missed = np.flatnonzero((v != v_last[:, None]).any(axis=0))
+        keep = w if missed.size == 0 else int(missed[0]) + 1  # steps j .. j + keep - 1 hold
+        viol[:, j:j + keep] = v[:, :keep]
+        last = j + keep - 1
+        v_last = v[:, keep - 1].copy()
+        r = rs[:, last] + np.sqrt(np.einsum("bi,bi->b", dv[:, last], dv[:, last]))
+        c = cs[:, last] - v_last
+        if start + last < n_nodes - 1:
+            x = xk if keep == w else roe[:, last + 1].copy()
+        j += keep
+        width = min(2 * width, SPECULATE_MAX_STEPS) if missed.size == 0 else 1
+    return RolloutResult(nodes, dv, roe, rs, cs, viol)

@@ -376,6 +376,13 @@ class PassiveSafety:
         construction there)."""
         return self.arcs.violated(self._items_at(int(i), roe_m, dv_rtn_mps, z_m))
 
+    def steps_violations(self, nodes: np.ndarray, roe_m: np.ndarray, dv_rtn_mps: np.ndarray,
+                         z_m: np.ndarray) -> np.ndarray:
+        """`step_violations` of M (state, burn) pairs at nodes `nodes` (M,) of any mix, in one
+        search (the speculative rollout checks several steps of a batch at once; each arc's
+        decision is its own: the same as one node at a time, tested)."""
+        return self.arcs.violated(self._items_at(np.asarray(nodes), roe_m, dv_rtn_mps, z_m))
+
     # ------------------------------------------------------------------ internals
     def _node_items(self, i: int, roe_m: object, dv_rtn_mps: object) -> ArcItems:
         """Validated drift arcs of B (state, burn) pairs at node i (see `node_margins`)."""
@@ -386,15 +393,18 @@ class PassiveSafety:
         u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (x.shape[0], 3))
         return self._items_at(i, x, u, self.horizon.post_burn_nonlinear_at(i, x, u))
 
-    def _items_at(self, i: int, x: np.ndarray, u: np.ndarray, z: np.ndarray) -> ArcItems:
-        """Drift arcs of B post-burn states `z` at node i (pre-burn `x`, burns `u`)."""
+    def _items_at(self, i: int | np.ndarray, x: np.ndarray, u: np.ndarray, z: np.ndarray
+                  ) -> ArcItems:
+        """Drift arcs of B post-burn states `z` at node i, or at nodes i (B,) (pre-burn `x`,
+        burns `u`)."""
+        m = x.shape[0]
         x_cov = None
         if self.uncertainty is not None:
-            m = x.shape[0]
+            b, psi = self.horizon.b[i], self.horizon.psi[i]
             x_cov = post_burn_covariance_checked(
-                x, u, np.broadcast_to(self.horizon.b[i], (m, 6, 3)),
-                np.broadcast_to(self.horizon.psi[i], (m, 6, 6)), self.uncertainty)
-        return self.arcs.items(np.full(x.shape[0], i), z, x_cov, self.q_sigma)
+                x, u, np.broadcast_to(b, (m, 6, 3)), np.broadcast_to(psi, (m, 6, 6)),
+                self.uncertainty)
+        return self.arcs.items(np.broadcast_to(i, (m,)).copy(), z, x_cov, self.q_sigma)
 
     def _check(self, roe_m: object, dv_rtn_mps: object) -> tuple[np.ndarray, np.ndarray]:
         x = as_finite_array("roe_m", roe_m, (self.n_nodes, 6))
