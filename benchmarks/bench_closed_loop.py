@@ -13,6 +13,13 @@ of the last correction burns (a few metres), the miss without them by the models
 against CVX only, paired per seed: executed delta-v and miss, their paired differences, and
 how often the node accepted ART.
 
+`min_c_cvx` (`--min-c-cvx N`): the hard family instead of seeds first_seed..: the first
+`repeats` seeds from first_seed whose first plan's CVX warm start violates passive safety at
+N or more nodes (C_CVX >= N: the initial transfer, from the seed's true initial state to the
+waypoint, as the first replan sees it without navigation error), flown with errors only, with
+the learned warm start against CVX only. `model`: the model `auto` flies (default: the
+shipped default).
+
 Run it on two checkouts to compare planner versions seed by seed (the numbers do not depend on
 the machine's speed: the solve deadline is far above the solve times).
 """
@@ -69,16 +76,24 @@ def _dist(x: np.ndarray) -> dict:
             "p90": float(np.percentile(x, 90)), "max": float(x.max())}
 
 
-def run(repeats: int = 30, warm_starts: bool = True, first_seed: int = 0) -> dict:
+def run(repeats: int = 30, warm_starts: bool = True, first_seed: int = 0,
+        min_c_cvx: int | None = None, model: str | None = None) -> dict:
     """Seeds first_seed..first_seed+repeats-1 with and without errors; miss and delta-v
     distributions; with `warm_starts`, ART in the loop against CVX only (errors on, paired per
-    seed)."""
+    seed). With `min_c_cvx`, the hard family (module docstring), errors on only."""
     pipeline = GuidancePipeline()
-    seeds = list(range(int(first_seed), int(first_seed) + max(int(repeats), 1)))
-    out: dict = {"seeds": seeds}
     t0 = time.perf_counter()
+    n = max(int(repeats), 1)
+    if min_c_cvx is None:
+        seeds = list(range(int(first_seed), int(first_seed) + n))
+        out: dict = {"seeds": seeds}
+    else:
+        seeds, c_cvx, screened = hard_seeds(pipeline, int(first_seed), n, int(min_c_cvx))
+        out = {"seeds": seeds, "min_c_cvx": int(min_c_cvx), "c_cvx": c_cvx,
+               "screened_seeds": screened}
     runs_cvx = []
-    for label, errors in (("errors", True), ("no_errors", False)):
+    configurations = (("errors", True), ("no_errors", False))
+    for label, errors in configurations[:1 if min_c_cvx is not None else 2]:
         runs = [fly(s, errors, pipeline) for s in seeds]
         runs_cvx = runs_cvx or runs
         miss = np.array([r["miss_m"] for r in runs])
@@ -86,17 +101,47 @@ def run(repeats: int = 30, warm_starts: bool = True, first_seed: int = 0) -> dic
         out[label] = {"miss_m": _dist(miss), "total_dv_mps": _dist(dv),
                       "per_seed_miss_m": [round(float(m), 3) for m in miss],
                       "outcomes": sorted({r["outcome"] for r in runs})}
-    if warm_starts:
-        out["warm_starts"] = compare_warm_starts(seeds, runs_cvx)
+    if warm_starts or min_c_cvx is not None:
+        out["warm_starts"] = compare_warm_starts(seeds, runs_cvx, model)
     out["wall_s"] = time.perf_counter() - t0
     return out
 
 
-def compare_warm_starts(seeds: list[int], runs_cvx: list[dict]) -> dict:
-    """ART in the loop (`auto`, shipped default model) against the CVX-only runs, paired."""
+def hard_seeds(pipeline: GuidancePipeline, first: int, n: int, min_c: int
+               ) -> tuple[list[int], list[int], int]:
+    """The first `n` seeds from `first` whose initial transfer's CVX warm start has
+    C_CVX >= `min_c`; (seeds, their C_CVX, seeds screened)."""
+    from art_guidance.dynamics import roe_from_rtn_linear
+    from art_guidance.optim import solve_cvx
+    from art_guidance.planning import PlanRequest
+    from art_guidance.scenarios import sample_scenario
+
+    scenario = pipeline.scenario
+    chief = np.array(scenario.chief_oe)
+    target = np.asarray(scenario.waypoints_rtn[PARAMETERS["waypoint"]], float)
+    seeds, c_cvx, seed = [], [], first
+    while len(seeds) < n and seed < first + 100 * n:
+        rtn0 = sample_scenario(scenario, seed).rtn0
+        request = PlanRequest(chief, roe_from_rtn_linear(chief, rtn0), target,
+                              chance_constrained=True)
+        transfer = pipeline.transfer(request)
+        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
+        if cvx.status.feasible:
+            c = int(transfer.safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0])
+            if c >= min_c:
+                seeds.append(seed)
+                c_cvx.append(c)
+        seed += 1
+    return seeds, c_cvx, seed - first
+
+
+def compare_warm_starts(seeds: list[int], runs_cvx: list[dict], model: str | None = None
+                        ) -> dict:
+    """ART in the loop (`auto`, the shipped default model or `model`) against the CVX-only
+    runs, paired."""
     from art_guidance.art.provider import ArtWarmStart
 
-    pipeline = GuidancePipeline(provider=ArtWarmStart.load())
+    pipeline = GuidancePipeline(provider=ArtWarmStart.load(model or None))
     runs_art = [fly(s, True, pipeline, "auto") for s in seeds]
     dv_c = np.array([r["total_dv_mps"] for r in runs_cvx])
     dv_a = np.array([r["total_dv_mps"] for r in runs_art])

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
 _PASSED = {"out": "--out", "workers": "--workers", "engine": "--engine",
            "ray_address": "--ray-address", "seeds": "--seeds",
            "missed_per_seed": "--missed-per-seed", "first_seed": "--first-seed",
-           "model": "--model"}
+           "model": "--model", "min_c_cvx": "--min-c-cvx"}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -73,5 +73,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--missed-per-seed", type=int, default=None,
                    help="missed-burn flights per configuration and seed")
     p.add_argument("--model", default=None, help="the model a benchmark flies instead of the "
-                   "shipped default (plan_auto), e.g. art_guidance/models/art_slim_chance_rtn.pt")
+                   "shipped default (plan_auto, closed_loop), e.g. "
+                   "benchmarks/results/slim/art_slim_chance_rtn.pt")
+    p.add_argument("--min-c-cvx", type=int, default=None, metavar="N",
+                   help="closed_loop: fly the hard family, the first --repeats seeds from "
+                   "--first-seed whose initial CVX warm start violates passive safety at N or "
+                   "more nodes, with the learned warm start against CVX only")
     p.set_defaults(func=run)

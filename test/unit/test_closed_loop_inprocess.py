@@ -58,3 +58,33 @@ def test_fixes_before_a_request_or_out_of_order_are_rejected():
     assert replan.stamp_ns == SIM_EPOCH0_NS + 1 and not replan.rejection
     assert replan.plan_id == "plan-2" == replan.active_plan_id
     assert np.allclose(link.results[-1][1].rtn[-1, :3], [0.0, -750.0, 0.0], atol=1.0)
+
+
+def test_the_hard_family_is_the_seeds_whose_cvx_warm_start_violates_most():
+    """bench closed_loop --min-c-cvx N screens seeds by their initial CVX warm start's C_CVX
+    (the first replan's transfer without navigation error)."""
+    import importlib.util
+    from pathlib import Path
+
+    from art_guidance.dynamics import roe_from_rtn_linear
+    from art_guidance.optim import solve_cvx
+    from art_guidance.planning import PlanRequest
+    from art_guidance.scenarios import sample_scenario
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_closed_loop.py"
+    spec = importlib.util.spec_from_file_location("bench_closed_loop", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    pipeline = GuidancePipeline()
+    seeds, c_cvx, screened = bench.hard_seeds(pipeline, 0, 2, 40)
+    assert len(seeds) == 2 and min(c_cvx) >= 40 and screened == seeds[-1] + 1
+    sc = pipeline.scenario
+    chief = np.array(sc.chief_oe)
+    target = np.asarray(sc.waypoints_rtn[PARAMETERS["waypoint"]], float)
+    for seed in range(seeds[0]):  # the skipped ones are below the threshold or infeasible
+        req = PlanRequest(chief, roe_from_rtn_linear(chief, sample_scenario(sc, seed).rtn0),
+                          target, chance_constrained=True)
+        tr = pipeline.transfer(req)
+        cvx = solve_cvx(tr.horizon, req.roe0_m, tr.roe_f_m)
+        assert not cvx.status.feasible or \
+            tr.safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0] < 40
