@@ -17,6 +17,11 @@ At every planned node i (from `start_node` to the last node N - 1), for a batch 
    trajectories were planned with (the RTN representation feeds Psi_{i+1} x_{i+1}). Driven by a
    plan's own controls, the rollout reproduces the plan's states and constraint-to-go.
 
+Step 2 is decided for several steps at once by default (`_run_speculative`): a window of steps
+is decoded with each candidate's C updated by its last decided v_i, then their arcs are searched
+in one call, and the steps after the first missed prediction are decoded again; the result is
+the step-by-step loop's (`_run`, `speculate=False`) bit for bit.
+
 Conditioning for a warm start: R(t_1) = -J_CVX, C(t_1) = 0, goal = the request's target. The
 horizon may be shorter than the context K; its nodes use the last time-step indices
 (K - n .. K - 1), so a replan from node k over the remaining horizon looks like the tail of a
