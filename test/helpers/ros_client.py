@@ -132,8 +132,11 @@ class Client:
             return None
         return self.wait_for(find, timeout_s)
 
-    def close(self) -> None:
+    def close(self, shutdown: bool = True) -> None:
+        """Stop spinning and destroy the node; `shutdown`: also shut rclpy down (False while
+        other clients of this process still spin)."""
         self.executor.shutdown()
         self._thread.join(timeout=5)
         self.node.destroy_node()
-        rclpy.try_shutdown()
+        if shutdown:
+            rclpy.try_shutdown()
