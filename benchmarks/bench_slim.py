@@ -1,4 +1,4 @@
-"""Benchmark: the distilled slim ART against its teacher, the shipped chance-constrained default.
+"""Benchmark: the distilled slim ART against its teacher, the shipped default of its mode.
 
 For chance-constrained `plan` scenarios (seeds FIRST.., held out from every training set) on
 which CVX is not passively safe (where `auto` runs ART), the learned step as the pipeline makes
@@ -32,8 +32,10 @@ from art_guidance.planning.learned import learned_warm_start
 SLIM_MODEL = Path(__file__).resolve().parent / "results" / "slim" / "art_slim_chance_rtn.pt"
 
 
-def run(repeats: int = 30, first_seed: int = 40000) -> dict:
-    """Teacher and student alternated over `repeats` scenarios; medians [ms]."""
+def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None) -> dict:
+    """Teacher and student alternated over `repeats` scenarios; medians [ms]. `model`: another
+    student (e.g. `results/slim/art_slim_det_roe.pt`), measured against the shipped default
+    of its dataset's mode on scenarios of that mode."""
     import torch
 
     from bench_proposal import unsafe_cases
@@ -41,13 +43,14 @@ def run(repeats: int = 30, first_seed: int = 40000) -> dict:
 
     torch.set_num_threads(1)
     config = GuidanceConfig.load()
-    models = {"teacher": ArtWarmStart.load(default_model_path("chance")),
-              "student": ArtWarmStart.load(SLIM_MODEL)}
+    student = ArtWarmStart.load(model or SLIM_MODEL)
+    mode = student.art.meta.get("dataset", {}).get("mode", "chance")
+    models = {"teacher": ArtWarmStart.load(default_model_path(mode)), "student": student}
     timers = {}
     for name, provider in models.items():
         timers[name] = _StepTimer(provider.art.decoder)
         provider.art.decoder.step_numpy = timers[name]
-    cases = unsafe_cases(GuidancePipeline(config), True, int(first_seed),
+    cases = unsafe_cases(GuidancePipeline(config), mode == "chance", int(first_seed),
                          max(int(repeats), 1))
     for provider in models.values():  # warm-up
         learned_warm_start(provider, cases[0][0], cases[0][1], config.planning, cvx_unsafe=True)
@@ -69,8 +72,8 @@ def run(repeats: int = 30, first_seed: int = 40000) -> dict:
              samples_per_node=config.planning.samples_per_node).solve(cvx.dv_rtn_mps)
         scvx_ms.append(1e3 * (time.process_time() - t))
     t, s, c = (np.array(x) for x in (cpu["teacher"], cpu["student"], scvx_ms))
-    return {"scenarios": len(cases), "first_seed": int(first_seed),
-            "runtime": models["student"].runtime,
+    return {"scenarios": len(cases), "first_seed": int(first_seed), "mode": mode,
+            "student": Path(student.path).name, "runtime": models["student"].runtime,
             "teacher_cpu_ms": float(np.median(t)), "student_cpu_ms": float(np.median(s)),
             "ratio_paired_cpu": float(np.median(s / t)),
             "teacher_transformer_ms": float(np.median(net["teacher"])),
