@@ -2,10 +2,10 @@
 
 The node runs in its own process (as `ros2 run` would start it) with every nav message forced to
 replan; the client publishes a nav state, waits for the plan with that stamp, and repeats. Three
-nodes are up at once, each in its own namespace: with the learned warm start (`warm_start
-auto`, the shipped model), CVX only, and `auto` with the proposal made in a worker process
-(`propose_concurrently`); each state goes to the three in turn (the order rotating), so the
-ratios compare plans made within a second of each other.
+configurations: with the learned warm start (`warm_start auto`, the shipped model), CVX only,
+and `auto` with the proposal made in a worker process (`propose_concurrently`), each run in
+ROUNDS rounds over its share of the states (the order rotating), so that the machine's drift
+over the run reaches all three alike.
 The reference is the same `GuidancePipeline.plan` called in-process on the same states, so the
 difference is the node and middleware overhead; its timings give the split per stage (CVX,
 ART rollout + post hoc check, SCP).
@@ -40,57 +40,62 @@ def _states(repeats: int) -> list[np.ndarray]:
 
 
 CONFIGS = (("auto", False), ("cvx", False), ("auto", True))  # (warm_start, worker)
+ROUNDS = 4  # each configuration's node is started this many times, in turn
 
 
 def _label(warm_start: str, concurrent: bool) -> str:
     return f"{warm_start}_concurrent" if concurrent else warm_start
 
 
-def _start_node(warm_start: str, concurrent: bool) -> subprocess.Popen:
-    """A guidance node process in its own namespace (`/bench_<label>`), every fix replanned."""
-    return subprocess.Popen(
-        [sys.executable, "-m", "art_guidance.ros.guidance_node", "--ros-args",
-         "-r", f"__ns:=/bench_{_label(warm_start, concurrent)}",
-         "-p", "replan_sigma_threshold:=1e-9", "-p", "record:=false",
-         "-p", f"warm_start:={warm_start}",
-         "-p", f"propose_concurrently:={str(concurrent).lower()}"],
-        env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def _node_latency(warm_start: str, states: list[np.ndarray], client_cls, nav_msg,
+                  concurrent: bool = False) -> list[float]:
+    """Nav -> plan latency [ms] of a node process with `warm_start` over `states` (the first
+    plan excluded: it includes the per-horizon set-up of a cold process); `concurrent`: with
+    `propose_concurrently` (the proposal in a worker process)."""
+    label = _label(warm_start, concurrent)
+    proc = subprocess.Popen([sys.executable, "-m", "art_guidance.ros.guidance_node", "--ros-args",
+                             "-p", "replan_sigma_threshold:=1e-9", "-p", "record:=false",
+                             "-p", f"warm_start:={warm_start}",
+                             "-p", f"propose_concurrently:={str(concurrent).lower()}"],
+                            env=dict(os.environ), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    client = client_cls(f"art_guidance_bench_client_{label}")
+    latency = []
+    try:
+        if not client.wait_matched(60.0):
+            raise RuntimeError("guidance node did not come up")
+        for k, rtn in enumerate(tqdm(states, desc=f"bench node ({label})", unit="plan")):
+            if k == 0:  # the first fix may be lost while discovery completes
+                stamp, _ = client.send_nav(rtn)
+                t0 = time.perf_counter()
+            else:
+                stamp = time.time_ns()
+                t0 = time.perf_counter()
+                client.nav_pub.publish(nav_msg(stamp, rtn))
+            if client.plan_for(stamp, timeout_s=60.0) is None:
+                raise RuntimeError(f"no plan for nav {k}")
+            if k > 0:
+                latency.append(1e3 * (time.perf_counter() - t0))
+    finally:
+        client.close()
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
+    return latency
 
 
 def _node_latencies(states: list[np.ndarray], client_cls, nav_msg) -> dict[str, list[float]]:
-    """Nav -> plan latency [ms] of one node process per configuration of CONFIGS, all up at
-    once and asked in turn, state by state (the order rotating), so that a machine whose
-    speed drifts during the run slows every configuration alike; the first plan of each is
-    excluded (it includes the per-horizon set-up of a cold process)."""
-    procs = [_start_node(ws, conc) for ws, conc in CONFIGS]
-    clients = [client_cls(f"art_guidance_bench_client_{_label(ws, conc)}",
-                          namespace=f"/bench_{_label(ws, conc)}") for ws, conc in CONFIGS]
-    latency: dict[str, list[float]] = {_label(ws, conc): [] for ws, conc in CONFIGS}
-    try:
-        for client in clients:
-            if not client.wait_matched(60.0):
-                raise RuntimeError("a guidance node did not come up")
-        for k, rtn in enumerate(tqdm(states, desc="bench node", unit="state")):
-            for j in range(len(CONFIGS)):
-                i = (j + k) % len(CONFIGS)
-                client = clients[i]
-                if k == 0:  # the first fix may be lost while discovery completes
-                    stamp, _ = client.send_nav(rtn)
-                else:
-                    stamp = time.time_ns()
-                    t0 = time.perf_counter()
-                    client.nav_pub.publish(nav_msg(stamp, rtn))
-                if client.plan_for(stamp, timeout_s=60.0) is None:
-                    raise RuntimeError(f"no plan for nav {k} ({_label(*CONFIGS[i])})")
-                if k > 0:
-                    latency[_label(*CONFIGS[i])].append(1e3 * (time.perf_counter() - t0))
-    finally:
-        for i, client in enumerate(clients):
-            client.close(shutdown=i == len(clients) - 1)
-        for proc in procs:
-            proc.send_signal(signal.SIGINT)
-        for proc in procs:
-            proc.wait(timeout=30)
+    """The latencies of every configuration of CONFIGS over `states`[1:], in ROUNDS rounds:
+    each round starts each configuration's node in turn for its share of the states (plus a
+    first, excluded plan), so a machine whose speed drifts during the run slows every
+    configuration alike. (One node per configuration up at once, asked in turn, was tried:
+    the idle nodes and the client's three executors added ~150 ms to every plan.)"""
+    chunks = np.array_split(np.arange(1, len(states)), ROUNDS)
+    latency: dict[str, list[float]] = {_label(*c): [] for c in CONFIGS}
+    for r, chunk in enumerate(chunks):
+        for i in range(len(CONFIGS)):
+            ws, conc = CONFIGS[(i + r) % len(CONFIGS)]
+            latency[_label(ws, conc)] += _node_latency(
+                ws, [states[0]] + [states[k] for k in chunk], client_cls, nav_msg, conc)
     return latency
 
 
