@@ -369,12 +369,12 @@ def _run_speculative(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.
         missed = np.flatnonzero((v != v_last[:, None]).any(axis=0))
         keep = w if missed.size == 0 else int(missed[0]) + 1  # steps j .. j + keep - 1 hold
         viol[:, j:j + keep] = v[:, :keep]
-        last = j + keep - 1
         v_last = v[:, keep - 1].copy()
-        r = rs[:, last] + np.sqrt(np.einsum("bi,bi->b", dv[:, last], dv[:, last]))
-        c = cs[:, last] - v_last
-        if start + last < n_nodes - 1:
-            x = xk if keep == w else roe[:, last + 1].copy()
+        c = cs[:, j + keep - 1] - v_last
+        if keep == w:
+            x, r = xk, rk
+        else:  # the next step's state and R, already propagated (they do not depend on C)
+            x, r = roe[:, j + keep].copy(), rs[:, j + keep].copy()
         j += keep
         width = min(2 * width, SPECULATE_MAX_STEPS) if missed.size == 0 else 1
     return RolloutResult(nodes, dv, roe, rs, cs, viol)
