@@ -22,7 +22,9 @@ from typing import Any
 
 import torch
 
-from art_guidance.art.checkpoint_header import FORMAT_VERSION, HEADER_RE, MAGIC, MAX_HEADER
+from art_guidance.art.checkpoint_header import (
+    FORMAT_VERSION, MAGIC, match_header,
+)
 from art_guidance.art.config import ArtConfig
 from art_guidance.art.kv_cache import CachedDecoder
 from art_guidance.art.model import ArtModel
@@ -85,7 +87,7 @@ def save(path: str | Path, payload: dict[str, Any]) -> str:
     """Atomically write `payload` as a checkpoint file; returns the payload's sha256."""
     blob = encode(payload)
     write_atomic(path, blob)
-    return HEADER_RE.match(blob[:MAX_HEADER]).group(2).decode()
+    return match_header(path, blob).group(2).decode()
 
 
 def read_payload(path: str | Path, expected_sha256: str | None = None
@@ -101,10 +103,7 @@ def read_payload(path: str | Path, expected_sha256: str | None = None
         blob = Path(path).read_bytes()
     except OSError as exc:
         raise CheckpointError(path, f"cannot read the checkpoint ({exc.strerror or exc})") from exc
-    match = HEADER_RE.match(blob[:MAX_HEADER])
-    if match is None:
-        raise CheckpointError(path, f"not an art_guidance checkpoint (no '{MAGIC} v<n> "
-                                    "sha256=... bytes=...' header line)")
+    match = match_header(path, blob)
     version, digest, size = int(match.group(1)), match.group(2).decode(), int(match.group(3))
     if version != FORMAT_VERSION:
         raise CheckpointError(path, f"unsupported checkpoint format version {version} (this "

@@ -17,6 +17,20 @@ HEADER_RE = re.compile(rb"^ART-GUIDANCE-CHECKPOINT v(\d+) sha256=([0-9a-f]{64}) 
 MAX_HEADER = 160
 
 
+def match_header(path: str | Path, head: bytes) -> re.Match:
+    """The header line at the start of `head` (a checkpoint file's first bytes), as a match of
+    HEADER_RE: groups version, payload sha256, payload size.
+
+    Raises:
+        CheckpointError: no checkpoint header.
+    """
+    match = HEADER_RE.match(head[:MAX_HEADER])
+    if match is None:
+        raise CheckpointError(path, f"not an art_guidance checkpoint (no '{MAGIC} v<n> "
+                                    "sha256=... bytes=...' header line)")
+    return match
+
+
 def header_sha256(path: str | Path) -> str:
     """The payload sha256 a checkpoint's header announces (the payload is not read).
 
@@ -28,8 +42,4 @@ def header_sha256(path: str | Path) -> str:
             head = fh.read(MAX_HEADER)
     except OSError as exc:
         raise CheckpointError(path, f"cannot read the checkpoint ({exc.strerror or exc})") from exc
-    match = HEADER_RE.match(head)
-    if match is None:
-        raise CheckpointError(path, f"not an art_guidance checkpoint (no '{MAGIC} v<n> "
-                                    "sha256=... bytes=...' header line)")
-    return match.group(2).decode()
+    return match_header(path, head).group(2).decode()
