@@ -69,6 +69,21 @@ class _Reference:
                                   for f in dataclasses.fields(SafetyEvaluation)))
 
 
+class StepTimer:
+    """Adds up the time and the count of a decoder's `step_numpy` calls (installed in its
+    place); also read by bench runtime and bench slim."""
+
+    def __init__(self, decoder) -> None:
+        self.step, self.s, self.n = decoder.step_numpy, 0.0, 0
+
+    def __call__(self, *args):
+        t = time.perf_counter()
+        out = self.step(*args)
+        self.s += time.perf_counter() - t
+        self.n += 1
+        return out
+
+
 class _Timed:
     """A PassiveSafety that adds up the time of the rollout's C update and of the judging's
     safety search."""
@@ -79,23 +94,20 @@ class _Timed:
     def __getattr__(self, name: str):
         return getattr(self._safety, name)
 
-    def step_violations(self, *args):
+    def _timed(self, name: str, total: str, *args, **kwargs):
         t = time.perf_counter()
-        out = self._safety.step_violations(*args)
-        self.c_update_s += time.perf_counter() - t
+        out = getattr(self._safety, name)(*args, **kwargs)
+        setattr(self, total, getattr(self, total) + time.perf_counter() - t)
         return out
+
+    def step_violations(self, *args):
+        return self._timed("step_violations", "c_update_s", *args)
 
     def steps_violations(self, *args):
-        t = time.perf_counter()
-        out = self._safety.steps_violations(*args)
-        self.c_update_s += time.perf_counter() - t
-        return out
+        return self._timed("steps_violations", "c_update_s", *args)
 
     def evaluate_batch(self, *args, **kwargs):
-        t = time.perf_counter()
-        out = self._safety.evaluate_batch(*args, **kwargs)
-        self.judge_eval_s += time.perf_counter() - t
-        return out
+        return self._timed("evaluate_batch", "judge_eval_s", *args, **kwargs)
 
 
 def unsafe_cases(pipeline: GuidancePipeline, chance: bool, first: int, n: int) -> list:
@@ -142,15 +154,8 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
              "numerics": [], "rest": []}
     original = provider_module.judged_trajectory
     decoder = provider.art.decoder
-    step, step_s = decoder.step_numpy, [0.0, 0]
+    step, timer = decoder.step_numpy, StepTimer(decoder)
     speculative = provider_module.rollout
-
-    def timed_step(*args, _f=step, _acc=step_s):
-        t = time.perf_counter()
-        out = _f(*args)
-        _acc[0] += time.perf_counter() - t
-        _acc[1] += 1
-        return out
 
     def one_step(fn):  # a proposal whose rollout goes one step at a time
         provider_module.rollout = functools.partial(speculative, speculate=False)
@@ -174,7 +179,7 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
             return out
 
         provider_module.judged_trajectory = corrected
-        decoder.step_numpy, step_s[:] = timed_step, [0.0, 0]
+        decoder.step_numpy, timer.s, timer.n = timer, 0.0, 0
         try:
             fast, wall, cpu = _timed(lambda: provider.propose(request, timed, cvx, planning))
         finally:
@@ -185,13 +190,13 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
                         for p in (ref, plain)))
         rows.append((wall, cpu, ref_wall, ref_cpu))
         steps.append((step_wall, step_cpu))
-        decoded.append(step_s[1])
+        decoded.append(timer.n)
         parts["c_update"].append(1e3 * timed.c_update_s)
         parts["judge_correction"].append(1e3 * corr[0])
         parts["judge_search"].append(1e3 * timed.judge_eval_s)
         parts["rest"].append(wall - 1e3 * (timed.c_update_s + corr[0] + timed.judge_eval_s))
-        parts["transformer"].append(1e3 * step_s[0])  # the KV-cached decoder's steps
-        parts["numerics"].append(wall - 1e3 * step_s[0])  # everything but the transformer
+        parts["transformer"].append(1e3 * timer.s)  # the KV-cached decoder's steps
+        parts["numerics"].append(wall - 1e3 * timer.s)  # everything but the transformer
     wall, cpu, ref_wall, ref_cpu = (np.array(x) for x in zip(*rows))
     step_wall, step_cpu = (np.array(x) for x in zip(*steps))
     out = {"scenarios": len(rows), "first_seed": int(first_seed),

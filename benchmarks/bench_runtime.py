@@ -27,20 +27,7 @@ from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart, default_mode
 from art_guidance.config import GuidanceConfig
 from art_guidance.planning import GuidancePipeline
 from art_guidance.planning.learned import learned_warm_start
-from bench_proposal import unsafe_cases
-
-
-class _StepTimer:
-    """Adds up the time of a decoder's `step_numpy` calls."""
-
-    def __init__(self, decoder) -> None:
-        self.decoder, self.step, self.s = decoder, decoder.step_numpy, 0.0
-
-    def __call__(self, *args):
-        t = time.perf_counter()
-        out = self.step(*args)
-        self.s += time.perf_counter() - t
-        return out
+from bench_proposal import StepTimer, unsafe_cases
 
 
 def _mode(mode: str, repeats: int, first_seed: int) -> dict:
@@ -49,7 +36,7 @@ def _mode(mode: str, repeats: int, first_seed: int) -> dict:
     models = {rt: ArtWarmStart.load(path, runtime=rt) for rt in ("torch", "onnx")}
     timers = {}
     for rt, provider in models.items():
-        timers[rt] = _StepTimer(provider.art.decoder)
+        timers[rt] = StepTimer(provider.art.decoder)
         provider.art.decoder.step_numpy = timers[rt]
     pipeline = GuidancePipeline(config)
     cases = unsafe_cases(pipeline, mode == "chance", first_seed, repeats)

@@ -38,8 +38,7 @@ def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None) ->
     of its dataset's mode on scenarios of that mode."""
     import torch
 
-    from bench_proposal import unsafe_cases
-    from bench_runtime import _StepTimer
+    from bench_proposal import StepTimer, unsafe_cases
 
     torch.set_num_threads(1)
     config = GuidanceConfig.load()
@@ -48,7 +47,7 @@ def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None) ->
     models = {"teacher": ArtWarmStart.load(default_model_path(mode)), "student": student}
     timers = {}
     for name, provider in models.items():
-        timers[name] = _StepTimer(provider.art.decoder)
+        timers[name] = StepTimer(provider.art.decoder)
         provider.art.decoder.step_numpy = timers[name]
     cases = unsafe_cases(GuidancePipeline(config), mode == "chance", int(first_seed),
                          max(int(repeats), 1))
