@@ -15,6 +15,8 @@ What the student is worth as a warm start (the plans flown from it) is measured 
 warm-start analysis (`art-guidance evaluate` + `benchmarks/default_models.py`), not here.
 
     art-guidance bench slim --repeats 60 --first-seed 40000 --json out/slim.json
+    art-guidance bench slim --model results/slim/art_slim1_chance_rtn.pt \
+        --reference results/slim/art_slim_chance_rtn.pt     # one student against another
 """
 from __future__ import annotations
 
@@ -32,10 +34,12 @@ from art_guidance.planning.learned import learned_warm_start
 SLIM_MODEL = Path(__file__).resolve().parent / "results" / "slim" / "art_slim_chance_rtn.pt"
 
 
-def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None) -> dict:
+def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None,
+        reference: str | None = None) -> dict:
     """Teacher and student alternated over `repeats` scenarios; medians [ms]. `model`: another
     student (e.g. `results/slim/art_slim_det_roe.pt`), measured against the shipped default
-    of its dataset's mode on scenarios of that mode."""
+    of its dataset's mode on scenarios of that mode; `reference`: a model measured in the
+    teacher's place (e.g. another student)."""
     import torch
 
     from bench_proposal import StepTimer, unsafe_cases
@@ -44,7 +48,8 @@ def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None) ->
     config = GuidanceConfig.load()
     student = ArtWarmStart.load(model or SLIM_MODEL)
     mode = student.art.meta.get("dataset", {}).get("mode", "chance")
-    models = {"teacher": ArtWarmStart.load(default_model_path(mode)), "student": student}
+    models = {"teacher": ArtWarmStart.load(reference or default_model_path(mode)),
+              "student": student}
     timers = {}
     for name, provider in models.items():
         timers[name] = StepTimer(provider.art.decoder)
@@ -73,6 +78,7 @@ def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None) ->
     t, s, c = (np.array(x) for x in (cpu["teacher"], cpu["student"], scvx_ms))
     return {"scenarios": len(cases), "first_seed": int(first_seed), "mode": mode,
             "student": Path(student.path).name, "runtime": models["student"].runtime,
+            "teacher": Path(models["teacher"].path).name,
             "teacher_cpu_ms": float(np.median(t)), "student_cpu_ms": float(np.median(s)),
             "ratio_paired_cpu": float(np.median(s / t)),
             "teacher_transformer_ms": float(np.median(net["teacher"])),

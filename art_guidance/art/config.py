@@ -22,7 +22,9 @@ REPRESENTATIONS = ("roe", "rtn")
 NORMALIZATIONS = ("feature", "timestep")
 ACTIVATIONS = ("relu", "gelu")
 MODALITIES = ("goal", "reward", "constraint", "state", "control")  # token order in a step
-TOKENS_PER_STEP = len(MODALITIES)
+TOKENS_PER_STEP = len(MODALITIES)  # the paper's layout: one token per modality
+# `ArtConfig.tokens_per_step`: the paper's five tokens a step, or one packed token a step
+TOKEN_LAYOUTS = (TOKENS_PER_STEP, 1)
 STATE_DIM, CONTROL_DIM, GOAL_DIM = 6, 3, 6
 # Width of a token's packed input: every modality has its own slot (goal 6, R 1, C 1, state 6,
 # control 3); a token fills its slot only, so all five embeddings are one matrix product.
@@ -58,6 +60,12 @@ class ArtConfig:
         burn_gate: a fourth control output, the logit of "a burn at this node" (trained with a
             binary cross-entropy against ||u|| > `TrainConfig.burn_threshold_mps`); a rollout
             fires the predicted burn only where the logit is positive and coasts elsewhere.
+        tokens_per_step: 5, the paper's layout (goal, R, C, state and control tokens), or 1:
+            one packed token a step that carries the goal, R(t_i), C(t_i), x(t_i) and the
+            previous control u(t_{i-1}) (zero at the first step) and reads out u(t_i) (and
+            the next state x(t_{i+1})). The control of step i sees exactly what it sees in
+            the paper's layout, with a fifth of the tokens: a decoding step feeds one token
+            and attends over one key per step.
     """
 
     n_layers: int = 3
@@ -71,6 +79,7 @@ class ArtConfig:
     mlp_ratio: int = 4
     normalization: str = "feature"
     burn_gate: bool = False
+    tokens_per_step: int = TOKENS_PER_STEP
 
     def __post_init__(self) -> None:
         if self.normalization not in NORMALIZATIONS:
@@ -78,6 +87,9 @@ class ArtConfig:
                               f"{self.normalization!r}")
         if not isinstance(self.burn_gate, bool):
             raise ConfigError(f"art.burn_gate must be a bool, got {self.burn_gate!r}")
+        if isinstance(self.tokens_per_step, bool) or self.tokens_per_step not in TOKEN_LAYOUTS:
+            raise ConfigError(f"art.tokens_per_step must be one of {TOKEN_LAYOUTS}, got "
+                              f"{self.tokens_per_step!r}")
         for name in ("n_layers", "n_heads", "width", "context", "mlp_ratio"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -233,6 +245,11 @@ PRESETS: dict[str, tuple[ArtConfig, TrainConfig]] = {
     # third of the small preset's arithmetic per decoding step
     "slim": (ArtConfig(n_layers=2, n_heads=2, width=64, context=100, dropout=0.1),
              TrainConfig(batch_size=32, lr=1e-3, warmup_steps=100)),
+    # the slim student with one packed token a step (a fifth of the tokens to decode and
+    # attend over)
+    "slim1": (ArtConfig(n_layers=2, n_heads=2, width=64, context=100, dropout=0.1,
+                        tokens_per_step=1),
+              TrainConfig(batch_size=32, lr=1e-3, warmup_steps=100)),
     "tiny": (ArtConfig(n_layers=2, n_heads=2, width=32, context=100, dropout=0.0),
              TrainConfig(batch_size=8, lr=3e-3, warmup_steps=10, eval_every=20)),
 }

@@ -4,7 +4,8 @@ A rollout step i feeds only the tokens that are new since the previous step, the
 u(t_{i-1}) just planned and the goal, R, C and state tokens of step i (five tokens, four at the
 first step), and reads the control prediction from the state token. The keys and values of all
 earlier tokens stay in preallocated per-layer buffers, so a step costs one step's tokens, not
-the whole context.
+the whole context. A model with one packed token a step (`ArtConfig.tokens_per_step` = 1) feeds
+one token a step, all slots filled.
 
 At batch 1 a step is dominated by per-call overhead (a hundred tiny kernels), so the step is a
 lean function over raw weight tensors packed once from the model: the five modality embeddings
@@ -21,7 +22,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from art_guidance.art.config import FEATURES, MODALITIES, SLOTS, TOKENS_PER_STEP, check_steps
+from art_guidance.art.config import FEATURES, MODALITIES, SLOTS, check_steps
 from art_guidance.art.model import ArtModel
 
 _LAYER_NAMES = ("ln1.weight", "ln1.bias", "qkv.weight", "qkv.bias", "proj.weight", "proj.bias",
@@ -48,8 +49,11 @@ class CachedDecoder:
             embed[SLOTS[m]] = w[f"embed.{m}.weight"].t()
         self._embed_t = embed
         tok_bias = torch.stack([w[f"embed.{m}.bias"] for m in MODALITIES])  # (5, d)
-        table = w["time_embed.weight"][:, None, :] + tok_bias[None]  # (K, 5, d)
-        self._bias_table = table.reshape(cfg.context * TOKENS_PER_STEP, d)  # (5K, d)
+        tps = self._tps = cfg.tokens_per_step
+        if tps == 1:  # a packed token sums the five embeddings
+            tok_bias = tok_bias.sum(0, keepdim=True)  # (1, d)
+        table = w["time_embed.weight"][:, None, :] + tok_bias[None]  # (K, tps, d)
+        self._bias_table = table.reshape(cfg.context * tps, d)  # (tps K, d)
         self._ln_e = (w["embed_ln.weight"], w["embed_ln.bias"])
         self._ln_f = (w["ln_f.weight"], w["ln_f.bias"])
         self._head_t = (w["head_control.bias"], w["head_control.weight"].t().contiguous())
@@ -59,7 +63,7 @@ class CachedDecoder:
         self._relu = cfg.activation == "relu"
         self._eps = model.ln_f.eps
         self._shape = (d,)
-        n_tok = cfg.context * TOKENS_PER_STEP
+        n_tok = cfg.context * tps
         causal = torch.ones(n_tok, n_tok, dtype=torch.bool, device=self.device).tril()
         self._mask = torch.zeros(n_tok, n_tok, dtype=self.dtype, device=self.device)
         self._mask.masked_fill_(~causal, float("-inf"))  # additive: faster than bool on CPU
@@ -75,19 +79,20 @@ class CachedDecoder:
         """
         cfg = self._cfg
         check_steps(cfg, n_steps, t0)
-        n_tok = n_steps * TOKENS_PER_STEP
+        n_tok = n_steps * self._tps
         shape = (2, batch, cfg.n_heads, n_tok, cfg.head_dim)
         if not self._kv or self._kv[0].shape[1] != batch or self._kv[0].shape[3] < n_tok:
             self._kv = [torch.empty(shape, dtype=self.dtype, device=self.device)
-                        for _ in range(cfg.n_layers)]  # each (2, B, H, 5T, hd)
-        self._bias = self._bias_table[TOKENS_PER_STEP * t0:]  # (5(K - t0), d)
+                        for _ in range(cfg.n_layers)]  # each (2, B, H, tps T, hd)
+        self._bias = self._bias_table[self._tps * t0:]  # (tps (K - t0), d)
 
     def step(self, feats: torch.Tensor, p0: int) -> torch.Tensor:
         """Feed the tokens at positions p0 .. p0 + n - 1 and predict the control of the last.
 
         Args:
             feats: (B, n, 17) slot-packed normalised token features (see config.SLOTS); the
-                last token must be a state token.
+                last token must be a state token (with one token a step: every slot filled,
+                the control slot holding the previous step's control).
             p0: position of the first new token in the rollout's token sequence; every earlier
                 position must have been fed before (the cache holds them).
 

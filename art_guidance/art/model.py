@@ -7,7 +7,9 @@ embedding; a learned time-step embedding is added to the five tokens of its step
 embedding); the stacked tokens go through a LayerNorm and causal pre-LN GPT-2 blocks. Two
 modality-specific decoders read the final hidden states: the control u(t_i) from the output of
 the state token x(t_i), and the next state x(t_{i+1}) from the output of the control token
-u(t_i). Training minimises the paper's state + control MSE with teacher forcing
+u(t_i). With `ArtConfig.tokens_per_step` = 1 the five embeddings of a step are summed into
+one token (the control slot holding the previous step's control), which both heads read.
+Training minimises the paper's state + control MSE with teacher forcing
 (`loss_terms`), on z-scored features (`normalization`).
 """
 from __future__ import annotations
@@ -111,14 +113,27 @@ class ArtModel(nn.Module):
 
         Returns:
             control_pred (B, T, 3) (or (B, T, 4) with the burn gate's logit last): u(t_i) read
-                from the state token of step i;
-            state_pred (B, T, 6): x(t_{i+1}) read from the control token of step i.
+                from the state token of step i (the packed token of step i with one token a
+                step);
+            state_pred (B, T, 6): x(t_{i+1}) read from the control token of step i (the
+                packed token of step i, which has not seen u(t_i)).
         """
         b, t = reward.shape
+        emb = self.embed
+        if self.cfg.tokens_per_step == 1:  # one packed token a step, u(t_{i-1}) in it
+            prev = torch.cat([torch.zeros_like(control[:, :1]), control[:, :-1]], dim=1)
+            tokens = (emb["goal"](goal) + emb["reward"](reward[..., None])
+                      + emb["constraint"](constraint[..., None]) + emb["state"](state)
+                      + emb["control"](prev))  # (B, T, d)
+            h = self.drop(self.embed_ln(tokens + self.time_embed(timestep)))  # (B, T, d)
+            for block in self.blocks:
+                h = block(h)  # (B, T, d)
+            h = self.ln_f(h)  # (B, T, d)
+            return self.head_control(h), self.head_state(h)  # (B, T, 3), (B, T, 6)
         tokens = torch.stack([
-            self.embed["goal"](goal), self.embed["reward"](reward[..., None]),
-            self.embed["constraint"](constraint[..., None]), self.embed["state"](state),
-            self.embed["control"](control)], dim=2)  # (B, T, 5, d)
+            emb["goal"](goal), emb["reward"](reward[..., None]),
+            emb["constraint"](constraint[..., None]), emb["state"](state),
+            emb["control"](control)], dim=2)  # (B, T, 5, d)
         tokens = tokens + self.time_embed(timestep)[:, :, None, :]  # (B, T, 5, d)
         h = self.drop(self.embed_ln(tokens.reshape(b, t * TOKENS_PER_STEP, -1)))  # (B, 5T, d)
         for block in self.blocks:

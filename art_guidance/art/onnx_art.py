@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from art_guidance.art.config import FEATURES, TOKENS_PER_STEP, ArtConfig, check_steps
+from art_guidance.art.config import FEATURES, ArtConfig, check_steps
 from art_guidance.art.normalization import Normalizer
 from art_guidance.errors import CheckpointError, ConfigError, ModelError
 
@@ -103,13 +103,13 @@ class OnnxDecoder:
         """
         cfg = self._cfg
         check_steps(cfg, n_steps, t0)
-        n_tok = n_steps * TOKENS_PER_STEP
+        n_tok = n_steps * cfg.tokens_per_step
         bound = self._bound.get(batch)
         if bound is None or bound[3] < n_tok:
             bound = self._bind(bound[0] if bound else self._session(batch), batch, n_tok)
             self._bound[batch] = bound
         self._sess, self._io, self._control = bound[:3]
-        self._t0 = TOKENS_PER_STEP * t0
+        self._t0 = cfg.tokens_per_step * t0
 
     def _bind(self, sess, batch: int, n_tok: int) -> tuple:
         """A binding of `sess` with its control output and key/value caches for `n_tok`
@@ -245,7 +245,7 @@ def _check_probe(path: Path, art: ExportedArt, probe: object) -> None:
         raise CheckpointError(path, "no valid probe in its metadata")
     dec = art.decoder
     try:
-        dec.reset(PROBE_BATCH, 1, 0)
+        dec.reset(PROBE_BATCH, probe_steps(art.config), 0)
         got = dec.step_numpy(feats, 0)
     except Exception as exc:  # the graph does not run here: a refusal, not a crash
         raise CheckpointError(path, f"ONNX Runtime cannot run it: "
@@ -254,6 +254,11 @@ def _check_probe(path: Path, art: ExportedArt, probe: object) -> None:
     if not err <= PROBE_TOL:
         raise CheckpointError(path, f"ONNX Runtime does not reproduce the export's probe "
                                     f"(largest difference {err:.3g} > {PROBE_TOL:g})")
+
+
+def probe_steps(config: ArtConfig) -> int:
+    """Steps whose tokens hold the probe's PROBE_TOKENS tokens."""
+    return -(-PROBE_TOKENS // config.tokens_per_step)
 
 
 def exported_path(checkpoint: str | Path) -> Path:

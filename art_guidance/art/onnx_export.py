@@ -4,7 +4,8 @@ The file holds the KV-cached decoding step of `kv_cache.CachedDecoder` as an ONN
 20 plus ONNX Runtime's `com.microsoft` GroupQueryAttention), the same arithmetic in float32:
 
     feats (B, n, 17), positions (n,) int64   the new tokens and their rows of the (5 K, d)
-                                             embedding-bias table (5 t0 + their positions)
+                                             embedding-bias table (5 t0 + their positions;
+                                             K rows and t0 + positions with one token a step)
     seqlens_k (1,) int32, total_len () int32  p1 - 1 and p1 (p1: tokens fed so far, new included)
     past_k<l>, past_v<l> (1, B H, 5 T, hd)   each layer's key/value cache (updated in place:
                                              bind `present_*` to the same buffer)
@@ -36,7 +37,8 @@ import numpy as np
 from art_guidance.art.checkpoint import TrainedArt
 from art_guidance.art.config import FEATURES
 from art_guidance.art.onnx_art import (
-    FORMAT, FORMAT_VERSION, METADATA_KEY, PROBE_BATCH, PROBE_TOKENS, weights_sha256,
+    FORMAT, FORMAT_VERSION, METADATA_KEY, PROBE_BATCH, PROBE_TOKENS, probe_steps,
+    weights_sha256,
 )
 from art_guidance.errors import InputError, ModelError
 from art_guidance.files import write_atomic
@@ -182,7 +184,7 @@ def _probe(art: TrainedArt) -> dict:
     feats = rng.standard_normal((PROBE_BATCH, PROBE_TOKENS, FEATURES)).astype(np.float32)
     dec = art.decoder
     with torch.inference_mode():
-        dec.reset(PROBE_BATCH, 1, 0)
+        dec.reset(PROBE_BATCH, probe_steps(art.config), 0)
         out = dec.step(torch.from_numpy(feats).to(dec.dtype), 0).float().numpy()
     return {"feats": feats.tolist(), "control": out.tolist()}
 

@@ -116,20 +116,30 @@ _R_COL, _C_COL = SLOTS["reward"].start, SLOTS["constraint"].start
 
 class _CachedPolicy:
     """Feeds each step's new tokens through the KV-cached decoder (torch's `CachedDecoder` or
-    ONNX Runtime's `OnnxDecoder`: both take numpy)."""
+    ONNX Runtime's `OnnxDecoder`: both take numpy): the control of the step before and the
+    goal, R, C and state tokens of this one, or the one packed token of this step (a model
+    with `tokens_per_step` = 1)."""
 
     def __init__(self, art, goal_n: np.ndarray, t0: int, n_steps: int) -> None:
         self.dec = art.decoder
         b = goal_n.shape[0]
         self.dec.reset(b, n_steps, t0)
-        self.feats = np.zeros((b, n_steps * TOKENS_PER_STEP, FEATURES),
-                              self.dec.np_dtype)  # (B, 5T, 17)
-        self.feats[:, 0::TOKENS_PER_STEP, SLOTS["goal"]] = goal_n[:, None]
+        self.packed = art.config.tokens_per_step == 1
+        tps = 1 if self.packed else TOKENS_PER_STEP
+        self.feats = np.zeros((b, n_steps * tps, FEATURES), self.dec.np_dtype)  # (B, tps T, 17)
+        self.feats[:, 0::tps, SLOTS["goal"]] = goal_n[:, None]
 
     def control(self, j: int, reward_n: np.ndarray, constraint_n: np.ndarray,
                 state_n: np.ndarray, prev_control_n: np.ndarray | None) -> np.ndarray:
-        base = TOKENS_PER_STEP * j
         f = self.feats
+        if self.packed:
+            f[:, j, _R_COL] = reward_n
+            f[:, j, _C_COL] = constraint_n
+            f[:, j, SLOTS["state"]] = state_n
+            if j:
+                f[:, j, SLOTS["control"]] = prev_control_n
+            return self.dec.step_numpy(f[:, j:j + 1], j)  # (B, 3), (B, 4) with a burn gate
+        base = TOKENS_PER_STEP * j
         f[:, base + 1, _R_COL] = reward_n
         f[:, base + 2, _C_COL] = constraint_n
         f[:, base + 3, SLOTS["state"]] = state_n

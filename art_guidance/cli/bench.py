@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
 _PASSED = {"out": "--out", "workers": "--workers", "engine": "--engine",
            "ray_address": "--ray-address", "seeds": "--seeds",
            "missed_per_seed": "--missed-per-seed", "first_seed": "--first-seed",
-           "model": "--model", "min_c_cvx": "--min-c-cvx"}
+           "model": "--model", "reference": "--reference", "min_c_cvx": "--min-c-cvx"}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -75,6 +75,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default=None, help="the model a benchmark flies instead of the "
                    "shipped default (plan_auto, closed_loop; slim: the student), e.g. "
                    "benchmarks/results/slim/art_slim_chance_rtn.pt")
+    p.add_argument("--reference", default=None, help="slim: the model measured in the "
+                   "teacher's place (default the shipped model of the student's mode), e.g. "
+                   "another student")
     p.add_argument("--min-c-cvx", type=int, default=None, metavar="N",
                    help="closed_loop: fly the hard family, the first --repeats seeds from "
                    "--first-seed whose initial CVX warm start violates passive safety at N or "

@@ -6,7 +6,7 @@ import shlex
 import sys
 
 # art_guidance.art.config.PRESETS (import-free)
-_PRESETS = ("small", "medium", "paper", "slim", "tiny")
+_PRESETS = ("small", "medium", "paper", "slim", "slim1", "tiny")
 _DAGGER_REWARDS = ("hindsight", "fed")  # art_guidance.art.config.DAGGER_REWARDS (import-free)
 
 
@@ -28,7 +28,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=_PRESETS, default="small",
                    help="model size: small (default: 3 layers x 96, 0.35 M parameters, trains "
                    "on CPU), medium (6 x 192, 2.7 M), paper (6 x 384, 10.6 M, the paper's "
-                   "appendix), tiny (tests)")
+                   "appendix), slim (2 x 64), slim1 (2 x 64, one packed token a step instead "
+                   "of five), tiny (tests)")
     p.add_argument("--repr", choices=("roe", "rtn"), default="roe", dest="representation",
                    help="state representation: ROE (a-scaled, m) or RTN (Psi x)")
     p.add_argument("--out", required=True, help="checkpoint path (OUT.state holds the resume "

@@ -1,0 +1,107 @@
+"""One packed token a step (`ArtConfig.tokens_per_step` = 1): the machinery of the layout.
+
+Untrained models with fixed seeds: the packed token sees what the paper's state token sees
+(the previous control, not this step's), the KV-cached decoder equals the full-context forward
+pass, the speculative rollout equals one step at a time, the checkpoint round trip keeps the
+layout, and the exported file on ONNX Runtime reproduces torch. Tolerances in m/s.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from helpers.art_models import untrained_art
+
+from art_guidance.art import ArtModel, preset
+from art_guidance.art.checkpoint import load, model_payload, save
+from art_guidance.art.config import ArtConfig
+from art_guidance.art.rollout import rollout
+from art_guidance.config import ScenarioConfig
+from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
+from art_guidance.errors import ConfigError
+from art_guidance.safety import PassiveSafety
+
+torch.set_num_threads(1)
+CACHE_TOL_MPS = 1e-7  # float32 cached vs full-context arithmetic
+ONNX_TOL_MPS = 1e-5   # float32 ONNX Runtime vs torch
+
+
+@pytest.fixture(scope="module")
+def setup():
+    sc = ScenarioConfig()
+    chief = np.array(sc.chief_oe)
+    horizon = Horizon.build(chief, time_grid_s(chief[0], sc.n_orbits, sc.n_nodes))
+    rng = np.random.default_rng(3)
+    rtn0 = np.array(sc.rtn0_nominal) + rng.uniform(-1, 1, (3, 6)) * np.array(sc.rtn0_half_width)
+    x0 = np.array([roe_from_rtn_linear(chief, r) for r in rtn0])
+    target = np.array(sc.waypoints_rtn["plus_vbar"])
+    return PassiveSafety(horizon, sc, None), x0, target
+
+
+@pytest.fixture(scope="module")
+def packed():
+    return untrained_art("slim1", seed=4)
+
+
+def test_the_layout_is_validated_and_the_paper_layout_stays_the_default():
+    assert ArtConfig().tokens_per_step == 5 and preset("slim1")[0].tokens_per_step == 1
+    for bad in (2, 0, True, "1"):
+        with pytest.raises(ConfigError, match="tokens_per_step"):
+            preset("tiny", tokens_per_step=bad)
+    old = ArtConfig().to_dict()
+    del old["tokens_per_step"]  # a checkpoint written before the field existed
+    assert ArtConfig.from_dict(old).tokens_per_step == 5
+
+
+def test_a_step_sees_the_previous_control_and_not_its_own():
+    """Changing u(t_i) changes the control predicted at i + 1 and after, never at i or
+    before (causality with the control carried by the next step's token)."""
+    torch.manual_seed(0)
+    model = ArtModel(preset("tiny", tokens_per_step=1)[0]).eval()
+    b, t = 2, 12
+    args = [torch.randn(b, t, 6), torch.randn(b, t), torch.randn(b, t), torch.randn(b, t, 6)]
+    ctrl = torch.randn(b, t, 3)
+    time = torch.arange(t).expand(b, t) + 88
+    with torch.no_grad():
+        u0, _ = model(*args, ctrl, time)
+        ctrl[:, 5] += 1.0
+        u1, _ = model(*args, ctrl, time)
+    assert torch.equal(u0[:, :6], u1[:, :6])
+    assert (u0[:, 6:] - u1[:, 6:]).abs().amax(dim=(0, 2)).min() > 1e-6
+
+
+@pytest.mark.parametrize("start", [0, 40])
+def test_cache_equals_recompute_and_speculation_equals_one_step_at_a_time(setup, packed,
+                                                                          start):
+    safety, x0, target = setup
+    x = x0 if start == 0 else safety.horizon.propagate_nonlinear(
+        x0[0], np.zeros((100, 3)))[start][None].repeat(3, 0)
+    cached = rollout(packed, safety, x, target, -0.25, start_node=start)
+    full = rollout(packed, safety, x, target, -0.25, start_node=start, use_cache=False)
+    step = rollout(packed, safety, x, target, -0.25, start_node=start, speculate=False)
+    assert np.abs(cached.dv_rtn_mps - full.dv_rtn_mps).max() <= CACHE_TOL_MPS
+    assert np.array_equal(cached.dv_rtn_mps, step.dv_rtn_mps)
+    assert np.array_equal(cached.violation, step.violation)
+    assert np.abs(cached.dv_rtn_mps).max() > 0  # an untrained model still burns
+
+
+def test_the_layout_survives_a_checkpoint_and_an_export(setup, packed, tmp_path):
+    pytest.importorskip("onnxruntime")
+    from art_guidance.art.onnx_art import load_exported
+    from art_guidance.art.onnx_export import export
+
+    safety, x0, target = setup
+    save(tmp_path / "m.pt", model_payload(packed.model, packed.normalizer, {}))
+    again = load(tmp_path / "m.pt")
+    assert again.config == packed.config and again.config.tokens_per_step == 1
+    export(again, tmp_path / "m.onnx")
+    onnx_art = load_exported(tmp_path / "m.onnx", expected_checkpoint_sha256=again.sha256)
+    assert onnx_art.config.tokens_per_step == 1
+    ref = rollout(again, safety, x0, target, -0.25)
+    got = rollout(onnx_art, safety, x0, target, -0.25)
+    tail = rollout(onnx_art, safety, x0[:1].repeat(3, 0), target, -0.1, start_node=70)
+    tail_ref = rollout(again, safety, x0[:1].repeat(3, 0), target, -0.1, start_node=70)
+    assert np.abs(got.dv_rtn_mps - ref.dv_rtn_mps).max() <= ONNX_TOL_MPS
+    assert np.array_equal(got.violation, ref.violation)
+    assert np.abs(tail.dv_rtn_mps - tail_ref.dv_rtn_mps).max() <= ONNX_TOL_MPS
