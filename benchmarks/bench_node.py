@@ -2,7 +2,8 @@
 
 The node runs in its own process (as `ros2 run` would start it) with every nav message forced to
 replan; the client publishes a nav state, waits for the plan with that stamp, and repeats. Three
-configurations: with the learned warm start (`warm_start auto`, the shipped model), CVX only,
+configurations: with the learned warm start (`warm_start auto`, the shipped model or `--model`),
+CVX only,
 and `auto` with the proposal made in a worker process (`propose_concurrently`), each run in
 ROUNDS rounds over its share of the states (the order rotating), so that the machine's drift
 over the run reaches all three alike.
@@ -48,16 +49,19 @@ def _label(warm_start: str, concurrent: bool) -> str:
 
 
 def _node_latency(warm_start: str, states: list[np.ndarray], client_cls, nav_msg,
-                  concurrent: bool = False) -> list[float]:
+                  concurrent: bool = False, model: str | None = None) -> list[float]:
     """Nav -> plan latency [ms] of a node process with `warm_start` over `states` (the first
     plan excluded: it includes the per-horizon set-up of a cold process); `concurrent`: with
-    `propose_concurrently` (the proposal in a worker process)."""
+    `propose_concurrently` (the proposal in a worker process); `model`: its `model_path`
+    (None: the shipped default)."""
     label = _label(warm_start, concurrent)
+    params = ["-p", "replan_sigma_threshold:=1e-9", "-p", "record:=false",
+              "-p", f"warm_start:={warm_start}",
+              "-p", f"propose_concurrently:={str(concurrent).lower()}"]
+    if model:
+        params += ["-p", f"model_path:={Path(model).resolve()}"]
     proc = subprocess.Popen([sys.executable, "-m", "art_guidance.ros.guidance_node", "--ros-args",
-                             "-p", "replan_sigma_threshold:=1e-9", "-p", "record:=false",
-                             "-p", f"warm_start:={warm_start}",
-                             "-p", f"propose_concurrently:={str(concurrent).lower()}"],
-                            env=dict(os.environ), stdout=subprocess.DEVNULL,
+                             *params], env=dict(os.environ), stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     client = client_cls(f"art_guidance_bench_client_{label}")
     latency = []
@@ -83,7 +87,8 @@ def _node_latency(warm_start: str, states: list[np.ndarray], client_cls, nav_msg
     return latency
 
 
-def _node_latencies(states: list[np.ndarray], client_cls, nav_msg) -> dict[str, list[float]]:
+def _node_latencies(states: list[np.ndarray], client_cls, nav_msg,
+                    model: str | None = None) -> dict[str, list[float]]:
     """The latencies of every configuration of CONFIGS over `states`[1:], in ROUNDS rounds:
     each round starts each configuration's node in turn for its share of the states (plus a
     first, excluded plan), so a machine whose speed drifts during the run slows every
@@ -95,13 +100,14 @@ def _node_latencies(states: list[np.ndarray], client_cls, nav_msg) -> dict[str, 
         for i in range(len(CONFIGS)):
             ws, conc = CONFIGS[(i + r) % len(CONFIGS)]
             latency[_label(ws, conc)] += _node_latency(
-                ws, [states[0]] + [states[k] for k in chunk], client_cls, nav_msg, conc)
+                ws, [states[0]] + [states[k] for k in chunk], client_cls, nav_msg, conc, model)
     return latency
 
 
-def run(repeats: int = 30) -> dict:
-    """Latency over `repeats` plans with the learned warm start (auto, shipped model) and with
-    CVX only; p50/p95 [ms], the in-process reference and the split per stage."""
+def run(repeats: int = 30, model: str | None = None) -> dict:
+    """Latency over `repeats` plans with the learned warm start (auto, the shipped model or
+    `model`) and with CVX only; p50/p95 [ms], the in-process reference and the split per
+    stage."""
     ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_bench_"),
                            150 + os.getpid() % 50)
     os.environ.update(ros)  # this process is the client
@@ -115,8 +121,9 @@ def run(repeats: int = 30) -> dict:
     scenario = ScenarioConfig.from_yaml()
     chief = np.array(scenario.chief_oe)
     target = np.asarray(scenario.waypoints_rtn["plus_vbar"])
-    provider = ArtWarmStart.load()
-    latencies = _node_latencies(states, Client, nav_msg)
+    provider = ArtWarmStart.load(model or None)
+    out["model"] = Path(provider.path).name
+    latencies = _node_latencies(states, Client, nav_msg, model)
     for warm_start in ("auto", "cvx"):
         latency = latencies[warm_start]
         pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario),

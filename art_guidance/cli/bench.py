@@ -73,7 +73,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--missed-per-seed", type=int, default=None,
                    help="missed-burn flights per configuration and seed")
     p.add_argument("--model", default=None, help="the model a benchmark flies instead of the "
-                   "shipped default (plan_auto, closed_loop; slim: the student), e.g. "
+                   "shipped default (plan_auto, closed_loop, node; slim: the student), e.g. "
                    "benchmarks/results/slim/art_slim_chance_rtn.pt")
     p.add_argument("--reference", default=None, help="slim: the model measured in the "
                    "teacher's place (default the shipped model of the student's mode), e.g. "
