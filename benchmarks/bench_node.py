@@ -3,9 +3,8 @@
 The node runs in its own process (as `ros2 run` would start it) with every nav message forced to
 replan; the client publishes a nav state, waits for the plan with that stamp, and repeats. Three
 configurations: with the learned warm start (`warm_start auto`, the shipped model or `--model`),
-CVX only,
-and `auto` with the proposal made in a worker process (`propose_concurrently`), each run in
-ROUNDS rounds over its share of the states (the order rotating), so that the machine's drift
+CVX only, and `auto` with the proposal made in a worker process (`propose_concurrently`), each
+run in ROUNDS rounds over its share of the states (the order rotating), so that the machine's drift
 over the run reaches all three alike.
 The reference is the same `GuidancePipeline.plan` called in-process on the same states, so the
 difference is the node and middleware overhead; its timings give the split per stage (CVX,
