@@ -105,3 +105,53 @@ def test_the_layout_survives_a_checkpoint_and_an_export(setup, packed, tmp_path)
     assert np.abs(got.dv_rtn_mps - ref.dv_rtn_mps).max() <= ONNX_TOL_MPS
     assert np.array_equal(got.violation, ref.violation)
     assert np.abs(tail.dv_rtn_mps - tail_ref.dv_rtn_mps).max() <= ONNX_TOL_MPS
+
+
+SLIM1 = {"chance": "art_slim1_chance_rtn.pt", "deterministic": "art_slim1_det_roe.pt"}
+STUDENT_DV_TOL_MPS = 1e-3  # as test_onnx_runtime's DV_TOL_MPS
+
+
+@pytest.mark.parametrize("mode", sorted(SLIM1))
+def test_the_committed_students_are_packed_and_fly_alike_on_both_runtimes(mode):
+    """The distilled one-token students in benchmarks/results/slim: the files of their
+    provenance, one token a step, and the learned step (sweep, C update, judging, check) on
+    ONNX Runtime as on torch on held-out scenarios of their teacher's dataset."""
+    pytest.importorskip("onnxruntime")
+    import hashlib
+    import json
+    from pathlib import Path
+
+    from helpers.shipped import heldout_requests
+
+    from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart
+    from art_guidance.config import GuidanceConfig
+    from art_guidance.optim import solve_cvx
+    from art_guidance.planning import GuidancePipeline
+    from art_guidance.planning.learned import learned_warm_start
+
+    root = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "slim"
+    path = root / SLIM1[mode]
+    prov = json.loads((root / "provenance.json").read_text())[path.name]
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == prov["sha256"]
+    onnx_sha = hashlib.sha256(path.with_suffix(".onnx").read_bytes()).hexdigest()
+    assert onnx_sha == prov["export"]["sha256"]
+    torch_p = ArtWarmStart.load(path, runtime="torch")
+    onnx_p = ArtWarmStart.load(path, runtime="onnx")
+    assert torch_p.art.config.tokens_per_step == onnx_p.art.config.tokens_per_step == 1
+    assert onnx_p.sha256 == torch_p.sha256  # the checkpoint payload the export names
+    config = GuidanceConfig.load()
+    pipeline = GuidancePipeline(config)
+    compared = 0
+    for request in heldout_requests(6, DEFAULT_MODELS[mode]):
+        transfer = pipeline.transfer(request)
+        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
+        if not cvx.status.feasible:
+            continue
+        a = learned_warm_start(torch_p, transfer, cvx, config.planning, cvx_unsafe=True)
+        b = learned_warm_start(onnx_p, transfer, cvx, config.planning, cvx_unsafe=True)
+        assert a.source is b.source and a.posthoc.accepted == b.posthoc.accepted
+        assert np.array_equal(a.proposal.constraint_to_go, b.proposal.constraint_to_go)
+        assert np.abs(a.proposal.dv_rtn_mps - b.proposal.dv_rtn_mps).max() \
+            <= STUDENT_DV_TOL_MPS
+        compared += 1
+    assert compared >= 4
