@@ -28,3 +28,31 @@ def heldout_requests(n: int, name: str = DEFAULT_MODEL) -> list[PlanRequest]:
             out.append(PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
                                    chance_constrained=data["mode"] == "chance"))
     return out
+
+
+def runtimes_agree(torch_provider, onnx_provider, requests: list[PlanRequest],
+                   dv_tol_mps: float) -> int:
+    """Assert that the learned step (sweep, C update, judging, post hoc check) of the same model
+    on torch and on ONNX Runtime makes the same decision, the same constraint-to-go and
+    controls within `dv_tol_mps` [m/s] on every request whose CVX problem is feasible; returns
+    how many were compared."""
+    from art_guidance.config import GuidanceConfig
+    from art_guidance.optim import solve_cvx
+    from art_guidance.planning import GuidancePipeline
+    from art_guidance.planning.learned import learned_warm_start
+
+    config = GuidanceConfig.load()
+    pipeline = GuidancePipeline(config)
+    compared = 0
+    for request in requests:
+        transfer = pipeline.transfer(request)
+        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
+        if not cvx.status.feasible:
+            continue
+        a = learned_warm_start(torch_provider, transfer, cvx, config.planning, cvx_unsafe=True)
+        b = learned_warm_start(onnx_provider, transfer, cvx, config.planning, cvx_unsafe=True)
+        assert a.source is b.source and a.posthoc.accepted == b.posthoc.accepted
+        assert np.array_equal(a.proposal.constraint_to_go, b.proposal.constraint_to_go)
+        assert np.abs(a.proposal.dv_rtn_mps - b.proposal.dv_rtn_mps).max() <= dv_tol_mps
+        compared += 1
+    return compared

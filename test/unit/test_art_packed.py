@@ -11,16 +11,13 @@ import numpy as np
 import pytest
 import torch
 
-from helpers.art_models import untrained_art
+from helpers.art_models import deterministic_setup, untrained_art
 
 from art_guidance.art import ArtModel, preset
 from art_guidance.art.checkpoint import load, model_payload, save
 from art_guidance.art.config import ArtConfig
 from art_guidance.art.rollout import rollout
-from art_guidance.config import ScenarioConfig
-from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.errors import ConfigError
-from art_guidance.safety import PassiveSafety
 
 torch.set_num_threads(1)
 CACHE_TOL_MPS = 1e-7  # float32 cached vs full-context arithmetic
@@ -29,14 +26,7 @@ ONNX_TOL_MPS = 1e-5   # float32 ONNX Runtime vs torch
 
 @pytest.fixture(scope="module")
 def setup():
-    sc = ScenarioConfig()
-    chief = np.array(sc.chief_oe)
-    horizon = Horizon.build(chief, time_grid_s(chief[0], sc.n_orbits, sc.n_nodes))
-    rng = np.random.default_rng(3)
-    rtn0 = np.array(sc.rtn0_nominal) + rng.uniform(-1, 1, (3, 6)) * np.array(sc.rtn0_half_width)
-    x0 = np.array([roe_from_rtn_linear(chief, r) for r in rtn0])
-    target = np.array(sc.waypoints_rtn["plus_vbar"])
-    return PassiveSafety(horizon, sc, None), x0, target
+    return deterministic_setup(3, 3)
 
 
 @pytest.fixture(scope="module")
@@ -121,13 +111,9 @@ def test_the_committed_students_are_packed_and_fly_alike_on_both_runtimes(mode):
     import json
     from pathlib import Path
 
-    from helpers.shipped import heldout_requests
+    from helpers.shipped import heldout_requests, runtimes_agree
 
     from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart
-    from art_guidance.config import GuidanceConfig
-    from art_guidance.optim import solve_cvx
-    from art_guidance.planning import GuidancePipeline
-    from art_guidance.planning.learned import learned_warm_start
 
     root = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "slim"
     path = root / SLIM1[mode]
@@ -139,19 +125,5 @@ def test_the_committed_students_are_packed_and_fly_alike_on_both_runtimes(mode):
     onnx_p = ArtWarmStart.load(path, runtime="onnx")
     assert torch_p.art.config.tokens_per_step == onnx_p.art.config.tokens_per_step == 1
     assert onnx_p.sha256 == torch_p.sha256  # the checkpoint payload the export names
-    config = GuidanceConfig.load()
-    pipeline = GuidancePipeline(config)
-    compared = 0
-    for request in heldout_requests(6, DEFAULT_MODELS[mode]):
-        transfer = pipeline.transfer(request)
-        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
-        if not cvx.status.feasible:
-            continue
-        a = learned_warm_start(torch_p, transfer, cvx, config.planning, cvx_unsafe=True)
-        b = learned_warm_start(onnx_p, transfer, cvx, config.planning, cvx_unsafe=True)
-        assert a.source is b.source and a.posthoc.accepted == b.posthoc.accepted
-        assert np.array_equal(a.proposal.constraint_to_go, b.proposal.constraint_to_go)
-        assert np.abs(a.proposal.dv_rtn_mps - b.proposal.dv_rtn_mps).max() \
-            <= STUDENT_DV_TOL_MPS
-        compared += 1
-    assert compared >= 4
+    requests = heldout_requests(6, DEFAULT_MODELS[mode])
+    assert runtimes_agree(torch_p, onnx_p, requests, STUDENT_DV_TOL_MPS) >= 4

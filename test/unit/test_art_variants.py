@@ -10,17 +10,14 @@ import numpy as np
 import pytest
 import torch
 
-from helpers.art_models import untrained_art
+from helpers.art_models import deterministic_setup, untrained_art
 
 from art_guidance.art import ArtModel, TrainedArt, preset
 from art_guidance.art.checkpoint import load, model_payload, save
 from art_guidance.art.model import loss_terms
 from art_guidance.art.normalization import Normalizer
 from art_guidance.art.rollout import rollout
-from art_guidance.config import ScenarioConfig
-from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.errors import ConfigError
-from art_guidance.safety import PassiveSafety
 
 torch.set_num_threads(1)
 M, N, K = 40, 100, 100
@@ -84,14 +81,7 @@ def test_gate_adds_a_cross_entropy_term_and_a_fourth_output():
 
 @pytest.fixture(scope="module")
 def setup():
-    sc = ScenarioConfig()
-    chief = np.array(sc.chief_oe)
-    horizon = Horizon.build(chief, time_grid_s(chief[0], sc.n_orbits, sc.n_nodes))
-    rng = np.random.default_rng(1)
-    rtn0 = np.array(sc.rtn0_nominal) + rng.uniform(-1, 1, (2, 6)) * np.array(sc.rtn0_half_width)
-    x0 = np.array([roe_from_rtn_linear(chief, r) for r in rtn0])
-    target = np.array(sc.waypoints_rtn["plus_vbar"])
-    return PassiveSafety(horizon, sc, None), x0, target
+    return deterministic_setup(1, 2)
 
 
 def _gated(bias: float) -> TrainedArt:

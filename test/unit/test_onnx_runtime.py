@@ -18,18 +18,14 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from helpers.shipped import heldout_requests
+from helpers.shipped import heldout_requests, runtimes_agree
 
 from art_guidance.art.onnx_art import METADATA_KEY, load_exported
 from art_guidance.art.provider import (
     DEFAULT_MODELS, ArtWarmStart, default_model_path, pinned_sha256, resolve_runtime,
 )
 from art_guidance.cli import main as cli_main
-from art_guidance.config import GuidanceConfig
 from art_guidance.errors import CheckpointError, InputError
-from art_guidance.optim import solve_cvx
-from art_guidance.planning import GuidancePipeline
-from art_guidance.planning.learned import learned_warm_start
 
 DV_TOL_MPS = 1e-3   # largest difference of a proposed control, ONNX vs torch [m/s]
 N_SCENARIOS = 12    # held-out scenarios per mode here (the benchmark runs 100)
@@ -67,21 +63,8 @@ def test_onnx_proposals_match_torch_on_heldout_scenarios(mode):
     onnx_p = ArtWarmStart.load(path, runtime="onnx")
     assert onnx_p.sha256 == torch_p.sha256 and onnx_p.runtime == "onnx"
     assert onnx_p.runtime_sha256 == pinned_sha256(path.with_suffix(".onnx"))
-    config = GuidanceConfig.load()
-    pipeline = GuidancePipeline(config)
-    compared = 0
-    for request in heldout_requests(N_SCENARIOS, DEFAULT_MODELS[mode]):
-        transfer = pipeline.transfer(request)
-        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
-        if not cvx.status.feasible:
-            continue
-        a = learned_warm_start(torch_p, transfer, cvx, config.planning, cvx_unsafe=True)
-        b = learned_warm_start(onnx_p, transfer, cvx, config.planning, cvx_unsafe=True)
-        assert a.source is b.source and a.posthoc.accepted == b.posthoc.accepted
-        assert np.array_equal(a.proposal.constraint_to_go, b.proposal.constraint_to_go)
-        assert np.abs(a.proposal.dv_rtn_mps - b.proposal.dv_rtn_mps).max() <= DV_TOL_MPS
-        compared += 1
-    assert compared >= N_SCENARIOS - 2
+    requests = heldout_requests(N_SCENARIOS, DEFAULT_MODELS[mode])
+    assert runtimes_agree(torch_p, onnx_p, requests, DV_TOL_MPS) >= N_SCENARIOS - 2
 
 
 def test_the_shipped_exports_are_pinned_and_name_their_checkpoints():
