@@ -154,7 +154,7 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
              "numerics": [], "rest": []}
     original = provider_module.judged_trajectory
     decoder = provider.art.decoder
-    step, timer = decoder.step_numpy, StepTimer(decoder)
+    timer = StepTimer(decoder)
     speculative = provider_module.rollout
 
     def one_step(fn):  # a proposal whose rollout goes one step at a time
@@ -184,7 +184,7 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
             fast, wall, cpu = _timed(lambda: provider.propose(request, timed, cvx, planning))
         finally:
             provider_module.judged_trajectory = original
-            decoder.step_numpy = step
+            decoder.step_numpy = timer.step
         same += int(all(np.array_equal(fast.dv_rtn_mps, p.dv_rtn_mps)
                         and np.array_equal(fast.constraint_to_go, p.constraint_to_go)
                         for p in (ref, plain)))

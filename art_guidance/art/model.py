@@ -120,25 +120,26 @@ class ArtModel(nn.Module):
         """
         b, t = reward.shape
         emb = self.embed
-        if self.cfg.tokens_per_step == 1:  # one packed token a step, u(t_{i-1}) in it
+        packed = self.cfg.tokens_per_step == 1
+        if packed:  # one token a step: the five embeddings summed, u(t_{i-1}) in it
             prev = torch.cat([torch.zeros_like(control[:, :1]), control[:, :-1]], dim=1)
-            tokens = (emb["goal"](goal) + emb["reward"](reward[..., None])
-                      + emb["constraint"](constraint[..., None]) + emb["state"](state)
-                      + emb["control"](prev))  # (B, T, d)
-            h = self.drop(self.embed_ln(tokens + self.time_embed(timestep)))  # (B, T, d)
-            for block in self.blocks:
-                h = block(h)  # (B, T, d)
-            h = self.ln_f(h)  # (B, T, d)
-            return self.head_control(h), self.head_state(h)  # (B, T, 3), (B, T, 6)
-        tokens = torch.stack([
-            emb["goal"](goal), emb["reward"](reward[..., None]),
-            emb["constraint"](constraint[..., None]), emb["state"](state),
-            emb["control"](control)], dim=2)  # (B, T, 5, d)
-        tokens = tokens + self.time_embed(timestep)[:, :, None, :]  # (B, T, 5, d)
-        h = self.drop(self.embed_ln(tokens.reshape(b, t * TOKENS_PER_STEP, -1)))  # (B, 5T, d)
+            h = (emb["goal"](goal) + emb["reward"](reward[..., None])
+                 + emb["constraint"](constraint[..., None]) + emb["state"](state)
+                 + emb["control"](prev) + self.time_embed(timestep))  # (B, T, d)
+        else:
+            tokens = torch.stack([
+                emb["goal"](goal), emb["reward"](reward[..., None]),
+                emb["constraint"](constraint[..., None]), emb["state"](state),
+                emb["control"](control)], dim=2)  # (B, T, 5, d)
+            tokens = tokens + self.time_embed(timestep)[:, :, None, :]  # (B, T, 5, d)
+            h = tokens.reshape(b, t * TOKENS_PER_STEP, -1)  # (B, 5T, d)
+        h = self.drop(self.embed_ln(h))  # (B, tps T, d)
         for block in self.blocks:
-            h = block(h)  # (B, 5T, d)
-        h = self.ln_f(h).reshape(b, t, TOKENS_PER_STEP, -1)  # (B, T, 5, d)
+            h = block(h)  # (B, tps T, d)
+        h = self.ln_f(h)  # (B, tps T, d)
+        if packed:
+            return self.head_control(h), self.head_state(h)  # (B, T, 3), (B, T, 6)
+        h = h.reshape(b, t, TOKENS_PER_STEP, -1)  # (B, T, 5, d)
         control_pred = self.head_control(h[:, :, STATE_TOKEN])  # (B, T, 3)
         state_pred = self.head_state(h[:, :, CONTROL_TOKEN])  # (B, T, 6)
         return control_pred, state_pred

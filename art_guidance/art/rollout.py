@@ -124,8 +124,8 @@ class _CachedPolicy:
         self.dec = art.decoder
         b = goal_n.shape[0]
         self.dec.reset(b, n_steps, t0)
-        self.packed = art.config.tokens_per_step == 1
-        tps = 1 if self.packed else TOKENS_PER_STEP
+        tps = art.config.tokens_per_step
+        self.packed = tps == 1
         self.feats = np.zeros((b, n_steps * tps, FEATURES), self.dec.np_dtype)  # (B, tps T, 17)
         self.feats[:, 0::tps, SLOTS["goal"]] = goal_n[:, None]
 
