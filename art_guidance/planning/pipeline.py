@@ -40,7 +40,16 @@ ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 
 
 class GuidancePipeline:
-    """Plans with CVX -> (optional learned warm start + post hoc) -> SCVx*."""
+    """Plans with CVX -> (optional learned warm start + post hoc) -> SCVx*.
+
+    Attributes:
+        solve_art_in_worker: with `propose_concurrently`, the worker process also solves SCVx*
+            from its proposal while this one solves SCVx* from CVX (`_propose`); False keeps
+            every SCVx* run here (the same plans, later: the reference of
+            `bench plan_auto`).
+    """
+
+    solve_art_in_worker = True
 
     def __init__(self, config: GuidanceConfig | None = None,
                  provider: WarmStartProvider | None = None,
@@ -144,16 +153,35 @@ class GuidancePipeline:
         scvx = Scvx(safety, request.roe0_m, roe_f, self.scp_config,
                     samples_per_node=self.samples_per_node, subproblem=self.subproblem,
                     pool=pool)
-        early, learned, art_ms = self._propose(transfer, cvx, cvx_dv, scvx, deadline)
+        early, learned, art_ms, art_run = self._propose(transfer, cvx, cvx_dv, scvx, deadline)
+        try:
+            return self._finish(request, deadline, transfer, scvx, cvx, cvx_dv, early, learned,
+                                art_ms, art_run, t0, t_setup, t_cvx)
+        finally:
+            if art_run is not None:  # not needed after all: the worker stops it
+                art_run.dismiss()
+
+    def _finish(self, request: PlanRequest, deadline: Deadline | None, transfer: Transfer,
+                scvx: Scvx, cvx: ConvexSolution, cvx_dv: np.ndarray, early: ScpResult | None,
+                learned: Learned, art_ms: float, art_run: "WorkerScvx | None", t0: float,
+                t_setup: float, t_cvx: float) -> PlanResult:
+        """The plan after the learned step: SCVx* from the chosen warm start, the retry or
+        second run, the plan kept (`art_run`: SCVx* from ART made in the worker meanwhile)."""
+        horizon, safety = transfer.horizon, transfer.safety
         t_art = time.perf_counter()
         source, reason, discarded = learned.source, learned.reason, None
         warm = {CVX: cvx_dv, ART: learned.dv}
         projected = {CVX: None, ART: learned.warm_start}  # ART's terminal warm start, if made
 
         def solve(src: WarmStartSource, until: Deadline | None) -> ScpResult:
-            """SCVx* from a warm start (from CVX: the run made during the proposal, if any)."""
-            return early if src is CVX and early is not None \
-                else scvx.solve(warm[src], deadline=until, projected=projected[src])
+            """SCVx* from a warm start (the runs the worker made meanwhile, if any)."""
+            if src is CVX and early is not None:
+                return early
+            if src is ART and art_run is not None:
+                made = art_run.result(deadline)
+                if made is not None:
+                    return made
+            return scvx.solve(warm[src], deadline=until, projected=projected[src])
 
         other = source.other
         first = deadline
@@ -165,6 +193,8 @@ class GuidancePipeline:
         second = second_run(res, source, warm[other] is not None,
                             auto and self.config.planning.also_solve_from_cvx,
                             auto and self.config.planning.also_solve_from_art)
+        if art_run is not None and ART not in (source, second and second[0]):
+            art_run.dismiss()  # the worker's run from ART is not needed: stop it now
         if second is not None:
             alt_source, why = second
             alt = solve(alt_source, deadline)
@@ -196,18 +226,22 @@ class GuidancePipeline:
                           discarded)
 
     def _propose(self, transfer: Transfer, cvx: ConvexSolution, cvx_dv: np.ndarray,
-                 scvx: Scvx,
-                 deadline: Deadline | None) -> tuple[ScpResult | None, Learned, float]:
+                 scvx: Scvx, deadline: Deadline | None
+                 ) -> tuple[ScpResult | None, Learned, float, "WorkerScvx | None"]:
         """The learned warm start step (`planning.learned`): (SCVx* from CVX if it was solved
-        meanwhile, else None; the decision; the proposal's wall time [ms]).
+        meanwhile, else None; the decision; the proposal's wall time [ms]; SCVx* from the
+        proposal as the worker makes it, else None).
 
         With `propose_concurrently`, warm start auto and `also_solve_from_cvx` (so that SCVx*
         from CVX is solved whatever the check decides), a model loaded from a file, and a CVX
         plan that is feasible but not passively safe (otherwise ART is not run), the proposal
         is made in the pipeline's worker process (`proposal_process`) while this thread solves
-        SCVx* from CVX. The plan is the one the sequence gives. A worker that fails or answers
-        late is stopped and the proposal is made here instead (`proposal_worker_error` says
-        why).
+        SCVx* from CVX. Right after the proposal the worker also solves SCVx* from it (the
+        run the plan needs where the check accepts it, or where SCVx* from CVX does not
+        converge), so that run overlaps this one; `_finish` takes it where the plan needs it
+        and cancels it otherwise. The plan is the one the sequence gives. A worker that fails
+        or answers late is stopped and the proposal (or SCVx* from it) is made here instead
+        (`proposal_worker_error` says why).
         """
         planning, early, request = self.config.planning, None, transfer.request
         model = model_key(self.provider)
@@ -218,8 +252,10 @@ class GuidancePipeline:
             left = None if deadline is None else deadline.left_s()
             job = {"config": self.config.to_json(), "config_sha256": self.config.sha256(),
                    "model": model, "request": request, "cvx": cvx,
-                   "time_left_s": left, "cvx_unsafe": planning.skip_art_when_cvx_safe}
-            if worker.submit(job):
+                   "time_left_s": left, "cvx_unsafe": planning.skip_art_when_cvx_safe,
+                   "subproblem": dataclasses.asdict(self.subproblem)}
+            job_id = worker.submit(job, solve_art=self.solve_art_in_worker)
+            if job_id is not None:
                 try:
                     early = scvx.solve(cvx_dv, deadline=None if deadline is None
                                        else deadline.share(planning.art_deadline_share))
@@ -230,13 +266,14 @@ class GuidancePipeline:
                     else deadline.left_s() + GRACE_S
                 answer = worker.collect(wait)
                 if answer is not None:
-                    return (early, *answer)
+                    return (early, *answer, WorkerScvx(worker, job_id)
+                            if self.solve_art_in_worker else None)
             # CVX was found not passively safe above: the in-line proposal does not ask again
             return (early, *timed_learned_warm_start(self.provider, transfer, cvx, planning,
                                                      deadline,
-                                                     planning.skip_art_when_cvx_safe))
+                                                     planning.skip_art_when_cvx_safe), None)
         return (early, *timed_learned_warm_start(self.provider, transfer, cvx, planning,
-                                                 deadline))
+                                                 deadline), None)
 
     def _proposal_worker(self) -> ProposalProcess:
         if self._worker is None:
@@ -274,6 +311,27 @@ class GuidancePipeline:
 
 
 _RECORD_EXTRAS = ("deadline_s", "config_sha256", "scp_subproblem", "record_sha256")
+
+
+class WorkerScvx:
+    """SCVx* from the proposal of one plan, solved in the proposal worker: taken where the plan
+    needs it (`result`), cancelled otherwise (`dismiss`)."""
+
+    def __init__(self, worker: ProposalProcess, job_id: int) -> None:
+        self._worker, self._job_id = worker, job_id
+        self._taken = False
+
+    def result(self, deadline: Deadline | None) -> ScpResult | None:
+        """The worker's run (waiting for it within the plan's deadline and `GRACE_S`), or None:
+        the plan solves it in line."""
+        self._taken = True
+        wait = NO_DEADLINE_TIMEOUT_S if deadline is None else deadline.left_s() + GRACE_S
+        return self._worker.scvx_result(self._job_id, wait)
+
+    def dismiss(self) -> None:
+        """Cancel the run if the plan did not take it."""
+        if not self._taken:
+            self._worker.dismiss(self._job_id)
 
 
 def _canonical_sha256(data: dict) -> str:

@@ -11,16 +11,30 @@ the CVX solution and the time left. It rebuilds the same transfer problem
 (`planning.learned.learned_warm_start`) as the planner would in line, so the decision is the
 same bit for bit (tested), only made on another core.
 
+A plan job may also ask for SCVx* from the proposal (`solve_art`): right after answering with
+the decision, the worker solves SCVx* from a valid proposal with the planner's own options
+(from where the planner would: the proposal's terminal warm start) and answers again with the
+result. The planner needs that run where the check accepted the proposal, where SCVx* from CVX
+did not converge (the retry) or with `also_solve_from_art`; made in the worker it overlaps
+SCVx* from CVX instead of following it. Where the planner does not need it, it cancels the run
+(`dismiss`: the run stops at its next iteration) and the answer is drained before the next
+job. The run is the planner's run, so its result is the in-line one, bit for bit (tested).
+
 Only a model loaded from a file (`ArtWarmStart` with a path) can be sent this way; any other
 provider, a worker that cannot start, fails or answers too late is reported through
 `ProposalProcess.error` and the planner proposes in line instead.
 """
 from __future__ import annotations
 
+import dataclasses
+import itertools
+import math
 import multiprocessing
 import threading
 import time
 from typing import Any
+
+from art_guidance.deadline import Deadline
 
 STARTUP_TIMEOUT_S = 120.0  # importing torch and loading the model in the spawned process
 GRACE_S = 5.0  # a job's answer may come this long after its deadline before it is abandoned
@@ -31,6 +45,9 @@ RESTART_AFTER_S = 5.0
 RESTART_MAX_S = 300.0
 LOCK_WAIT_S = 1.0  # a job waits this long for the one before it to be collected [s]
 CLOSE_WAIT_S = 5.0  # `close` waits this long for a job in flight, then stops the worker [s]
+# A cancelled SCVx* run in the worker stops at its next iteration; its answer is awaited this
+# long before the next job (else the worker is stopped and started anew) [s].
+DRAIN_WAIT_S = 5.0
 
 
 def restart_delay_s(failed_starts: int) -> float:
@@ -51,8 +68,19 @@ def model_key(provider: object) -> tuple | None:
             str(getattr(provider, "runtime", "torch")))
 
 
-def _serve(conn: Any) -> None:
-    """The worker's loop: one job in, one answer out, until the pipe closes or None comes.
+@dataclasses.dataclass(frozen=True)
+class _CancellableDeadline(Deadline):
+    """A deadline that has also passed once the planner cancels the run (`cancel` set)."""
+
+    cancel: Any = None
+
+    def passed(self) -> bool:
+        return self.cancel.is_set() or super().passed()
+
+
+def _serve(conn: Any, cancel: Any = None) -> None:
+    """The worker's loop: one job in, one answer out (two for a `solve_art` job: the decision,
+    then SCVx* from the proposal), until the pipe closes or None comes.
 
     SIGINT is ignored: a Ctrl-C in a terminal (or `ros2 launch`'s) reaches the whole process
     group, and the worker is stopped by its planner (`close`) or when the pipe closes, not with
@@ -74,6 +102,16 @@ def _serve(conn: Any) -> None:
             answer = ("error", f"{type(exc).__name__}: {exc}")
         try:
             conn.send(answer)
+        except (EOFError, OSError):
+            return
+        if not job.get("solve_art"):
+            continue
+        try:  # the second answer: SCVx* from the proposal (None: not made or cancelled)
+            follow = ("ok", job["job_id"], _solve_art(job, state, answer, cancel))
+        except BaseException as exc:  # the planner solves it in line (and fails alike)
+            follow = ("error", f"{type(exc).__name__}: {exc}")
+        try:
+            conn.send(follow)
         except (EOFError, OSError):
             return
 
@@ -98,9 +136,34 @@ def _run(job: dict, state: dict) -> tuple:
         return (None, 0.0)
     left_s = job["time_left_s"]  # the plan's deadline, on this process's clock
     deadline = None if left_s is None else Deadline.after(left_s)
+    state["deadline"] = deadline
     return timed_learned_warm_start(state["provider"], state["transfers"].get(job["request"]),
                                     job["cvx"], state["config"].planning, deadline,
                                     bool(job.get("cvx_unsafe", False)))
+
+
+def _solve_art(job: dict, state: dict, answer: tuple, cancel: Any) -> Any:
+    """SCVx* from the job's proposal as the planner would solve it (`GuidancePipeline._plan`),
+    or None: no valid proposal, or the planner cancelled the run (before or during it)."""
+    from art_guidance.optim import Scvx
+    from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
+    from art_guidance.planning.types import WarmStartSource
+
+    if answer[0] != "ok" or answer[1].dv is None or (cancel is not None and cancel.is_set()):
+        return None
+    learned, config = answer[1], state["config"]
+    transfer = state["transfers"].get(job["request"])
+    deadline = state.get("deadline")
+    if deadline is not None and learned.source is WarmStartSource.ART:
+        # the first run of the plan: a share of what is left, the rest for the run from CVX
+        deadline = deadline.share(config.planning.art_deadline_share)
+    until = _CancellableDeadline(math.inf if deadline is None else deadline.at_s, cancel)
+    pool = state.setdefault("pool", SubproblemPool())  # the worker's own, as a pipeline's
+    scvx = Scvx(transfer.safety, transfer.request.roe0_m, transfer.roe_f_m, config.scp,
+                samples_per_node=config.planning.samples_per_node,
+                subproblem=SubproblemOptions(**job["subproblem"]), pool=pool)
+    result = scvx.solve(learned.dv, deadline=until, projected=learned.warm_start)
+    return None if cancel is not None and cancel.is_set() else result
 
 
 class ProposalProcess:
@@ -114,12 +177,17 @@ class ProposalProcess:
 
     Every `submit` that returns True must be followed by `collect` or `abandon` (the job holds
     the worker until then); `close` stops the worker within `CLOSE_WAIT_S` whatever a plan does.
+    A job submitted with `solve_art` has a second answer, SCVx* from the proposal:
+    `scvx_result` waits for it, `dismiss` cancels the run (its answer is drained before the
+    next job is sent).
 
     Attributes:
         error: why the last job was declined or failed ("" = it was not): the planner then
             proposes in line; a failed worker is stopped and started anew on the next job.
         deaths: how many times a running worker was found dead or broken (it is started
             again on the next job).
+        scvx_runs: (made, taken): SCVx* runs from the proposal the worker answered with, and
+            those of them a plan took (`scvx_result`).
     """
 
     def __init__(self) -> None:
@@ -128,9 +196,13 @@ class ProposalProcess:
         self._lock = threading.Lock()  # one job at a time
         self._warming = False  # a warm-up job was sent and not yet answered
         self._start_failed_at: float | None = None  # time.monotonic() of a failed start
+        self._cancel: Any = None  # the running worker's event: cancel its SCVx* run
+        self._follow: int | None = None  # the job whose second answer is still in the pipe
+        self._job_ids = itertools.count(1)
         self._failed_starts = 0  # failed starts in a row
         self.error = ""
         self.deaths = 0
+        self.scvx_runs = (0, 0)
 
     @property
     def alive(self) -> bool:
@@ -166,25 +238,33 @@ class ProposalProcess:
         due = self._start_failed_at + restart_delay_s(self._failed_starts)
         return max(due - time.monotonic(), 0.0)
 
-    def submit(self, job: dict) -> bool:
-        """Send a plan job if the worker is ready; False if not (see `error`): the caller
-        proposes in line. After True the caller must `collect` the answer (or `abandon` the
-        job): the worker serves one job at a time."""
+    def submit(self, job: dict, solve_art: bool = False) -> int | None:
+        """Send a plan job if the worker is ready: its id, or None if not (see `error`): the
+        caller proposes in line. After an id the caller must `collect` the answer (or
+        `abandon` the job): the worker serves one job at a time. With `solve_art` the worker
+        also solves SCVx* from a valid proposal after answering (`scvx_result`, `dismiss`)."""
         if not self._lock.acquire(timeout=LOCK_WAIT_S):
             self.error = "the worker is still held by an earlier job"
-            return False
-        sent = False
+            return None
+        sent = None
         try:
-            sent = self._send(job)
+            sent = self._send({**job, "job_id": next(self._job_ids), "solve_art": solve_art})
         except Exception as exc:
             self._fail(f"could not send the job: {type(exc).__name__}: {exc}")
         finally:
-            if not sent:
+            if sent is None:
                 self._lock.release()
         return sent
 
-    def _send(self, job: dict) -> bool:
-        """`submit` with the lock held: True once the job is sent."""
+    def _send(self, job: dict) -> int | None:
+        """`submit` with the lock held: the job's id once it is sent."""
+        if self._follow is not None and self.alive:  # a dismissed run's answer: drain it
+            self._follow = None
+            answer = self._receive(DRAIN_WAIT_S)
+            if answer is None:
+                self.error = f"a cancelled SCVx* run did not stop: {self.error}"
+            elif answer[1] is not None:  # it ended before the cancel
+                self.scvx_runs = (self.scvx_runs[0] + 1, self.scvx_runs[1])
         if not self.alive:
             if self._proc is not None:  # it stopped by itself since the last job
                 if self._warming:
@@ -195,18 +275,48 @@ class ProposalProcess:
             if self._restart_in_s() <= 0.0:
                 self._launch(_warm_up_job(job["config"], job["config_sha256"], job["model"]))
                 self.error = "the worker process is starting"
-            return False
+            return None
         if not self._ready(0.0):
-            return False
+            return None
+        self._cancel.clear()
         self._conn.send(job)
-        return True
+        self._follow = job["job_id"] if job["solve_art"] else None
+        return job["job_id"]
 
     def collect(self, timeout_s: float) -> tuple | None:
         """The answer to the submitted job: (decision, wall ms), or None (see `error`)."""
         try:
-            return self._receive(timeout_s)
+            answer = self._receive(timeout_s)
+            if answer is None:
+                self._follow = None
+            return answer
         finally:
             self._lock.release()
+
+    def scvx_result(self, job_id: int, timeout_s: float) -> Any:
+        """SCVx* from the proposal of job `job_id` (its second answer, an `ScpResult`), or
+        None: not made (no valid proposal, the worker failed: see `error`), or the answer was
+        drained meanwhile by a later job. The caller then solves it in line."""
+        if not self._lock.acquire(timeout=LOCK_WAIT_S):
+            return None
+        try:
+            if self._follow != job_id or not self.alive:
+                return None
+            self._follow = None
+            answer = self._receive(timeout_s)
+            if answer is None or answer[0] != job_id or answer[1] is None:
+                return None
+            self.scvx_runs = (self.scvx_runs[0] + 1, self.scvx_runs[1] + 1)
+            return answer[1]
+        finally:
+            self._lock.release()
+
+    def dismiss(self, job_id: int) -> None:
+        """The planner does not need SCVx* from the proposal of job `job_id`: cancel the run
+        (it stops at its next iteration; the next job drains its answer)."""
+        cancel = self._cancel
+        if self._follow == job_id and cancel is not None:
+            cancel.set()
 
     def abandon(self, why: str) -> None:
         """Give up the submitted job (the caller failed before collecting it): the worker,
@@ -221,6 +331,8 @@ class ProposalProcess:
         flight after `CLOSE_WAIT_S` does not hold the shutdown: the worker is killed."""
         held = self._lock.acquire(timeout=CLOSE_WAIT_S)
         try:
+            if self._cancel is not None:
+                self._cancel.set()  # a run still going stops at its next iteration
             self._stop(graceful=held)
         finally:
             if held:
@@ -272,7 +384,9 @@ class ProposalProcess:
         self._stop(graceful=False)
         ctx = multiprocessing.get_context("spawn")  # no fork of a process with threads
         parent, child = ctx.Pipe()
-        proc = ctx.Process(target=_serve, args=(child,), name="art_proposal", daemon=True)
+        self._cancel = ctx.Event()
+        proc = ctx.Process(target=_serve, args=(child, self._cancel), name="art_proposal",
+                           daemon=True)
         proc.start()
         child.close()
         self._proc, self._conn = proc, parent
@@ -289,7 +403,7 @@ class ProposalProcess:
 
     def _stop(self, graceful: bool = False) -> None:
         proc, conn, self._proc, self._conn = self._proc, self._conn, None, None
-        self._warming = False
+        self._warming, self._follow = False, None
         if conn is not None:
             if graceful:
                 try:

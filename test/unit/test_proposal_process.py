@@ -33,18 +33,18 @@ def test_a_failed_worker_is_started_again_with_backoff(tmp_path, monkeypatch):
         assert "missing.pt" in worker.error and not worker.alive
         assert "1 failed start(s)" in worker.state and "started again in 5 s" in worker.state
         job = {"config": config.to_json(), "config_sha256": config.sha256(), "model": model}
-        assert worker.submit(job) is False and not worker.alive  # declined, nothing spawned
+        assert worker.submit(job) is None and not worker.alive  # declined, nothing spawned
         assert "missing.pt" in worker.error  # the reason stays
         monkeypatch.setattr(proposal_process, "RESTART_AFTER_S", 0.0)
-        assert worker.submit(job) is False and worker.alive  # started again, in the background
+        assert worker.submit(job) is None and worker.alive  # started again, in the background
         assert worker.error == "the worker process is starting"
         assert worker.state == "loading the model"
         deadline = time.monotonic() + 60.0
         while worker.alive and time.monotonic() < deadline:  # it fails again
-            assert worker.submit(job) is False
+            assert worker.submit(job) is None
             time.sleep(0.2)
         monkeypatch.setattr(proposal_process, "RESTART_AFTER_S", 5.0)
-        assert worker.submit(job) is False and not worker.alive  # noticed, not restarted
+        assert worker.submit(job) is None and not worker.alive  # noticed, not restarted
         assert "missing.pt" in worker.error or "died loading" in worker.error
         assert "2 failed start(s)" in worker.state, worker.state
         assert re.search(r"started again in (8|9|10) s", worker.state), worker.state  # 2 x 5 s

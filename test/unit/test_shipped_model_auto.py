@@ -102,7 +102,10 @@ def test_the_concurrent_proposal_plans_as_the_sequence(mode, auto_plans):
     plan, its warm start, the decision's reason, the post hoc numbers and the discarded attempt
     equal those of the sequence, bit for bit (including scenarios whose proposal the check
     accepts). A worker killed between plans is noticed: the plans are proposed in line (the
-    same plans) while a new worker starts in the background."""
+    same plans) while a new worker starts in the background. The worker also solves SCVx*
+    from its proposal meanwhile: the plans that need that run (the check accepted ART, or
+    SCVx* from CVX did not converge) take it from the worker, and the runs the plans do not
+    need are cancelled without holding the next plan."""
     import dataclasses
 
     config = auto_plans.config
@@ -110,14 +113,22 @@ def test_the_concurrent_proposal_plans_as_the_sequence(mode, auto_plans):
                                                              propose_concurrently=True))
     concurrent = GuidancePipeline(con_config, provider=ArtWarmStart.load(default_model_path(mode)))
     assert concurrent.start_proposal_worker(), concurrent.proposal_worker_error
-    accepted = ran = 0
+    accepted = ran = needed = 0
     try:
         for i, (req, b) in enumerate(zip(auto_plans.requests(mode, 12),
                                          auto_plans.plans(mode, 12))):
             if i == 6:  # the worker dies: proposals in line until its successor is ready
                 concurrent._worker._proc.kill()
                 concurrent._worker._proc.join()
+            taken = concurrent._worker.scvx_runs[1]
             a = concurrent.plan(req)
+            if i < 6 and a.proposal is not None:  # the worker's plans (before the kill):
+                # where the sequence solved SCVx* from ART, the plan took the worker's run
+                need = b.warm_start is ART or (b.discarded is not None
+                                               and b.discarded.warm_start is ART)
+                assert concurrent._worker.scvx_runs[1] - taken == int(need), i
+                assert concurrent.proposal_worker_error == ""  # cancelled runs drained
+                needed += need
             assert a.status == b.status and a.warm_start == b.warm_start, b.warm_start_reason
             assert np.array_equal(a.dv_rtn_mps, b.dv_rtn_mps) and a.cost_mps == b.cost_mps
             assert a.warm_start_reason == b.warm_start_reason and a.posthoc == b.posthoc
@@ -133,8 +144,10 @@ def test_the_concurrent_proposal_plans_as_the_sequence(mode, auto_plans):
     finally:
         concurrent.close()
     assert ran >= 6, ran
+    print(f"{mode}: SCVx* from ART taken from the worker in {needed} of the first 6 plans")
     if mode == "deterministic":
         assert accepted >= 1, accepted
+        assert needed >= 1, needed
 
 
 @pytest.mark.parametrize("mode", sorted(DEFAULT_MODELS))
