@@ -326,7 +326,7 @@ def judge_controls(safety: PassiveSafety, roe0_m: np.ndarray, target_rtn: np.nda
     """K candidate controls (K, N, 3) [m/s] from `roe0_m` to `target_rtn` as the check judges
     them under `subject`: the trajectory `planning.posthoc.judged_trajectory` gives (one
     correction each), then one sign-only safety search over the arcs of all K
-    (`PassiveSafety.evaluate_batch`)."""
+    (`PassiveSafety.violations_batch`)."""
     horizon = safety.horizon
     roe_f = np.linalg.solve(horizon.psi[-1], target_rtn)
     judged = [judged_trajectory(horizon, roe0_m, roe_f, dv, subject) for dv in dv_rtn_mps]
@@ -334,7 +334,7 @@ def judge_controls(safety: PassiveSafety, roe0_m: np.ndarray, target_rtn: np.nda
     roe_w = np.stack([roe for _, roe in judged])  # (K, N, 6) [m]
     cost = np.linalg.norm(dv_w, axis=2).sum(axis=1)
     # the candidates' C(t_1) counts signs only: one sign-only search over all K N arcs
-    c_t1 = safety.evaluate_batch(roe_w, dv_w, sign_only=True).constraint_to_go[:, 0]
+    c_t1 = safety.violations_batch(roe_w, dv_w).sum(axis=1)
     return JudgedCandidates(cost, c_t1.astype(float), dv_w, roe_w)
 
 

@@ -332,6 +332,26 @@ class PassiveSafety:
                                 violation=violation, constraint_to_go=ctg,
                                 t_star_s=res.tau_s.reshape(k, n))
 
+    def violations_batch(self, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
+        """(K, N) bool: the violation indicator of every arc of K trajectories, decided as
+        `evaluate_batch(..., sign_only=True).violation` decides it (its oracle, tested) by the
+        rollout's search (`DriftArcs.violated`: the arcs a drift sample already shows inside
+        are decided by the samples, no minimum or candidate instants are kept): what ranking
+        candidates by their C(t_1) needs.
+
+        Args:
+            roe_m: (K, N, 6) pre-burn a-scaled ROE [m].
+            dv_rtn_mps: (K, N, 3) impulsive delta-v in RTN [m/s].
+        """
+        n = self.n_nodes
+        x = as_finite_array("roe_m", roe_m, (None, n, 6))
+        k = x.shape[0]
+        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (k, n, 3))
+        z = np.stack([self.horizon.post_burn_nonlinear(x[j], u[j]) for j in range(k)])
+        flat_x, flat_u = x.reshape(k * n, 6), u.reshape(k * n, 3)
+        return self._violated(np.tile(np.arange(n), k), flat_x, flat_u,
+                              z.reshape(k * n, 6)).reshape(k, n)
+
     def node_margins(self, i: int, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
         """Margins of B candidate (state, burn) pairs at one node, as `evaluate(...).margin[i]`.
 
@@ -374,14 +394,19 @@ class PassiveSafety:
         """`node_violations` for the rollout's loop, which has the post-burn states already
         (`Horizon.post_burn_step`, `z_m` (B, 6) [m]); the arrays are not validated (finite by
         construction there)."""
-        return self.arcs.violated(self._items_at(int(i), roe_m, dv_rtn_mps, z_m))
+        return self._violated(int(i), roe_m, dv_rtn_mps, z_m)
 
     def steps_violations(self, nodes: np.ndarray, roe_m: np.ndarray, dv_rtn_mps: np.ndarray,
                          z_m: np.ndarray) -> np.ndarray:
         """`step_violations` of M (state, burn) pairs at nodes `nodes` (M,) of any mix, in one
         search (the speculative rollout checks several steps of a batch at once; each arc's
         decision is its own: the same as one node at a time, tested)."""
-        return self.arcs.violated(self._items_at(np.asarray(nodes), roe_m, dv_rtn_mps, z_m))
+        return self._violated(np.asarray(nodes), roe_m, dv_rtn_mps, z_m)
+
+    def _violated(self, i: int | np.ndarray, x: np.ndarray, u: np.ndarray, z: np.ndarray
+                  ) -> np.ndarray:
+        """The sign-only decision of the arcs of post-burn states `z` at node(s) i."""
+        return self.arcs.violated(self._items_at(i, x, u, z))
 
     # ------------------------------------------------------------------ internals
     def _node_items(self, i: int, roe_m: object, dv_rtn_mps: object) -> ArcItems:

@@ -289,7 +289,9 @@ def test_violated_is_the_sign_only_minimum(models: dict, plans: list, kind: str)
 def test_evaluate_batch_equals_evaluate(models: dict, approach: tuple, plans: list,
                                         kind: str) -> None:
     """`evaluate_batch` of K trajectories is `evaluate` of each (its K = 1 oracle), and its
-    sign-only count of violations is the certified one outside the tolerance of zero."""
+    sign-only count of violations is the certified one outside the tolerance of zero;
+    `violations_batch` (what the candidates are ranked by) decides every arc as the sign-only
+    `evaluate_batch` does."""
     ps = models[kind]
     trajs = [approach, *plans]
     roe = np.stack([t[0] for t in trajs])
@@ -304,8 +306,12 @@ def test_evaluate_batch_equals_evaluate(models: dict, approach: tuple, plans: li
                                        rtol=0, atol=1e-12, err_msg=field)
         clear = np.abs(one.margin) > 2.0 * (CERT_TOL + CERT_TOL_REL * np.abs(one.margin))
         np.testing.assert_array_equal(signs.violation[k][clear], one.violation[clear])
+    # the rollout's sign-only search over the same arcs: the same decisions, every arc
+    np.testing.assert_array_equal(ps.violations_batch(roe, dv), signs.violation.astype(bool))
     with pytest.raises(InputError):
         ps.evaluate_batch(roe[:, :-1], dv)
+    with pytest.raises(InputError):
+        ps.violations_batch(roe[:, :-1], dv)
 
 
 def test_node_margins_bad_inputs(models: dict) -> None:
