@@ -293,6 +293,13 @@ class GuidancePipeline:
             return "", 0
         return self._worker.state, self._worker.deaths
 
+    @property
+    def proposal_worker_scvx_runs(self) -> tuple[int, int]:
+        """SCVx* runs from the proposal the worker process answered with, and those of them the
+        plans took (they needed that run: the check accepted ART, or the retry); (0, 0) with no
+        worker."""
+        return (0, 0) if self._worker is None else self._worker.scvx_runs
+
     def start_proposal_worker(self) -> bool:
         """Start the worker process and load the model in it now, not in the first plan
         (`propose_concurrently` with a model loaded from a file; True if it runs, False and

@@ -293,8 +293,10 @@ class GuidanceNodeBase:
                                 f"{self.pipeline.proposal_worker_error}; proposals are made "
                                 f"in line until it runs again")
             self._worker_deaths = deaths
+        made, taken = self.pipeline.proposal_worker_scvx_runs
         return {"proposal_worker": state, "proposal_worker_deaths": deaths,
-                "proposal_worker_error": self.pipeline.proposal_worker_error}
+                "proposal_worker_error": self.pipeline.proposal_worker_error,
+                "proposal_worker_scvx_runs": made, "proposal_worker_scvx_runs_taken": taken}
 
     # ------------------------------------------------------------------ publishing
     def _reject(self, stamp_ns: int, reason: str) -> None:

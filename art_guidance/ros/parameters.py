@@ -119,10 +119,11 @@ SPECS: dict[str, ParamSpec] = {
                                   "kept for recording): on expiry the best feasible plan at "
                                   "hand is published [s]", "float",
                                   minimum=0.0, exclusive_minimum=True, dynamic=True),
-    "propose_concurrently": ParamSpec("warm_start auto: make the learned proposal in a worker "
-                                      "process (started at configure, ~300 MB more memory) "
-                                      "while SCVx* from CVX is solved: the same plans, sooner "
-                                      "where a core is free; false: one after the other",
+    "propose_concurrently": ParamSpec("warm_start auto: make the learned proposal, and SCVx* "
+                                      "from it, in a worker process (started at configure, "
+                                      "~300 MB more memory) while SCVx* from CVX is solved: "
+                                      "the same plans, sooner where a core is free; false: "
+                                      "one after the other",
                                       "bool"),
     "min_remaining_nodes": ParamSpec("below this many nodes left the plan in force is flown "
                                      "out, not replanned", "int", minimum=2, dynamic=True),

@@ -139,6 +139,9 @@ def test_an_equatorial_chief_is_refused_and_planning_goes_on(ros_env, python_exe
             assert plan is not None and plan.status == ManeuverPlan.STATUS_CONVERGED
             diag = _plan_diag(client, plan.plan_id)
             assert diag["proposal_worker"] in ("running", "loading the model"), diag
+            made, taken = (int(diag[k]) for k in ("proposal_worker_scvx_runs",
+                                                  "proposal_worker_scvx_runs_taken"))
+            assert 0 <= taken <= made, diag
         client.req_pub.publish(ReplanRequest(waypoint="minus_vbar", chance_constrained=True))
         assert client.plan_for(stamp, 60.0) is not None
         assert client.wait_for(lambda plans, _: sum(
