@@ -311,20 +311,8 @@ class PassiveSafety:
             SafetyEvaluation whose fields are (K, N).
         """
         n = self.n_nodes
-        x = as_finite_array("roe_m", roe_m, (None, n, 6))
-        k = x.shape[0]
-        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (k, n, 3))
-        z = np.stack([self.horizon.post_burn_nonlinear(x[j], u[j]) for j in range(k)])
-        flat_x, flat_u = x.reshape(k * n, 6), u.reshape(k * n, 3)
-        x_cov = None
-        if self.uncertainty is not None:
-            x_cov = post_burn_covariance_checked(
-                flat_x, flat_u, np.broadcast_to(self.horizon.b, (k, n, 6, 3)).reshape(-1, 6, 3),
-                np.broadcast_to(self.horizon.psi, (k, n, 6, 6)).reshape(-1, 6, 6),
-                self.uncertainty)
-        node = np.tile(np.arange(n), k)
-        res = self.arcs.minimum(self.arcs.items(node, z.reshape(k * n, 6), x_cov, self.q_sigma),
-                                sign_only=sign_only)
+        node, x, u, z, k = self._batch_arcs(roe_m, dv_rtn_mps)
+        res = self.arcs.minimum(self._items_at(node, x, u, z), sign_only=sign_only)
         margin = res.margin.reshape(k, n)
         violation = (margin < 0.0).astype(int)
         ctg = np.cumsum(violation[:, ::-1], axis=1)[:, ::-1].copy()
@@ -343,14 +331,19 @@ class PassiveSafety:
             roe_m: (K, N, 6) pre-burn a-scaled ROE [m].
             dv_rtn_mps: (K, N, 3) impulsive delta-v in RTN [m/s].
         """
+        node, x, u, z, k = self._batch_arcs(roe_m, dv_rtn_mps)
+        return self._violated(node, x, u, z).reshape(k, self.n_nodes)
+
+    def _batch_arcs(self, roe_m: object, dv_rtn_mps: object) -> tuple:
+        """K validated trajectories as K N arcs: (node (KN,), pre-burn states (KN, 6) [m],
+        burns (KN, 3) [m/s], post-burn states (KN, 6) [m], K)."""
         n = self.n_nodes
         x = as_finite_array("roe_m", roe_m, (None, n, 6))
         k = x.shape[0]
         u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (k, n, 3))
         z = np.stack([self.horizon.post_burn_nonlinear(x[j], u[j]) for j in range(k)])
-        flat_x, flat_u = x.reshape(k * n, 6), u.reshape(k * n, 3)
-        return self._violated(np.tile(np.arange(n), k), flat_x, flat_u,
-                              z.reshape(k * n, 6)).reshape(k, n)
+        return (np.tile(np.arange(n), k), x.reshape(k * n, 6), u.reshape(k * n, 3),
+                z.reshape(k * n, 6), k)
 
     def node_margins(self, i: int, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
         """Margins of B candidate (state, burn) pairs at one node, as `evaluate(...).margin[i]`.
