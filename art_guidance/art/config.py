@@ -223,7 +223,10 @@ class TrainConfig:
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
 
 
-# first scenario seed of `art-guidance distill` (apart from every dataset and benchmark)
+# first scenario seed of `art-guidance distill`, apart from every benchmark and from the datasets
+# the models were trained on; its scenarios are those of dataset seeds 8 (its last indices) and
+# 9 (`scenarios.SEED_RULE`), so a student is never evaluated on datasets of those seeds
+# (`art.data.trained_seed_bases`: `evaluate --split all` refuses them)
 DISTILL_FIRST_SEED = 9_000_000
 
 

@@ -102,10 +102,15 @@ def seed_bases(scenario_seeds: np.ndarray) -> list[int]:
 
 
 def trained_seed_bases(meta: dict) -> tuple[int, ...]:
-    """The dataset seeds of every scenario a checkpoint was trained on (its manifests', and
-    those of the model it was fine-tuned from), where its provenance records them (models
-    trained before it did record none)."""
+    """The dataset seeds of every scenario a checkpoint was trained on (its manifests', those
+    of the model it was fine-tuned from, and those whose scenarios a distilled student's
+    teacher rolled out: `art.distill`'s scenario seed range), where its provenance records
+    them (models trained before it did record none)."""
     own = {int(b) for m in _manifests(meta) for b in m.get("scenario_seed_bases", [])}
+    distilled = ((meta or {}).get("distillation") or {}).get("scenario_seeds")
+    if distilled:  # [first, last] scenario seed: every dataset seed they belong to
+        lo, hi = (int(s) for s in distilled)
+        own |= set(range(lo // SEED_STRIDE, hi // SEED_STRIDE + 1))
     return tuple(sorted(own | {int(b) for b in _init(meta).get("seed_bases", [])}))
 
 

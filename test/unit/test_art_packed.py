@@ -97,7 +97,8 @@ def test_the_layout_survives_a_checkpoint_and_an_export(setup, packed, tmp_path)
     assert np.abs(tail.dv_rtn_mps - tail_ref.dv_rtn_mps).max() <= ONNX_TOL_MPS
 
 
-SLIM1 = {"chance": "art_slim1_chance_rtn.pt", "deterministic": "art_slim1_det_roe.pt"}
+SLIM1 = {"chance": "art_slim1_chance_rtn.pt", "deterministic": "art_slim1_det_roe.pt",
+         "chance-40-epochs": "art_slim1e40_chance_rtn.pt"}
 STUDENT_DV_TOL_MPS = 1e-3  # as test_onnx_runtime's DV_TOL_MPS
 
 
@@ -125,5 +126,23 @@ def test_the_committed_students_are_packed_and_fly_alike_on_both_runtimes(mode):
     onnx_p = ArtWarmStart.load(path, runtime="onnx")
     assert torch_p.art.config.tokens_per_step == onnx_p.art.config.tokens_per_step == 1
     assert onnx_p.sha256 == torch_p.sha256  # the checkpoint payload the export names
-    requests = heldout_requests(6, DEFAULT_MODELS[mode])
+    requests = heldout_requests(6, DEFAULT_MODELS[mode.split("-")[0]])
     assert runtimes_agree(torch_p, onnx_p, requests, STUDENT_DV_TOL_MPS) >= 4
+
+
+def test_a_student_is_never_evaluated_on_the_scenarios_it_was_distilled_on():
+    """The committed students' teacher rolled out scenario seeds 9,000,000..9,002,499: the
+    scenarios of dataset seeds 8 (its last indices) and 9 (`scenarios.SEED_RULE`). A student
+    counts as trained on both, so `evaluate --split all` refuses datasets of those seeds for
+    it (their scenarios are not held out) and takes those of seed 10 and on."""
+    from pathlib import Path
+
+    from art_guidance.eval.inputs import DatasetInfo, model_info
+    from art_guidance.scenarios import sample_seed
+
+    root = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "slim"
+    assert 9_000_000 <= sample_seed(9, 0) <= 9_002_499  # dataset seed 9 starts inside
+    for name in SLIM1.values():
+        info = model_info(root / name)
+        for base, seen in ((8, True), (9, True), (10, False), (11, False)):
+            assert info.saw(DatasetInfo("d", "sha", info.mode, 1000, base)) is seen, (name, base)
