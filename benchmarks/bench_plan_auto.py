@@ -64,7 +64,7 @@ def run(repeats: int = 40, first_seed: int = 0, model: str | None = None) -> dic
                          a.timings_ms["total"], c.timings_ms["total"],
                          a.posthoc.e_r if a.posthoc is not None else np.nan,
                          a.proposal is not None, a.timings_ms["art"], a.discarded is None))
-        runs_made, runs_taken = concurrent._worker.scvx_runs
+        runs_made, runs_taken = concurrent.proposal_worker_scvx_runs
     finally:
         concurrent.close()
         propose_only.close()

@@ -11,6 +11,7 @@ Every plan says in words which warm start it used and why (`PlanResult.warm_star
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -150,80 +151,67 @@ class GuidancePipeline:
         t_cvx = time.perf_counter()
         cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
             else np.zeros((horizon.n_nodes, 3))
-        scvx = Scvx(safety, request.roe0_m, roe_f, self.scp_config,
-                    samples_per_node=self.samples_per_node, subproblem=self.subproblem,
-                    pool=pool)
+        scvx = transfer.scvx(self.config, self.subproblem, pool)
         early, learned, art_ms, art_run = self._propose(transfer, cvx, cvx_dv, scvx, deadline)
-        try:
-            return self._finish(request, deadline, transfer, scvx, cvx, cvx_dv, early, learned,
-                                art_ms, art_run, t0, t_setup, t_cvx)
-        finally:
-            if art_run is not None:  # not needed after all: the worker stops it
-                art_run.dismiss()
+        # the worker's run from ART, if any, is cancelled on every path that does not take it
+        with art_run or contextlib.nullcontext():
+            t_art = time.perf_counter()
+            source, reason, discarded = learned.source, learned.reason, None
+            warm = {CVX: cvx_dv, ART: learned.dv}
+            projected = {CVX: None, ART: learned.warm_start}  # ART's terminal warm start
 
-    def _finish(self, request: PlanRequest, deadline: Deadline | None, transfer: Transfer,
-                scvx: Scvx, cvx: ConvexSolution, cvx_dv: np.ndarray, early: ScpResult | None,
-                learned: Learned, art_ms: float, art_run: "WorkerScvx | None", t0: float,
-                t_setup: float, t_cvx: float) -> PlanResult:
-        """The plan after the learned step: SCVx* from the chosen warm start, the retry or
-        second run, the plan kept (`art_run`: SCVx* from ART made in the worker meanwhile)."""
-        horizon, safety = transfer.horizon, transfer.safety
-        t_art = time.perf_counter()
-        source, reason, discarded = learned.source, learned.reason, None
-        warm = {CVX: cvx_dv, ART: learned.dv}
-        projected = {CVX: None, ART: learned.warm_start}  # ART's terminal warm start, if made
+            def solve(src: WarmStartSource, until: Deadline | None) -> ScpResult:
+                """SCVx* from a warm start (the runs the worker made meanwhile, if any)."""
+                if src is CVX and early is not None:
+                    return early
+                if src is ART and art_run is not None:
+                    made = art_run.result(deadline)
+                    if made is not None:
+                        return made
+                return scvx.solve(warm[src], deadline=until, projected=projected[src])
 
-        def solve(src: WarmStartSource, until: Deadline | None) -> ScpResult:
-            """SCVx* from a warm start (the runs the worker made meanwhile, if any)."""
-            if src is CVX and early is not None:
-                return early
-            if src is ART and art_run is not None:
-                made = art_run.result(deadline)
-                if made is not None:
-                    return made
-            return scvx.solve(warm[src], deadline=until, projected=projected[src])
-
-        other = source.other
-        first = deadline
-        if warm[other] is not None and deadline is not None:  # leave time for the retry
-            first = deadline.share(self.config.planning.art_deadline_share)
-        res = solve(source, first)
-        auto = request.warm_start == WarmStart.AUTO.value and not (
-            deadline is not None and deadline.passed())
-        second = second_run(res, source, warm[other] is not None,
-                            auto and self.config.planning.also_solve_from_cvx,
-                            auto and self.config.planning.also_solve_from_art)
-        if art_run is not None and ART not in (source, second and second[0]):
-            art_run.dismiss()  # the worker's run from ART is not needed: stop it now
-        if second is not None:
-            alt_source, why = second
-            alt = solve(alt_source, deadline)
-            keep_first = keep_first_plan(res, alt, source,
-                                         self.config.planning.art_min_gain_mps)
-            kept, lost = (res, alt) if keep_first else (alt, res)
-            discarded = ScpAttempt(alt_source if keep_first else source, lost.status,
-                                   lost.cost_mps, lost.iterations, lost.solve_time_ms)
-            source = source if keep_first else alt_source
-            reason += (f"; {why} ({alt.status.name}, {alt.cost_mps:.4f} m/s): kept the "
-                       f"{source.label}-warm-started plan")
-            art_plan, cvx_plan = (kept, lost) if source is ART else (lost, kept)
-            if source is CVX and art_plan.feasible and cvx_plan.feasible \
-                    and art_plan.cost_mps < cvx_plan.cost_mps:
-                reason += (f" (the ART-warm-started one is only "
-                           f"{1e3 * (cvx_plan.cost_mps - art_plan.cost_mps):.2f} mm/s cheaper, "
-                           f"not more than art_min_gain_mps)")
-            res = kept
-        t_end = time.perf_counter()
-        margin = float(safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
-        # with the concurrent proposal, "art" (its own wall time) overlaps "scp" (every SCVx*
-        # run, the one from CVX made meanwhile included): their sum then exceeds the total
-        scp_ms = 1e3 * (t_end - t_art) + (0.0 if early is None else early.solve_time_ms)
-        timings = {"setup": 1e3 * (t_setup - t0), "cvx": 1e3 * (t_cvx - t_setup),
-                   "art": art_ms, "scp": scp_ms, "total": 1e3 * (t_end - t0)}
-        return PlanResult(res.status, request.chief_oe, horizon.epochs_s, res.dv_rtn_mps,
-                          res.roe_m, horizon.to_rtn(res.roe_m), res.cost_mps, res, cvx, source,
-                          learned.posthoc, margin, timings, request, learned.proposal, reason,
-                          discarded)
+            other = source.other
+            first = deadline
+            if warm[other] is not None and deadline is not None:  # leave time for the retry
+                first = deadline.share(self.config.planning.art_deadline_share)
+            res = solve(source, first)
+            auto = request.warm_start == WarmStart.AUTO.value and not (
+                deadline is not None and deadline.passed())
+            second = second_run(res, source, warm[other] is not None,
+                                auto and self.config.planning.also_solve_from_cvx,
+                                auto and self.config.planning.also_solve_from_art)
+            if art_run is not None and ART not in (source, second and second[0]):
+                art_run.dismiss()  # the worker's run from ART is not needed: stop it now
+            if second is not None:
+                alt_source, why = second
+                alt = solve(alt_source, deadline)
+                keep_first = keep_first_plan(res, alt, source,
+                                             self.config.planning.art_min_gain_mps)
+                kept, lost = (res, alt) if keep_first else (alt, res)
+                discarded = ScpAttempt(alt_source if keep_first else source, lost.status,
+                                       lost.cost_mps, lost.iterations, lost.solve_time_ms)
+                source = source if keep_first else alt_source
+                reason += (f"; {why} ({alt.status.name}, {alt.cost_mps:.4f} m/s): kept the "
+                           f"{source.label}-warm-started plan")
+                art_plan, cvx_plan = (kept, lost) if source is ART else (lost, kept)
+                if source is CVX and art_plan.feasible and cvx_plan.feasible \
+                        and art_plan.cost_mps < cvx_plan.cost_mps:
+                    reason += (f" (the ART-warm-started one is only "
+                               f"{1e3 * (cvx_plan.cost_mps - art_plan.cost_mps):.2f} mm/s "
+                               f"cheaper, not more than art_min_gain_mps)")
+                res = kept
+            t_end = time.perf_counter()
+            margin = float(safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
+            # with the concurrent proposal, "art" (its own wall time) overlaps "scp" (every
+            # SCVx* run, the one from CVX made meanwhile included): their sum then exceeds the
+            # total
+            scp_ms = 1e3 * (t_end - t_art) + (0.0 if early is None else early.solve_time_ms)
+            timings = {"setup": 1e3 * (t_setup - t0), "cvx": 1e3 * (t_cvx - t_setup),
+                       "art": art_ms, "scp": scp_ms, "total": 1e3 * (t_end - t0)}
+            return PlanResult(res.status, request.chief_oe, horizon.epochs_s, res.dv_rtn_mps,
+                              res.roe_m, horizon.to_rtn(res.roe_m), res.cost_mps, res, cvx,
+                              source, learned.posthoc, margin, timings, request,
+                              learned.proposal, reason, discarded)
 
     def _propose(self, transfer: Transfer, cvx: ConvexSolution, cvx_dv: np.ndarray,
                  scvx: Scvx, deadline: Deadline | None
@@ -339,6 +327,12 @@ class WorkerScvx:
         """Cancel the run if the plan did not take it."""
         if not self._taken:
             self._worker.dismiss(self._job_id)
+
+    def __enter__(self) -> "WorkerScvx":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.dismiss()
 
 
 def _canonical_sha256(data: dict) -> str:

@@ -120,7 +120,6 @@ def _run(job: dict, state: dict) -> tuple:
     """One job: ("warm_up",) loads the model; a plan job returns (decision, wall ms)."""
     from art_guidance.art.provider import ArtWarmStart
     from art_guidance.config import GuidanceConfig
-    from art_guidance.deadline import Deadline
     from art_guidance.planning.learned import timed_learned_warm_start
     from art_guidance.planning.transfer import Transfers
 
@@ -136,32 +135,29 @@ def _run(job: dict, state: dict) -> tuple:
         return (None, 0.0)
     left_s = job["time_left_s"]  # the plan's deadline, on this process's clock
     deadline = None if left_s is None else Deadline.after(left_s)
-    state["deadline"] = deadline
-    return timed_learned_warm_start(state["provider"], state["transfers"].get(job["request"]),
-                                    job["cvx"], state["config"].planning, deadline,
+    transfer = state["transfers"].get(job["request"])
+    state["plan"] = (transfer, deadline)  # for SCVx* from the proposal (`_solve_art`)
+    return timed_learned_warm_start(state["provider"], transfer, job["cvx"],
+                                    state["config"].planning, deadline,
                                     bool(job.get("cvx_unsafe", False)))
 
 
 def _solve_art(job: dict, state: dict, answer: tuple, cancel: Any) -> Any:
     """SCVx* from the job's proposal as the planner would solve it (`GuidancePipeline._plan`),
     or None: no valid proposal, or the planner cancelled the run (before or during it)."""
-    from art_guidance.optim import Scvx
     from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
     from art_guidance.planning.types import WarmStartSource
 
     if answer[0] != "ok" or answer[1].dv is None or (cancel is not None and cancel.is_set()):
         return None
     learned, config = answer[1], state["config"]
-    transfer = state["transfers"].get(job["request"])
-    deadline = state.get("deadline")
+    transfer, deadline = state["plan"]
     if deadline is not None and learned.source is WarmStartSource.ART:
         # the first run of the plan: a share of what is left, the rest for the run from CVX
         deadline = deadline.share(config.planning.art_deadline_share)
     until = _CancellableDeadline(math.inf if deadline is None else deadline.at_s, cancel)
     pool = state.setdefault("pool", SubproblemPool())  # the worker's own, as a pipeline's
-    scvx = Scvx(transfer.safety, transfer.request.roe0_m, transfer.roe_f_m, config.scp,
-                samples_per_node=config.planning.samples_per_node,
-                subproblem=SubproblemOptions(**job["subproblem"]), pool=pool)
+    scvx = transfer.scvx(config, SubproblemOptions(**job["subproblem"]), pool)
     result = scvx.solve(learned.dv, deadline=until, projected=learned.warm_start)
     return None if cancel is not None and cancel.is_set() else result
 

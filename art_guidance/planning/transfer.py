@@ -13,8 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from art_guidance.config import ScenarioConfig, UncertaintyConfig
+from art_guidance.config import GuidanceConfig, ScenarioConfig, UncertaintyConfig
 from art_guidance.dynamics import Horizon, time_grid_s
+from art_guidance.optim import Scvx
+from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
 from art_guidance.planning.types import PlanRequest
 from art_guidance.safety import PassiveSafety
 
@@ -37,6 +39,15 @@ class Transfer:
     horizon: Horizon
     safety: PassiveSafety
     roe_f_m: np.ndarray
+
+    def scvx(self, config: GuidanceConfig, subproblem: SubproblemOptions,
+             pool: SubproblemPool | None = None) -> Scvx:
+        """SCVx* on this transfer with the options of `config` (its SCP settings and samples
+        per node) and `subproblem`: the planner's, built alike by the pipeline and by its
+        proposal worker (`pool`: the caller's subproblems)."""
+        return Scvx(self.safety, self.request.roe0_m, self.roe_f_m, config.scp,
+                    samples_per_node=config.planning.samples_per_node, subproblem=subproblem,
+                    pool=pool)
 
 
 class Transfers:

@@ -332,7 +332,7 @@ class PassiveSafety:
             dv_rtn_mps: (K, N, 3) impulsive delta-v in RTN [m/s].
         """
         node, x, u, z, k = self._batch_arcs(roe_m, dv_rtn_mps)
-        return self._violated(node, x, u, z).reshape(k, self.n_nodes)
+        return self.arcs.violated(self._items_at(node, x, u, z)).reshape(k, self.n_nodes)
 
     def _batch_arcs(self, roe_m: object, dv_rtn_mps: object) -> tuple:
         """K validated trajectories as K N arcs: (node (KN,), pre-burn states (KN, 6) [m],
@@ -387,19 +387,14 @@ class PassiveSafety:
         """`node_violations` for the rollout's loop, which has the post-burn states already
         (`Horizon.post_burn_step`, `z_m` (B, 6) [m]); the arrays are not validated (finite by
         construction there)."""
-        return self._violated(int(i), roe_m, dv_rtn_mps, z_m)
+        return self.arcs.violated(self._items_at(int(i), roe_m, dv_rtn_mps, z_m))
 
     def steps_violations(self, nodes: np.ndarray, roe_m: np.ndarray, dv_rtn_mps: np.ndarray,
                          z_m: np.ndarray) -> np.ndarray:
         """`step_violations` of M (state, burn) pairs at nodes `nodes` (M,) of any mix, in one
         search (the speculative rollout checks several steps of a batch at once; each arc's
         decision is its own: the same as one node at a time, tested)."""
-        return self._violated(np.asarray(nodes), roe_m, dv_rtn_mps, z_m)
-
-    def _violated(self, i: int | np.ndarray, x: np.ndarray, u: np.ndarray, z: np.ndarray
-                  ) -> np.ndarray:
-        """The sign-only decision of the arcs of post-burn states `z` at node(s) i."""
-        return self.arcs.violated(self._items_at(i, x, u, z))
+        return self.arcs.violated(self._items_at(np.asarray(nodes), roe_m, dv_rtn_mps, z_m))
 
     # ------------------------------------------------------------------ internals
     def _node_items(self, i: int, roe_m: object, dv_rtn_mps: object) -> ArcItems:

@@ -7,6 +7,8 @@ layout, and the exported file on ONNX Runtime reproduces torch. Tolerances in m/
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -97,28 +99,27 @@ def test_the_layout_survives_a_checkpoint_and_an_export(setup, packed, tmp_path)
     assert np.abs(tail.dv_rtn_mps - tail_ref.dv_rtn_mps).max() <= ONNX_TOL_MPS
 
 
-SLIM1 = {"chance": "art_slim1_chance_rtn.pt", "deterministic": "art_slim1_det_roe.pt",
-         "chance-40-epochs": "art_slim1e40_chance_rtn.pt"}
+SLIM_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "slim"
+SLIM1 = {"art_slim1_chance_rtn.pt": "chance", "art_slim1_det_roe.pt": "deterministic",
+         "art_slim1e40_chance_rtn.pt": "chance"}  # committed student -> its mode
 STUDENT_DV_TOL_MPS = 1e-3  # as test_onnx_runtime's DV_TOL_MPS
 
 
-@pytest.mark.parametrize("mode", sorted(SLIM1))
-def test_the_committed_students_are_packed_and_fly_alike_on_both_runtimes(mode):
+@pytest.mark.parametrize("name", sorted(SLIM1))
+def test_the_committed_students_are_packed_and_fly_alike_on_both_runtimes(name):
     """The distilled one-token students in benchmarks/results/slim: the files of their
     provenance, one token a step, and the learned step (sweep, C update, judging, check) on
     ONNX Runtime as on torch on held-out scenarios of their teacher's dataset."""
     pytest.importorskip("onnxruntime")
     import hashlib
     import json
-    from pathlib import Path
 
     from helpers.shipped import heldout_requests, runtimes_agree
 
     from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart
 
-    root = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "slim"
-    path = root / SLIM1[mode]
-    prov = json.loads((root / "provenance.json").read_text())[path.name]
+    path = SLIM_DIR / name
+    prov = json.loads((SLIM_DIR / "provenance.json").read_text())[name]
     assert hashlib.sha256(path.read_bytes()).hexdigest() == prov["sha256"]
     onnx_sha = hashlib.sha256(path.with_suffix(".onnx").read_bytes()).hexdigest()
     assert onnx_sha == prov["export"]["sha256"]
@@ -126,7 +127,7 @@ def test_the_committed_students_are_packed_and_fly_alike_on_both_runtimes(mode):
     onnx_p = ArtWarmStart.load(path, runtime="onnx")
     assert torch_p.art.config.tokens_per_step == onnx_p.art.config.tokens_per_step == 1
     assert onnx_p.sha256 == torch_p.sha256  # the checkpoint payload the export names
-    requests = heldout_requests(6, DEFAULT_MODELS[mode.split("-")[0]])
+    requests = heldout_requests(6, DEFAULT_MODELS[SLIM1[name]])
     assert runtimes_agree(torch_p, onnx_p, requests, STUDENT_DV_TOL_MPS) >= 4
 
 
@@ -135,14 +136,11 @@ def test_a_student_is_never_evaluated_on_the_scenarios_it_was_distilled_on():
     scenarios of dataset seeds 8 (its last indices) and 9 (`scenarios.SEED_RULE`). A student
     counts as trained on both, so `evaluate --split all` refuses datasets of those seeds for
     it (their scenarios are not held out) and takes those of seed 10 and on."""
-    from pathlib import Path
-
     from art_guidance.eval.inputs import DatasetInfo, model_info
     from art_guidance.scenarios import sample_seed
 
-    root = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "slim"
     assert 9_000_000 <= sample_seed(9, 0) <= 9_002_499  # dataset seed 9 starts inside
-    for name in SLIM1.values():
-        info = model_info(root / name)
+    for name in SLIM1:
+        info = model_info(SLIM_DIR / name)
         for base, seen in ((8, True), (9, True), (10, False), (11, False)):
             assert info.saw(DatasetInfo("d", "sha", info.mode, 1000, base)) is seen, (name, base)

@@ -120,13 +120,13 @@ def test_the_concurrent_proposal_plans_as_the_sequence(mode, auto_plans):
             if i == 6:  # the worker dies: proposals in line until its successor is ready
                 concurrent._worker._proc.kill()
                 concurrent._worker._proc.join()
-            taken = concurrent._worker.scvx_runs[1]
+            taken = concurrent.proposal_worker_scvx_runs[1]
             a = concurrent.plan(req)
             if i < 6 and a.proposal is not None:  # the worker's plans (before the kill):
                 # where the sequence solved SCVx* from ART, the plan took the worker's run
                 need = b.warm_start is ART or (b.discarded is not None
                                                and b.discarded.warm_start is ART)
-                assert concurrent._worker.scvx_runs[1] - taken == int(need), i
+                assert concurrent.proposal_worker_scvx_runs[1] - taken == int(need), i
                 assert concurrent.proposal_worker_error == ""  # cancelled runs drained
                 needed += need
             assert a.status == b.status and a.warm_start == b.warm_start, b.warm_start_reason
