@@ -226,7 +226,7 @@ class GuidancePipeline:
         is made in the pipeline's worker process (`proposal_process`) while this thread solves
         SCVx* from CVX. Right after the proposal the worker also solves SCVx* from it (the
         run the plan needs where the check accepts it, or where SCVx* from CVX does not
-        converge), so that run overlaps this one; `_finish` takes it where the plan needs it
+        converge), so that run overlaps this one; `_plan` takes it where the plan needs it
         and cancels it otherwise. The plan is the one the sequence gives. A worker that fails
         or answers late is stopped and the proposal (or SCVx* from it) is made here instead
         (`proposal_worker_error` says why).
