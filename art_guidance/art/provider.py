@@ -152,6 +152,18 @@ def resolve_runtime(runtime: str, path: str | Path) -> str:
     return runtime
 
 
+def _load_onnx(path: Path, expected: str | None):
+    """The exported model of checkpoint `path` (or the .onnx `path` itself), checked against
+    `expected` (else the checkpoint header's checksum)."""
+    if path.suffix != ONNX_SUFFIX:
+        expected = expected or header_sha256(path)
+        path = exported_path(path)
+        if not path.is_file():
+            raise CheckpointError(path, "no exported model here: run `art-guidance export` on "
+                                        "the checkpoint")
+    return load_exported(path, expected, pinned_sha256(path))
+
+
 class ArtWarmStart:
     """Proposes ART rollouts as SCP warm starts (a `planning.WarmStartProvider`).
 
@@ -183,6 +195,7 @@ class ArtWarmStart:
         self.load_ms = float(load_ms)
         self.threads = int(threads)
         self._lock = threading.Lock()  # one KV cache per model: one rollout at a time
+        self.note = ""  # how `load` departed from the runtime asked ("" = it did not)
         self.node_spacing_s = _training_spacing_s(art)
 
     @classmethod
@@ -204,22 +217,27 @@ class ArtWarmStart:
         """
         t0 = time.perf_counter()
         path = Path(path or default_model_path())
-        runtime = resolve_runtime(runtime, path)
+        asked, runtime = runtime, resolve_runtime(runtime, path)
         expected = expected_sha256 or pinned_sha256(path)
+        note = ""
         if runtime == "onnx":
-            if path.suffix != ONNX_SUFFIX:
-                expected = expected or header_sha256(path)
-                path = exported_path(path)
-                if not path.is_file():
-                    raise CheckpointError(path, "no exported model here: run `art-guidance "
-                                                "export` on the checkpoint")
-            art = load_exported(path, expected, pinned_sha256(path))
-        else:
+            try:
+                art = _load_onnx(path, expected)
+            except CheckpointError as exc:
+                if not (asked == "auto" and path.suffix != ONNX_SUFFIX and installed("torch")):
+                    raise
+                # "auto" with a refused export beside the checkpoint: fly the checkpoint
+                note = (f"the exported model was refused ({exc}); flying the checkpoint on "
+                        "torch instead")
+                runtime = "torch"
+        if runtime == "torch":
             from art_guidance.art.checkpoint import load as load_checkpoint
 
             art = load_checkpoint(path, expected_sha256=expected)
             art.decoder  # pack the cached decoder now, not in the first plan
-        return cls(art, 1e3 * (time.perf_counter() - t0), threads, reward_scales)
+        provider = cls(art, 1e3 * (time.perf_counter() - t0), threads, reward_scales)
+        provider.note = note
+        return provider
 
     def describe(self) -> str:
         """One line: file, preset size, representation, checksum, runtime."""

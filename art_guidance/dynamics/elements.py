@@ -49,7 +49,8 @@ MIN_DEPUTY_INCLINATION_RAD = 0.5 * MIN_INCLINATION_RAD
 def check_chief(oe: object, field: str = "chief_oe") -> np.ndarray:
     """`check_oe`, and the planner's domain: perigee altitude >= MIN_PERIGEE_ALTITUDE_M,
     a <= MAX_SEMI_MAJOR_AXIS_M, e <= MAX_ECCENTRICITY, inclination in [MIN_INCLINATION_RAD,
-    pi - MIN_INCLINATION_RAD]; returns a (6,) array.
+    pi - MIN_INCLINATION_RAD]; returns a (6,) array with raan, argp and M reduced modulo 2 pi
+    (`reduce_angles`).
 
     Raises:
         InputError: naming the element and the bound.
@@ -69,7 +70,19 @@ def check_chief(oe: object, field: str = "chief_oe") -> np.ndarray:
         raise InputError(field, f"inclination must be in [{np.degrees(MIN_INCLINATION_RAD):g}, "
                          f"{180.0 - np.degrees(MIN_INCLINATION_RAD):g}] deg: the quasi-"
                          "nonsingular ROE are singular at equatorial orbits [rad]", inc)
-    return arr
+    return reduce_angles(arr)
+
+
+def reduce_angles(oe: np.ndarray) -> np.ndarray:
+    """(6,) elements with raan, argp and M reduced modulo 2 pi (`np.fmod`, exact: an angle
+    within (-2 pi, 2 pi) is returned bit for bit, a larger one keeps its sign).
+
+    The J2 secular propagation adds `rate * tau` to each angle: above ~1e15 rad one ulp is
+    a radian or more, so an unreduced angle is rounded or frozen along the horizon and the
+    plan is made on another orbit."""
+    out = np.array(oe, dtype=float)
+    out[3:] = np.fmod(out[3:], 2.0 * np.pi)
+    return out
 
 
 def check_deputy_inclination(chief_oe: np.ndarray, dix_max_m: float, field: str) -> None:

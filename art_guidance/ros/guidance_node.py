@@ -151,8 +151,10 @@ class GuidanceNodeBase:
                                                     self._on_request, qos)
 
     def _destroy_subscriptions(self) -> None:
+        """Unsubscribe (idempotent)."""
         for sub in (self.nav_sub, self.request_sub):
-            self.destroy_subscription(sub)
+            if sub is not None:
+                self.destroy_subscription(sub)
         self.nav_sub = self.request_sub = None
 
     def _start_worker(self) -> None:
@@ -196,11 +198,14 @@ class GuidanceNodeBase:
 
     # ------------------------------------------------------------------ callbacks
     def _on_nav(self, msg: RelativeNavState) -> None:
-        self.core.stats["nav"] += 1
+        core = self.core
+        if core is None or self.out is None:  # a fix taken between unsubscribe and delivery
+            return
+        core.stats["nav"] += 1
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         try:
             nav = nav_from_msg(msg)
-            decision, deviation = self.core.on_nav(nav, time.time_ns(), msg)
+            decision, deviation = core.on_nav(nav, time.time_ns(), msg)
         except GuidanceError as exc:
             self._reject(stamp_ns, str(exc))
             return
@@ -212,6 +217,8 @@ class GuidanceNodeBase:
                           {"deviation_sigma": round(deviation, 3), **fix_counts(self.core)})
 
     def _on_request(self, msg: ReplanRequest) -> None:
+        if self.core is None or self.out is None:  # taken between unsubscribe and delivery
+            return
         try:
             target = target_from_msg(msg, self.scenario.waypoints_rtn)
             self.core.on_target(target, msg)  # restarts the horizon, replans the newest fix
@@ -318,12 +325,13 @@ class GuidanceNodeBase:
             self._log().warning(f"stats not published: {type(exc).__name__}: {exc}")
 
     def shutdown_worker(self) -> None:
-        """Stop the worker thread (after the running solve) and finish the recording."""
-        if self.core is None:  # never configured
-            return
+        """Stop the worker thread (after the running solve), the proposal worker process and
+        finish the recording (each what was built of it; idempotent)."""
         self._stop_worker()
-        self.pipeline.close()
-        self.recording.finish(self._log())
+        if self.pipeline is not None:
+            self.pipeline.close()
+        if self.recording is not None:
+            self.recording.finish(self._log())
 
     def _log(self):
         """The node's logger while its context lives; after SIGINT/SIGTERM (context shut down,
@@ -353,6 +361,13 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
     --deactivate--> inactive (unsubscribed; the running solve finishes) --cleanup-->
     unconfigured (recording finished) --shutdown--> finalized.
 
+    What a state holds follows it on every transition: leaving `active` by any way
+    (deactivate, shutdown, an error) unsubscribes and stops the worker; leaving the configured
+    states (cleanup, shutdown from inactive or active, an error) also finishes the recording,
+    stops the proposal worker process and destroys the publishers (`_release`). A transition
+    whose work raises is logged and answered as an error; `on_error` then releases everything
+    and the node returns to unconfigured, ready to be configured again.
+
     A `change_state` request for a transition the current state does not offer (deactivate
     while unconfigured, an unknown id, anything once finalized) is refused: success=False and
     a warning naming the transition and the state; the node keeps serving.
@@ -362,36 +377,70 @@ class ManagedGuidanceNode(GuidanceNodeBase, LifecycleNode):
         super().__init__(**kwargs)
         guard_change_state(self)
 
+    def _run(self, name: str, work: Callable[[], None]) -> TransitionCallbackReturn:
+        """One transition's work; an exception is logged (rclpy would swallow it) and answered
+        ERROR, so that rclpy calls `on_error`."""
+        try:
+            work()
+        except Exception as exc:
+            self.get_logger().error(f"lifecycle {name} failed: {type(exc).__name__}: {exc}")
+            return TransitionCallbackReturn.ERROR
+        return TransitionCallbackReturn.SUCCESS
+
+    def _deactivate(self) -> None:
+        """Leave `active` (idempotent): unsubscribed, the worker stopped after its solve."""
+        self._destroy_subscriptions()
+        self._stop_worker()
+
+    def _release(self) -> None:
+        """Back to what an unconfigured node holds (idempotent): `_deactivate`, the recording
+        finished, the proposal worker process stopped, the publishers destroyed."""
+        self._deactivate()
+        self.shutdown_worker()
+        if self.out is not None:
+            for pub in self.out.publishers():
+                self.destroy_lifecycle_publisher(pub)
+        self.core = self.out = self.pipeline = self.recording = None
+
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
             self._configure()
         except GuidanceError as exc:
             self.get_logger().error(f"configure failed: {exc}")
-            self.core = None
+            self._release()
             return TransitionCallbackReturn.FAILURE
-        self._create_publishers(self.create_lifecycle_publisher)
-        return TransitionCallbackReturn.SUCCESS
+        return self._run("configure", lambda: self._create_publishers(
+            self.create_lifecycle_publisher))
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._create_subscriptions()
-        self._start_worker()
-        return super().on_activate(state)
+        def activate() -> None:
+            self._create_subscriptions()
+            self._start_worker()
+
+        result = self._run("activate", activate)
+        return result if result is not TransitionCallbackReturn.SUCCESS else (
+            super().on_activate(state))
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._destroy_subscriptions()
-        self._stop_worker()
-        return super().on_deactivate(state)
+        result = self._run("deactivate", self._deactivate)
+        return result if result is not TransitionCallbackReturn.SUCCESS else (
+            super().on_deactivate(state))
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.shutdown_worker()
-        for pub in self.out.publishers():
-            self.destroy_lifecycle_publisher(pub)
-        self.core, self.out = None, None
-        return TransitionCallbackReturn.SUCCESS
+        return self._run("cleanup", self._release)
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.shutdown_worker()
-        self.core = None
+        return self._run(f"shutdown from {state.label}", self._release)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            self._release()
+        except Exception as exc:  # finalized: nothing is left that could plan
+            self.get_logger().error(f"lifecycle error processing failed, the node is "
+                                    f"finalized: {type(exc).__name__}: {exc}")
+            return TransitionCallbackReturn.FAILURE
+        self.get_logger().warning(f"a lifecycle transition from {state.label!r} failed: "
+                                  "everything released, the node is unconfigured")
         return TransitionCallbackReturn.SUCCESS
 
 
@@ -417,7 +466,14 @@ def main(argv: Sequence[str] | None = None, managed: bool = False) -> int:
         node = ManagedGuidanceNode() if managed else GuidanceNode()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=SPIN_PERIOD_S)
+            try:
+                executor.spin_once(timeout_sec=SPIN_PERIOD_S)
+            except ExternalShutdownException:
+                raise
+            except Exception as exc:  # every callback is a boundary; should one leak, the
+                # node logs it and keeps serving instead of dying with the plan in force
+                node.get_logger().error(f"a callback raised {type(exc).__name__}: {exc}; "
+                                        "the node keeps serving", throttle_duration_sec=5.0)
     except ExternalShutdownException:
         pass
     except (GuidanceError, ValueError) as exc:

@@ -33,7 +33,11 @@ def load_model(params: Any, log: Any) -> tuple[object | None, str]:
         log.warning(f"learned warm start unavailable, planning from CVX only: {text}")
         return None, status
     log.info(f"learned warm start: {provider.describe()}, loaded in {provider.load_ms:.0f} ms")
-    return provider, f"loaded {provider.describe()} in {provider.load_ms:.0f} ms"
+    status = f"loaded {provider.describe()} in {provider.load_ms:.0f} ms"
+    if provider.note:
+        log.warning(f"learned warm start: {provider.note}")
+        status = f"{status} ({provider.note})"
+    return provider, status
 
 
 def model_values(provider: Any, status: str) -> dict:

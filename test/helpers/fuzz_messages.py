@@ -36,10 +36,11 @@ NAV_COV = np.diag([25.0, 400.0, 25.0, 1e-4, 1e-4, 1e-4])
 FLOATS = (math.nan, math.inf, -math.inf, 1e308, -1e308, 0.0, -1.0, 1e12, -1e12, 1e-300, 5e-324)
 STRINGS = ("", "map", "chief_roe", "chief_rtn", "x" * 2000, "ünïcødé", "plus_vbar ", "custom")
 INT32_MAX, UINT32_MAX = 2**31 - 1, 2**32 - 1
-# chief elements at and beyond the limits of docs/node.md (inclination, eccentricity, a)
+# chief elements at and beyond the limits of docs/node.md (inclination, eccentricity, a), and
+# huge finite angles (beyond ~1e15 rad the J2 drift is below one ulp unless reduced)
 CHIEF_EDGES = (0.95, 1.0, 1.2, -0.1, 1e12, 6.0e6, 0.0, 1e-300, MIN_INCLINATION_RAD,
                0.999 * MIN_INCLINATION_RAD, math.pi - MIN_INCLINATION_RAD, math.pi,
-               MAX_ECCENTRICITY, MAX_SEMI_MAJOR_AXIS_M)
+               MAX_ECCENTRICITY, MAX_SEMI_MAJOR_AXIS_M, 7e15, -7e15, 1e18, 1.7e308)
 
 
 @dataclass

@@ -95,3 +95,32 @@ def test_chief_elements_at_their_edges_are_refused_or_planned_finite(pipeline):
         assert math.isfinite(result.cost_mps), (i, value)
         assert result.warm_start_reason, (i, value)
     assert refused == 12 and planned == 26, (refused, planned)
+
+
+@pytest.mark.parametrize("i", [3, 4, 5])
+def test_a_huge_finite_chief_angle_is_planned_as_its_reduction(i):
+    """raan, argp and M above ~1e15 rad are below one ulp of their J2 drift over the horizon:
+    unreduced, the plan was made on another orbit (argp = 7e15 rad: a CONVERGED plan that
+    missed the waypoint by 936 m in the planner's own model). Reduced modulo 2 pi where the
+    chief enters the planner, they give the reduced angle's plan, bit for bit."""
+    huge, reduced = CHIEF.copy(), CHIEF.copy()
+    huge[i], reduced[i] = 7e15, math.fmod(7e15, 2.0 * math.pi)
+    assert np.array_equal(check_chief(huge), reduced)
+    pipeline = GuidancePipeline(GuidanceConfig.load(), deadline_s=10.0)
+    plans = [pipeline.plan(PlanRequest(chief, roe_from_rtn_linear(check_chief(chief), RTN0),
+                                       TARGET, warm_start="cvx")) for chief in (huge, reduced)]
+    assert plans[0].status.name == "CONVERGED", plans[0].status
+    for name in ("dv_rtn_mps", "roe_m", "rtn"):
+        assert np.array_equal(getattr(plans[0], name), getattr(plans[1], name)), name
+    assert np.allclose(plans[0].rtn[-1, :3], TARGET[:3], atol=1.0)  # the waypoint reached
+
+
+def test_angles_within_one_turn_are_kept_bit_for_bit():
+    for value in (0.0, 1e-300, -1.0, 2.0 * math.pi - 1e-12, -2.0 * math.pi + 1e-12, 3.0):
+        chief = CHIEF.copy()
+        chief[3:] = value
+        assert np.array_equal(check_chief(chief), chief), value
+    chief = CHIEF.copy()
+    chief[3:] = [2.0 * math.pi, -7.0, 1e300]
+    reduced = check_chief(chief)
+    assert np.all(np.abs(reduced[3:]) < 2.0 * math.pi) and reduced[4] < 0.0

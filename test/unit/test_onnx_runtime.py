@@ -130,6 +130,29 @@ def test_bad_exported_files_are_refused_with_the_reason(tmp_path, chance_onnx):
     _refused(tmp_path / "art.pt", "exported from checkpoint")
 
 
+def test_auto_flies_the_checkpoint_on_torch_beside_a_damaged_export(tmp_path, chance_onnx):
+    """`art_runtime: auto` with a damaged export beside an intact checkpoint keeps the learned
+    warm start: the checkpoint on torch, the refusal said in the log and the model status;
+    asked for "onnx" explicitly, the refusal stands."""
+    from art_guidance.ros.node_status import load_model
+
+    checkpoint = default_model_path("chance")
+    (tmp_path / checkpoint.name).write_bytes(checkpoint.read_bytes())
+    damaged = bytearray(chance_onnx.read_bytes())
+    damaged[len(damaged) // 2] ^= 0xFF
+    (tmp_path / chance_onnx.name).write_bytes(bytes(damaged))
+    warnings: list[str] = []
+    log = SimpleNamespace(warning=warnings.append, info=lambda text: None)
+    params = SimpleNamespace(model_path=str(tmp_path / checkpoint.name), art_runtime="auto",
+                             chance_constrained=True)
+    provider, status = load_model(params, log)
+    assert provider is not None and provider.runtime == "torch", status
+    assert provider.sha256 == ArtWarmStart.load(checkpoint, runtime="torch").sha256
+    assert "exported model was refused" in status and "on torch" in status, status
+    assert len(warnings) == 1 and "flying the checkpoint on torch" in warnings[0]
+    _refused(tmp_path / checkpoint.name, "weights are not those recorded|corrupt, truncated")
+
+
 def test_the_node_and_plan_fly_cvx_when_the_runtime_cannot_be_used(tmp_path, capsys):
     from art_guidance.ros.node_status import load_model
 
