@@ -40,11 +40,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     reindex = actions.add_parser("reindex", help="check and rebuild torn, damaged or "
                                  "unsummarised files and metadata.yaml",
                                  description=run.__doc__ + " Exit codes: 0 nothing lost "
-                                 "(files rebuilt or not); 2 bad input, or a running recorder "
-                                 "still writes to the folder (refused, nothing touched); 3 data "
-                                 "was lost (damaged chunks, or fewer messages on disk than the "
-                                 "old metadata.yaml counted); the folder is repaired all the "
-                                 "same.")
+                                 "(files rebuilt or not; damage that cost no message, such as "
+                                 "a summary that fails its CRC and is not needed or a damaged "
+                                 "copy of a chunk read intact, is named and dropped); 2 bad "
+                                 "input, or a running recorder still writes to the folder "
+                                 "(refused, nothing touched); 3 data was lost (damaged chunks "
+                                 "whose messages were read nowhere else, or fewer messages on "
+                                 "disk than the old metadata.yaml counted); the folder is "
+                                 "repaired all the same.")
     reindex.add_argument("dir", help="the bag folder (metadata.yaml and <name>_<k>.mcap)")
     reindex.set_defaults(func=run)
     draw = actions.add_parser("render", help="draw the bag's visualisation topics to a PNG",

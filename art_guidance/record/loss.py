@@ -4,7 +4,10 @@ The recorder rewrites `metadata.yaml` after every solve is on disk, so in a fini
 whose recorder was killed, its per-topic and per-file counts are those of the data. It may lag
 by the last solve (a kill between the write and the rewrite) or be absent; more messages read
 than counted is reported as such, never as loss. Where it is absent, the damaged chunks' own
-message index counts are all that is known. Solves are counted by their SolveRecord.
+message index counts are all that is known. Damage that cost no message (`Damage.no_loss`: a
+summary not needed, a damaged copy of a chunk read intact) counts for nothing, and a damaged
+chunk counts only the messages it held that were read nowhere else. Solves are counted by their
+SolveRecord.
 """
 from __future__ import annotations
 
@@ -51,6 +54,7 @@ def recorded_counts(directory: Path) -> tuple[dict | None, str]:
 
 
 def _from_damage(damaged: list[Damage]) -> dict[str, int]:
+    """Messages lost per topic per the damaged chunks' message index (not read elsewhere)."""
     by_topic: dict[str, int] = {}
     for damage in damaged:
         for topic, n in damage.by_topic.items():
@@ -66,7 +70,8 @@ def account(path: Path, read_topics: dict[str, int], read_files: dict[str, int],
         path: the bag folder, or one .mcap file (then only its own count is compared).
         read_topics: messages read per topic; read_files: per file name.
         types: topic -> 'pkg/msg/Type' of what was read (metadata.yaml fills in the rest).
-        damaged: the damage found while reading (its message index counts, where known).
+        damaged: the damage found while reading (its message index counts, where known);
+            damage that lost nothing (`Damage.lost_data` False) is left out.
 
     Returns:
         {"messages": total lost or None (unknown), "solves": lost solves (SolveRecords or
@@ -78,6 +83,7 @@ def account(path: Path, read_topics: dict[str, int], read_files: dict[str, int],
     single = path.is_file()
     recorded, note = recorded_counts(path.parent if single else path)
     notes = [recorded["repair"]] if recorded is not None and recorded["repair"] else []
+    damaged = [d for d in damaged if d.lost_data]
     by_topic = _from_damage(damaged)
     files: dict[str, int] = {}
     if recorded is not None:

@@ -160,17 +160,19 @@ def mcap_ending(buf: bytes, size: int) -> tuple[int, Footer] | None:
     return pos, Footer(start, offsets, crc)
 
 
-def index_counts(buf: bytes, pos: int, limit: int) -> dict[int, int] | None:
-    """Messages per channel id in the Message Index records from `pos` (None: none there)."""
-    counts: dict[int, int] = {}
+def index_times(buf: bytes, pos: int, limit: int) -> dict[int, list[int]] | None:
+    """Log times [ns] of the messages per channel id in the Message Index records from `pos`
+    (None: none there). A chunk's index lies outside it and its CRC: it names what a damaged
+    chunk held."""
+    times: dict[int, list[int]] = {}
     try:
         while pos < limit:
             opcode, body, end = frame(buf, pos, limit)
             if opcode != Opcode.MESSAGE_INDEX:
                 break
             index = parse(opcode, body)
-            counts[index.channel_id] = counts.get(index.channel_id, 0) + len(index.records)
+            times.setdefault(index.channel_id, []).extend(t for t, _ in index.records)
             pos = end
     except BadRecord:
         pass
-    return counts or None
+    return times or None

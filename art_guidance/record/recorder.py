@@ -33,7 +33,8 @@ recorded only once the data and `metadata.yaml` that describes it are both writt
 `metadata.yaml` always describes what is on disk (state `write_failed` and the error in
 `custom_data` until a solve is recorded again). With `max_total_bytes` the oldest closed files
 are deleted at a rotation (see `McapRecorder` and `record.bag_folder`). Run metadata (config,
-versions, model checksum) goes into an MCAP metadata record.
+versions, model checksum) goes into an MCAP metadata record, sealed (`record.seal`: a sha256 of
+every value, which replay checks).
 """
 from __future__ import annotations
 
@@ -61,6 +62,7 @@ from art_guidance.record.mcap_file import (  # noqa: F401
 from art_guidance.record.ros2msg import (
     cdr_encoder, plain_message as _plain, ros2msg_schema, type_description_hash,
 )
+from art_guidance.record.seal import seal
 
 LOG = logging.getLogger("art_guidance.record.recorder")
 NAV_TYPE = "art_guidance_msgs/msg/RelativeNavState"
@@ -81,7 +83,8 @@ class McapRecorder:
 
     Args:
         directory: the bag folder (created on the first solve).
-        metadata: run metadata (values that are not strings are stored as JSON).
+        metadata: run metadata (values that are not strings are stored as JSON), recorded
+            with its `metadata_seal` (`record.seal`).
         max_bytes: a file is closed and a new one started once it reaches this size [bytes].
         name: file name stem, files are `<name>_<k>.mcap`.
         topics: resolved topic name -> 'pkg/msg/Type' of everything `record_solve` may get;
@@ -109,8 +112,8 @@ class McapRecorder:
         self.max_bytes = int(max_bytes)
         self.max_total_bytes = int(max_total_bytes)
         check_cap(self.max_total_bytes, self.max_bytes)
-        self.metadata = {k: v if isinstance(v, str) else json.dumps(v)
-                         for k, v in (metadata or {}).items()}
+        self.metadata = seal({k: v if isinstance(v, str) else json.dumps(v)
+                              for k, v in (metadata or {}).items()})
         self.name = name
         self.topics = dict(topics or TOPICS)
         self.files: list[Path] = []  # every file created, in order (deleted ones included)

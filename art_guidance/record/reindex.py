@@ -8,7 +8,9 @@ checked, also in files that have a summary) and rewrites every file that is torn
 lacks a summary from its intact chunks, with a summary so readers can seek. It names what it
 kept and what it could not recover (file, chunk, byte offset, messages lost where the file's
 message index or metadata.yaml tells), then rewrites `metadata.yaml` from the files' summaries,
-noting the repair in its custom_data.
+noting the repair in its custom_data. Damage that cost no message (a summary that fails its CRC
+and is not needed, a damaged copy of a chunk read intact: `Damage.no_loss`) is named and
+dropped but is no data loss (`Repair.data_lost`).
 
 Each rewrite is atomic: the new file is written next to the old one and fsync'ed, the original
 is kept as `<name>.mcap.orig` (a hard link) until the new file has replaced it and the
@@ -173,24 +175,29 @@ class Repair:
 
     @property
     def data_lost(self) -> bool:
-        """Damaged chunks, or fewer messages on disk than the old metadata.yaml counted."""
-        return bool(self.damaged or self.lost.get("messages") is None
-                    or self.lost.get("messages"))
+        """Damage that may have cost messages, or fewer messages on disk than the old
+        metadata.yaml counted (damage that lost nothing, `Damage.no_loss`, is no loss)."""
+        return bool(any(d.lost_data for d in self.damaged)
+                    or self.lost.get("messages") is None or self.lost.get("messages"))
 
 
 def _say_rebuilt(done: Rebuilt, say: Callable[[str], None]) -> None:
     end = f"; dropped a torn end ({done.torn})" if done.torn else ""
     say(f"rewrote {done.path.name} with a summary: {done.messages} messages kept{end}")
     for damage in done.damaged:
-        say(f"  could not recover: {damage}")
+        say(f"  {'could not recover' if damage.lost_data else 'dropped'}: {damage}")
 
 
 def _repair_notes(repair: Repair) -> dict[str, str]:
     if not repair.rewritten:
         return {}
     what = [f"rebuilt {', '.join(repair.rewritten)}"]
-    if repair.damaged:
-        what.append(f"{len(repair.damaged)} damaged stretch(es) dropped")
+    lossy = sum(d.lost_data for d in repair.damaged)
+    if lossy:
+        what.append(f"{lossy} damaged stretch(es) dropped")
+    if len(repair.damaged) > lossy:
+        what.append(f"{len(repair.damaged) - lossy} damaged stretch(es) that lost nothing "
+                    "dropped (an unused summary, a damaged copy of an intact chunk)")
     if repair.torn:
         what.append(f"{len(repair.torn)} torn end(s) dropped")
     return {"art_guidance.repair": "; ".join(what),
@@ -231,7 +238,7 @@ def repair_bag(directory: str | Path, say: Callable[[str], None] = print) -> Rep
             repair.rewritten.append(scan.path.name)
         scan.messages = []
     repair.lost = account(directory, read_topics, read_files, types, repair.damaged)
-    if repair.data_lost or repair.lost["files"]:
+    if repair.data_lost or repair.lost["files"] or repair.damaged or repair.torn:
         say(describe(repair.lost))
     if repair.lost["source"] != METADATA_FILE:
         say(f"note: {repair.lost['metadata']}")

@@ -6,10 +6,10 @@ a write (a torn end) yields every solve whose chunk was completed. What was read
 with `metadata.yaml` (`record.loss`), and SolveRecords without their ManeuverPlan (and plans
 without their record) are listed; the files are never modified. Messages are found by their
 type (the schema name), not by topic, so a node started in a namespace or with remapped topics
-replays the same. `replay` rebuilds the pipeline from the recorded configuration (and the
-learned model, checked against the recorded checksum), solves each recorded request again (the
-request JSON in the SolveRecord) and compares the ART rollout, the post hoc decision and the
-plan.
+replays the same. `replay` checks the run metadata it reads against its seal (`record.seal`;
+every file's record), rebuilds the pipeline from the recorded configuration (and the learned
+model, checked against the recorded checksum), solves each recorded request again (the request
+JSON in the SolveRecord) and compares the ART rollout, the post hoc decision and the plan.
 """
 from __future__ import annotations
 
@@ -28,13 +28,18 @@ from art_guidance.record.bag_metadata import bag_files
 from art_guidance.record.loss import account
 from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE
 from art_guidance.record.scan import Damage, FileScan, lend_channels, scan_file
+from art_guidance.record.seal import SEAL_KEY, seal_problems, shown
 
 COST_REL_TOL = 1e-6     # relative cost agreement of a re-solve
 DV_ABS_TOL_MPS = 1e-5   # largest delta-v component difference [m/s]
 ROLLOUT_ABS_TOL_MPS = 1e-6  # largest ART rollout control difference [m/s] (same model, CPU)
 EXIT_OK = 0        # every compared solve matches, nothing lost or damaged
 EXIT_MISMATCH = 1  # a compared solve does not match (whatever else)
-EXIT_LOST = 3      # all compared solves match, but data was lost or damaged
+EXIT_LOST = 3      # all compared solves match, but data was lost
+EXIT_UNCOMPARED = 4  # no compared solve differs, but solves recorded with another model than
+#                      the one replayed were not compared (without `allow_uncompared`)
+OTHER_MODEL = "recorded with a different model"
+DEADLINE_HIT = "recorded solve hit its deadline"
 
 
 def _stamp_ns(stamp: object) -> int:
@@ -51,7 +56,8 @@ def request_stamp_ns(record: object) -> int:
 class RecordedLog:
     """Messages of one or more MCAP files, in file order, and what could not be read."""
 
-    metadata: dict = field(default_factory=dict)
+    metadata: dict = field(default_factory=dict)  # the last file's record, which replay reads
+    metadata_records: dict[str, dict] = field(default_factory=dict)  # file name -> its record
     messages: list[tuple[str, object, int]] = field(default_factory=list)  # topic, msg, t_ns
     types: dict[str, str] = field(default_factory=dict)  # topic -> 'pkg/msg/Type'
     truncated: list[str] = field(default_factory=list)  # torn ends ("<file>: <why>")
@@ -62,11 +68,37 @@ class RecordedLog:
 
     @property
     def data_lost(self) -> bool:
-        """Damage was found, messages are missing against metadata.yaml (or the damaged
-        chunks' index), or a SolveRecord or plan lacks its partner."""
+        """Damage that may have cost messages was found (not `Damage.no_loss`), messages are
+        missing against metadata.yaml (or the damaged chunks' index), or a SolveRecord or plan
+        lacks its partner."""
         unmatched = self.unmatched()
-        return bool(self.damaged or self.lost.get("messages") is None
+        return bool(any(d.lost_data for d in self.damaged) or self.lost.get("messages") is None
                     or self.lost.get("messages") or any(unmatched.values()))
+
+    def metadata_check(self) -> tuple[str, list[str]]:
+        """("sealed" | "unsealed" | "altered", problems): every file's run metadata record
+        against its seal (`record.seal`), and against the record replay reads (the last
+        file's; the recorder writes the same one to every file). Each problem names the file,
+        the field and its value. "unsealed": recorded before the seal, nothing to check by."""
+        problems, unsealed = [], []
+        last = next(reversed(self.metadata_records), None)
+        for name, record in self.metadata_records.items():
+            found = seal_problems(record)
+            if found is None:
+                unsealed.append(name)
+            problems += [f"{name}: {problem}" for problem in found or []]
+            if name != last:
+                reads = self.metadata_records[last]
+                problems += [f"{name}: {key} = {shown(str(record.get(key, '')))} differs from "
+                             f"{last}'s {shown(str(reads.get(key, '')))}, which replay reads"
+                             for key in sorted(set(record) | set(reads))
+                             if key != SEAL_KEY and record.get(key) != reads.get(key)]
+        if unsealed and len(unsealed) < len(self.metadata_records):
+            problems += [f"{name}: no {SEAL_KEY}, where the other files have one: removed "
+                         "after recording" for name in unsealed]
+        sealed = self.metadata_records and not unsealed
+        state = "altered" if problems else "sealed" if sealed else "unsealed"
+        return state, problems
 
     def of_type(self, msg_type: str) -> list[object]:
         """Every message of `msg_type` ('pkg/msg/Type'), whatever its topic, in file order."""
@@ -125,6 +157,7 @@ def _decode(log: RecordedLog, scan: FileScan) -> None:
     for record in scan.metadata:
         if record.name == "art_guidance":
             log.metadata = dict(record.metadata)
+            log.metadata_records[scan.path.name] = log.metadata
     count = 0
     for record in scan.messages:
         topic, decoder = channels[record.channel_id]
@@ -265,29 +298,51 @@ def advice(path: str | Path, log: RecordedLog) -> list[str]:
     return out
 
 
-def replay(path: str | Path, model: str | Path | None = None) -> dict:
+def _metadata_report(log: RecordedLog) -> tuple[str, list[str]]:
+    """The report's `metadata_check` ("ok", "unsealed: ...", or "altered: ...") and its
+    problems (`RecordedLog.metadata_check`)."""
+    state, problems = log.metadata_check()
+    if state == "unsealed":
+        return ("unsealed: recorded before the metadata seal; model_checksum, art_runtime and "
+                "art_runtime_checksum are taken as recorded (the configuration is sealed by its "
+                "own record_sha256)"), []
+    if problems:
+        return f"altered: {len(problems)} value(s) do not match the seal", problems
+    return "ok", []
+
+
+def replay(path: str | Path, model: str | Path | None = None,
+           allow_uncompared: bool = False) -> dict:
     """Re-solve every recorded request; returns a JSON-ready report with a per-solve verdict.
 
     A solve matches when the replayed plan's cost agrees to COST_REL_TOL and every delta-v
     component to DV_ABS_TOL_MPS, and, where a learned warm start was proposed, the rollout
     agrees to ROLLOUT_ABS_TOL_MPS and the post hoc decision and the warm start kept are the
-    same.
+    same. A solve that used the learned warm start of another model than the one replayed is
+    not compared (`uncompared`); nor is a solve that hit its deadline (`deadline_hit`: replays
+    are not time-boxed, so it cannot be reproduced).
 
     The report also says what could not be read (`damaged`, `truncated`: torn ends), what was
     lost against metadata.yaml (`lost`), which records or plans lack their partner
     (`unmatched`), `advice`, `config_check` ("ok", or why the recorded configuration cannot be
-    trusted: its seal does not match, `planning.pipeline.recorded_config_problem`) and
-    `exit_code`: EXIT_MISMATCH if a compared solve differs or the configuration was altered,
-    else EXIT_LOST if anything was lost or damaged, else EXIT_OK.
+    trusted: its seal does not match, `planning.pipeline.recorded_config_problem`),
+    `metadata_check` and `metadata_problems` (every run metadata value against its seal,
+    `record.seal`: "ok", "unsealed: ..." for a recording from before the seal, or "altered:
+    ..." with each altered field and value) and `exit_code`: EXIT_MISMATCH if a compared solve
+    differs, the configuration or any run metadata value was altered; else EXIT_UNCOMPARED if
+    solves went uncompared for another model (unless `allow_uncompared`); else EXIT_LOST if
+    data was lost; else EXIT_OK.
 
     Args:
         path: an .mcap file or a bag folder.
         model: checkpoint to replay learned warm starts with (default: the shipped model if it
             is the recorded one; see the report's "model" note otherwise).
+        allow_uncompared: solves left uncompared for another model do not set the exit code.
     """
     log = read_log(path)
     if "config" not in log.metadata:
         raise InputError("log", "no art_guidance configuration in the MCAP metadata", str(path))
+    metadata_check, metadata_problems = _metadata_report(log)
     provider, model_note = _replay_provider(log, model)
     same_model = provider is None or provider.sha256 == log.metadata.get("model_checksum")
     try:
@@ -306,11 +361,11 @@ def replay(path: str | Path, model: str | Path | None = None) -> dict:
                "cost_mps": cost, "request_stamp_ns": request_stamp_ns(record)}
         reason = str(getattr(record, "warm_start_reason", ""))
         if plan.status_text.startswith("TIMEOUT") or "TIMEOUT" in reason:
-            row.update(match=None, reason="recorded solve hit its deadline")
+            row.update(match=None, reason=DEADLINE_HIT)
             rows.append(row)
             continue
         if not same_model and len(getattr(record, "warm_start_art_dv_rtn_mps", [])):
-            row.update(match=None, reason="recorded with a different model")
+            row.update(match=None, reason=OTHER_MODEL)
             rows.append(row)
             continue
         result = pipeline.plan(PlanRequest.from_json(json.loads(record.request_json)))
@@ -325,16 +380,31 @@ def replay(path: str | Path, model: str | Path | None = None) -> dict:
         rows.append(row)
     compared = [r for r in rows if r["match"] is not None]
     mismatched = sum(not r["match"] for r in compared)
+    uncompared = sum(r.get("reason") == OTHER_MODEL for r in rows)
+    hints = []
+    if metadata_problems:
+        hints.append("the run metadata was altered after recording: what replay chose from it "
+                     "(the configuration, the model) cannot be trusted; replay a copy of the "
+                     "bag as recorded")
+    elif uncompared and not allow_uncompared:
+        hints.append(f"{uncompared} solve(s) that used the learned warm start of model sha256 "
+                     f"{str(log.metadata.get('model_checksum'))[:16]}... were not compared: "
+                     "replay with that model (`--model CKPT`) to compare them, or pass "
+                     "`--allow-uncompared` to accept the replay without them")
     return {"log": str(path), "solves": len(rows), "compared": len(compared),
             "matched": sum(r["match"] for r in compared), "mismatched": mismatched,
-            "exit_code": (EXIT_MISMATCH if mismatched or config_problem else
-                          EXIT_LOST if log.data_lost else EXIT_OK),
+            "uncompared": uncompared,
+            "deadline_hit": sum(r.get("reason") == DEADLINE_HIT for r in rows),
+            "exit_code": (EXIT_MISMATCH if mismatched or config_problem or metadata_problems
+                          else EXIT_UNCOMPARED if uncompared and not allow_uncompared
+                          else EXIT_LOST if log.data_lost else EXIT_OK),
             "config_check": config_problem or "ok",
+            "metadata_check": metadata_check, "metadata_problems": metadata_problems,
             "model": model_note, "model_checksum": log.metadata.get("model_checksum", "none"),
             "truncated": log.truncated,
             "damaged": [d.as_dict() for d in log.damaged],
             "lost": log.lost, "unmatched": log.unmatched(), "notes": log.notes,
-            "advice": advice(path, log),
+            "advice": hints + advice(path, log),
             "tolerances": {"cost_rel": COST_REL_TOL, "dv_abs_mps": DV_ABS_TOL_MPS,
                            "rollout_abs_mps": ROLLOUT_ABS_TOL_MPS},
             "per_solve": rows}

@@ -13,8 +13,12 @@ was cut short inside a write (a crash): that is a torn end, not damage; the comp
 before it are kept. So is a file whose data section is whole but whose ending (footer, closing
 magic) is cut or garbled. Damage elsewhere in such a file is still damage.
 
-The messages a damaged chunk held are counted, where the file tells, from the Message Index
-records written after it (they lie outside the chunk and its CRC).
+The messages a damaged chunk held are named, where the file tells, by the Message Index records
+written after it (they lie outside the chunk and its CRC): channel and log time of each. Those
+read intact elsewhere in the file (a chunk written twice, one copy damaged) are not lost; the
+rest are. A damaged stretch that lost nothing (every message it held read intact in another
+copy, or a summary that is not used because the data section is read instead) says why in
+`Damage.no_loss`; it is named all the same (the file needs a rewrite, the medium a check).
 
 A summary that fails its CRC is not used, nor is the footer's offset to it: the data section is
 then read up to the data end record, so a file in which a bad copy wrote a chunk twice (every
@@ -33,16 +37,20 @@ import hashlib
 import mmap
 import struct
 import zlib
-from dataclasses import dataclass, field
+from collections import Counter
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from mcap.opcode import Opcode
 from mcap.records import Channel, ChunkIndex, DataEnd, Header, Message, Metadata, Schema
 
 from art_guidance.record.mcap_records import (  # noqa: F401 (chunk_records: read from here)
-    FRAME_BYTES, MAGIC, OPCODES, BadRecord, ShortRecord, chunk_records, frame, index_counts,
+    FRAME_BYTES, MAGIC, OPCODES, BadRecord, ShortRecord, chunk_records, frame, index_times,
     mcap_ending, next_chunk, parse, read_chunk,
 )
+
+SUMMARY_NOT_NEEDED = "the data section was read to its data end record instead"
+READ_IN_A_COPY = "every message it held was read intact in another copy of the chunk"
 
 
 @dataclass(frozen=True)
@@ -51,8 +59,10 @@ class Damage:
 
     `chunk` is the chunk's ordinal in the file (0 = first; from the summary's chunk index when
     the file has one, else counted while reading), None where the damage is not in a chunk.
-    `messages` is what the lost chunk(s) held per the file's message index (None = unknown),
-    `by_topic` the same per topic.
+    `messages` is what the lost chunk(s) held per the file's message index and was read
+    nowhere else in the file (None = unknown), `by_topic` the same per topic; `copied` what
+    they held that was read intact in another copy of the chunk. `no_loss` says why the
+    stretch cost no message ("" = it may have; see the module).
     """
 
     file: str
@@ -62,11 +72,24 @@ class Damage:
     reason: str
     messages: int | None = None
     by_topic: dict[str, int] = field(default_factory=dict)
+    copied: int = 0
+    no_loss: str = ""
+
+    @property
+    def lost_data(self) -> bool:
+        """Messages may have been lost to this damage (False: see `no_loss`)."""
+        return not self.no_loss
 
     def __str__(self) -> str:
         where = f"chunk {self.chunk}" if self.chunk is not None else "data"
-        held = ("" if self.messages is None else
-                f"; {self.messages} message(s) lost per the file's message index")
+        if self.no_loss:
+            held = f"; nothing lost: {self.no_loss}"
+        elif self.messages is None:
+            held = ""
+        else:
+            copied = (f" ({self.copied} more it held read intact in another copy)"
+                      if self.copied else "")
+            held = f"; {self.messages} message(s) lost per the file's message index{copied}"
         return (f"{self.file}: {where} at byte offset {self.offset} ({self.length} bytes "
                 f"skipped): {self.reason}{held}")
 
@@ -74,7 +97,8 @@ class Damage:
         """JSON-ready form."""
         return {"file": self.file, "chunk": self.chunk, "offset": self.offset,
                 "length": self.length, "reason": self.reason, "messages": self.messages,
-                "by_topic": dict(self.by_topic)}
+                "by_topic": dict(self.by_topic), "copied": self.copied,
+                "lost_data": self.lost_data, "no_loss": self.no_loss}
 
 
 @dataclass
@@ -106,8 +130,10 @@ class _Walk:
         self.offsets: list[int] = []
         self.read: set[int] = set()  # offsets of the chunks read intact
         self.counted = 0  # chunk records met (the ordinal without a summary)
-        self.pending: list[tuple[Damage, dict[int, int] | None]] = []
+        self.pending: list[tuple[Damage, dict[int, list[int]] | None]] = []
         self.chunk_digests: dict[bytes, int] = {}  # chunk body digest -> its first offset
+        # header (see `_chunk_key`) of each chunk read intact -> its offset and messages
+        self.intact_chunks: dict[tuple[int, int, int, int], tuple[int, int]] = {}
         self.message_keys: set[tuple[int, int, bytes]] = set()  # channel, log time, data
         self.duplicate_messages = 0
         if self.ending is not None:
@@ -146,7 +172,8 @@ class _Walk:
                     channel = parse(opcode, body)
                     channels[channel.id] = channel
         except BadRecord as exc:
-            self._damage(None, start, footer_pos - start, f"{what}: {exc}; not used")
+            self._damage(None, start, footer_pos - start, f"{what}: {exc}; not used",
+                         no_loss=SUMMARY_NOT_NEEDED)
             self.limit = footer_pos  # nor its offset: the data end record ends the data
             return
         self.scan.summary = True
@@ -156,9 +183,11 @@ class _Walk:
         self.scan.channels.update(channels)
 
     def _damage(self, chunk: int | None, offset: int, length: int, reason: str,
-                counts: dict[int, int] | None = None) -> None:
-        self.pending.append((Damage(self.scan.path.name, chunk, offset, length, reason),
-                             counts))
+                times: dict[int, list[int]] | None = None, no_loss: str = "") -> None:
+        """Note a damaged stretch; `times`: the log times [ns] per channel id of the messages it
+        held, from the message index after it (None: unknown)."""
+        self.pending.append((Damage(self.scan.path.name, chunk, offset, length, reason,
+                                    no_loss=no_loss), times))
 
     def _resync(self, pos: int) -> int | None:
         if self.index:
@@ -178,6 +207,10 @@ class _Walk:
             if first == pos:
                 self._keep(records)
                 scan.chunks += 1
+                key = self._chunk_key(pos)
+                if key is not None:
+                    self.intact_chunks.setdefault(
+                        key, (pos, sum(isinstance(r, Message) for r in records)))
             else:
                 scan.notes.append(f"{scan.path.name}: the chunk at byte offset {pos} "
                                   f"duplicates the chunk at byte offset {first}: dropped")
@@ -198,6 +231,15 @@ class _Walk:
         elif opcode == Opcode.FOOTER:
             return None
         return end
+
+    def _chunk_key(self, pos: int) -> tuple[int, int, int, int] | None:
+        """(message start and end time [ns], uncompressed size [bytes], uncompressed CRC) of
+        the chunk record at `pos`, from its header; None where there is no chunk record or
+        no CRC. A damaged chunk whose header is that of a chunk read intact is a copy of it."""
+        if pos < 0 or pos + FRAME_BYTES + 28 > self.size or self.buf[pos] != Opcode.CHUNK:
+            return None
+        key = struct.unpack_from("<QQQI", self.buf, pos + FRAME_BYTES)
+        return key if key[3] else None
 
     def _keep(self, records: list[object]) -> None:
         for record in records:
@@ -238,19 +280,19 @@ class _Walk:
         else:
             chunk = self.counted if is_chunk else None
             self.counted += is_chunk
-            counts = None
+            times = None
             if is_chunk:
                 end = pos + FRAME_BYTES + struct.unpack_from("<Q", self.buf, pos + 1)[0]
-                counts = index_counts(self.buf, end, stop) if end <= stop else None
-            self._damage(chunk, pos, stop - pos, str(exc), counts)
+                times = index_times(self.buf, end, stop) if end <= stop else None
+            self._damage(chunk, pos, stop - pos, str(exc), times)
         return nxt
 
     def _lost_chunk(self, k: int, offset: int, pos: int, stop: int, exc: BadRecord) -> None:
         entry = self.index[k]
         reason = str(exc) if offset == pos else f"in a damaged stretch ({exc})"
-        counts = index_counts(self.buf, offset + entry.chunk_length, self.limit)
+        times = index_times(self.buf, offset + entry.chunk_length, self.limit)
         self._damage(k, offset, entry.chunk_length if offset != pos else stop - pos, reason,
-                     counts)
+                     times)
 
     def run(self) -> FileScan:
         pos = len(MAGIC)
@@ -276,25 +318,44 @@ class _Walk:
         for k, entry in enumerate(self.index):
             off = entry.chunk_start_offset
             if off not in self.read and off not in named:
-                counts = index_counts(self.buf, off + entry.chunk_length, self.limit)
+                times = index_times(self.buf, off + entry.chunk_length, self.limit)
                 self._damage(k, off, entry.chunk_length, "not reached: the chunk index "
-                             "points into a stretch that did not read", counts)
+                             "points into a stretch that did not read", times)
 
     def _finish(self) -> None:
         if self.duplicate_messages:
             self.scan.notes.append(f"{self.scan.path.name}: {self.duplicate_messages} "
                                    "message(s) identical to one read before (same channel, "
                                    "log time and data): dropped")
-        topics = {cid: ch.topic for cid, ch in self.scan.channels.items()}
-        for damage, counts in sorted(self.pending, key=lambda p: p[0].offset):
-            if counts is not None:
-                by_topic: dict[str, int] = {}
-                for cid, n in counts.items():
-                    topic = topics.get(cid, f"channel {cid}")
-                    by_topic[topic] = by_topic.get(topic, 0) + n
-                damage = Damage(damage.file, damage.chunk, damage.offset, damage.length,
-                                damage.reason, sum(counts.values()), by_topic)
+        read = Counter((m.channel_id, m.log_time) for m in self.scan.messages)
+        for damage, times in sorted(self.pending, key=lambda p: p[0].offset):
+            copy_of = self.intact_chunks.get(self._chunk_key(damage.offset))
+            if copy_of is not None and copy_of[0] != damage.offset:
+                damage = replace(damage, messages=0, by_topic={}, copied=copy_of[1],
+                                 no_loss=f"a copy of the chunk read intact at byte offset "
+                                 f"{copy_of[0]} (the same uncompressed CRC, size and time "
+                                 "range)")
+            elif times is not None:
+                damage = self._held(damage, times, read)
             self.scan.damaged.append(damage)
+
+    def _held(self, damage: Damage, times: dict[int, list[int]], read: Counter) -> Damage:
+        """`damage` with what it held (per its message index `times`) split into what was read
+        intact elsewhere in the file (same channel and log time: the recorder writes one
+        message per topic and solve, at the solve's log time) and what was lost."""
+        topics = {cid: ch.topic for cid, ch in self.scan.channels.items()}
+        by_topic: dict[str, int] = {}
+        copied = 0
+        for cid, stamps in times.items():
+            held = Counter(stamps)
+            found = sum(min(n, read[(cid, t)]) for t, n in held.items())
+            copied += found
+            if len(stamps) > found:
+                topic = topics.get(cid, f"channel {cid}")
+                by_topic[topic] = by_topic.get(topic, 0) + len(stamps) - found
+        lost = sum(by_topic.values())
+        no_loss = damage.no_loss or (READ_IN_A_COPY if copied and not lost else "")
+        return replace(damage, messages=lost, by_topic=by_topic, copied=copied, no_loss=no_loss)
 
 
 def scan_file(path: str | Path) -> FileScan:
@@ -313,8 +374,7 @@ def _retopic(damage: Damage, channels: dict[int, Channel]) -> Damage:
     by_topic: dict[str, int] = {}
     for topic, n in damage.by_topic.items():
         by_topic[names.get(topic, topic)] = by_topic.get(names.get(topic, topic), 0) + n
-    return Damage(damage.file, damage.chunk, damage.offset, damage.length, damage.reason,
-                  damage.messages, by_topic)
+    return replace(damage, by_topic=by_topic)
 
 
 def lend_channels(scans: list[FileScan]) -> None:

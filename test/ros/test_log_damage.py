@@ -1,6 +1,7 @@
 """Damaged and cut recordings: every chunk's CRC is checked, damage is named and skipped, the
 intact chunks after it are read, the loss is counted against metadata.yaml, `replay` and
-`bag reindex` exit non-zero when data was lost, and a repaired folder opens in rosbags."""
+`bag reindex` exit non-zero when data was lost (and only then: a chunk written twice, one copy
+damaged, loses nothing), and a repaired folder opens in rosbags."""
 from __future__ import annotations
 
 import json
@@ -277,7 +278,7 @@ def test_a_chunk_written_twice_loses_nothing_and_the_copy_is_dropped(tmp_path, r
     """The footer's summary offset then points into data and the summary fails its CRC: the
     rest of the file is scanned (no intact chunk after the bogus offset is dropped), the
     second copy is dropped and named, and `bag reindex` rewrites the file with every solve
-    once."""
+    once. The unused summary is no data loss: reindex exits 0 and records no loss."""
     bag = _bag(tmp_path, results)
     path = bag / "guidance_0.mcap"
     n_chunks = len(_summary(path).chunk_indexes)
@@ -286,11 +287,70 @@ def test_a_chunk_written_twice_loses_nothing_and_the_copy_is_dropped(tmp_path, r
     assert _plan_ids(log) == list(range(N_SOLVES))
     assert any(f"duplicates the chunk at byte offset {start}" in n for n in log.notes), log.notes
     assert [d.reason.split(":")[0] for d in log.damaged] == ["summary section"]
-    assert log.lost["messages"] == 0, log.lost
-    repair = repair_bag(bag, say=print)
-    assert repair.rewritten == ["guidance_0.mcap"]
+    assert not log.damaged[0].lost_data and "data end record" in log.damaged[0].no_loss
+    assert log.lost["messages"] == 0 and not log.data_lost, log.lost
+    assert cli_main(["bag", "reindex", str(bag)]) == EXIT_OK
     out = capsys.readouterr().out
-    assert "duplicates the chunk" in out, out
+    assert "duplicates the chunk" in out and "lost: nothing" in out, out
+    assert "could not recover" not in out and "dropped: guidance_0.mcap: data at" in out, out
+    custom = _info(bag)["custom_data"]
+    assert custom["art_guidance.lost_messages"] == "0"
+    assert "1 damaged stretch(es) that lost nothing dropped" in custom["art_guidance.repair"]
+    assert _info(bag)["message_count"] == 3 * N_SOLVES
     ids = _rosbags_plan_ids(bag)
     assert sorted(int(i.split("-")[1]) for i in ids) == list(range(N_SOLVES))
     assert read_log(bag).damaged == [] and _plan_ids(read_log(bag)) == list(range(N_SOLVES))
+
+
+@pytest.mark.parametrize("damage", ["copy", "original", "copy_header", "another_chunk"])
+def test_a_damaged_copy_of_a_chunk_read_intact_loses_nothing(tmp_path, results, capsys, damage):
+    """A chunk written twice, one copy damaged (its data; or the original's; or the copy's
+    header too, so only its message index tells what it held): every solve is read once, the
+    damaged copy is named but nothing is lost, `bag reindex` exits 0 and records no loss.
+    Damage to a chunk that has no copy is still lost and exits 3."""
+    n = 12
+    bag = _bag(tmp_path, results, n=n)
+    path = bag / "guidance_0.mcap"
+    chunks = sorted(_summary(path).chunk_indexes, key=lambda c: c.chunk_start_offset)
+    other = chunks[len(chunks) // 6]
+    start, length = _duplicate_chunk(path, len(chunks) // 3)
+    if damage == "another_chunk":  # before the copy: its offset did not move
+        _flip(path, other.chunk_start_offset + other.chunk_length // 2, n=20)
+    else:
+        at = start + (length if damage.startswith("copy") else 0)
+        _flip(path, at + length // 2, n=20, seed=2)
+        if damage == "copy_header":
+            _flip(path, at + 9, n=8, seed=3)  # message_start_time: no longer the original's
+    log = read_log(bag)
+    lossy = [d for d in log.damaged if d.lost_data]
+    if damage == "another_chunk":
+        assert len(log.solves()) == n - 1 and log.data_lost
+        assert [(d.offset, d.messages) for d in lossy] == [(other.chunk_start_offset, 3)]
+        assert log.lost["messages"] == 3 and log.lost["solves"] == 1
+        assert replay(bag)["exit_code"] == EXIT_LOST
+        assert cli_main(["bag", "reindex", str(bag)]) == EXIT_LOST
+        assert "lost: 3 message(s), 1 solve(s)" in capsys.readouterr().out
+        assert _info(bag)["custom_data"]["art_guidance.lost_messages"] == "3"
+        return
+    assert _plan_ids(log) == list(range(n)) and lossy == [], log.damaged
+    chunk = [d for d in log.damaged if d.chunk is not None]
+    assert [(d.offset, d.messages, d.copied) for d in chunk] == [
+        (start + (length if damage.startswith("copy") else 0), 0, 3)]
+    # identified by its header (the same CRC as the intact copy), else by its message index
+    assert ("read intact in another copy" if damage == "copy_header" else
+            "the same uncompressed CRC, size and time range") in chunk[0].no_loss, chunk
+    assert log.lost["messages"] == 0 and log.lost["by_topic"] == {} and not log.data_lost
+    if damage == "copy":
+        assert cli_main(["replay", str(bag)]) == EXIT_OK
+        out = capsys.readouterr().out
+        assert f"{n}/{n} matched" in out and "damaged, nothing lost (a copy of the chunk" in out
+    assert cli_main(["bag", "reindex", str(bag)]) == EXIT_OK
+    out = capsys.readouterr().out
+    assert "lost: nothing" in out and "could not recover" not in out, out
+    info = _info(bag)
+    assert info["custom_data"]["art_guidance.lost_messages"] == "0"
+    assert "2 damaged stretch(es) that lost nothing" in info["custom_data"]["art_guidance.repair"]
+    assert info["message_count"] == 3 * n
+    repaired = read_log(bag)
+    assert repaired.damaged == [] and _plan_ids(repaired) == list(range(n))
+    assert repaired.metadata_check() == ("sealed", [])  # the rewrite keeps the seal

@@ -25,7 +25,7 @@ from art_guidance.record.recorder import (
     free_bag_dir, ros2msg_schema,
 )
 from art_guidance.record.reindex import has_summary, repair_bag
-from art_guidance.record.replay import read_log, replay
+from art_guidance.record.replay import EXIT_UNCOMPARED, read_log, replay
 from art_guidance.ros.adapters import plan_to_msg, solve_record_msg
 
 AnyReader = pytest.importorskip("rosbags.highlevel").AnyReader
@@ -340,6 +340,8 @@ def test_replay_of_an_art_warm_started_log(tmp_path):
     mismatch = replay(bag, other)
     assert "replayed with other.pt" in mismatch["model"] and mismatch["mismatched"] == 0
     assert mismatch["compared"] == 1  # the CVX-requested solve only
+    assert mismatch["uncompared"] == 2 and mismatch["exit_code"] == EXIT_UNCOMPARED
+    assert replay(bag, other, allow_uncompared=True)["exit_code"] == 0
     assert {r["reason"] for r in mismatch["per_solve"] if r["match"] is None} == {
         "recorded with a different model"}
 
