@@ -217,9 +217,12 @@ class McapRecorder:
             self._fail(exc)
 
     # ------------------------------------------------------------------ writing
-    def record_solve(self, messages: Iterable[tuple[str, object]], log_time_ns: int) -> bool:
+    def record_solve(self, messages: Iterable[tuple[str, object]], log_time_ns: int,
+                     solve: bool = True) -> bool:
         """Write one solve's (topic, message) pairs in a chunk of their own with one write over
         the file's ending, fsync, then rewrite metadata.yaml (see the module docstring).
+        `solve` False: messages that follow a solve already written (its visualisation), not
+        counted as a solve.
 
         Returns False (and logs) on any error, with the folder as it was; never raises.
         """
@@ -238,7 +241,7 @@ class McapRecorder:
             self._append(handle, handle.stream.take())
         except Exception as exc:  # full disk, unwritable path, size limit, bad message ...
             return self._failed(exc, handle, None if handle is None else handle.data_end)
-        undo = self._count(handle, [topic for topic, _ in encoded], log_time_ns)
+        undo = self._count(handle, [topic for topic, _ in encoded], log_time_ns, solve)
         try:
             self._write_bag_metadata("recording")
         except Exception as exc:  # the data without its metadata.yaml is undone
@@ -261,15 +264,15 @@ class McapRecorder:
             pass
         return False
 
-    def _count(self, handle: OpenFile, topics: list[str], log_time_ns: int):
-        """Count a written solve; returns the function that takes it back."""
+    def _count(self, handle: OpenFile, topics: list[str], log_time_ns: int, solve: bool):
+        """Count written messages (and a solve); returns the function that takes them back."""
         before = (handle.start_ns, handle.end_ns, handle.count, self.solves)
         for topic in topics:
             handle.topic_counts[topic] += 1
         handle.start_ns = min(handle.start_ns, log_time_ns) if handle.count else log_time_ns
         handle.end_ns = max(handle.end_ns, log_time_ns)
         handle.count += len(topics)
-        self.solves += 1
+        self.solves += int(solve)
 
         def undo() -> None:
             handle.start_ns, handle.end_ns, handle.count, self.solves = before

@@ -248,8 +248,10 @@ class GuidanceNodeBase:
                 self.core.job_done()
 
     def _solve(self, job: Job) -> None:
+        """Solve a job, record it, publish the plan; then, after the plan is out, its
+        visualisation (published and recorded), the log line and the diagnostic."""
         # solve_deadline_s bounds the replan up to its publication: the plan gets what the
-        # recent messages and recordings leave of it
+        # recent recordings leave of it
         solved = self.core.solve(job, Deadline.after(
             self.budget.planning_s(self.params.solve_deadline_s)))
         t_solved = time.perf_counter()
@@ -259,19 +261,17 @@ class GuidanceNodeBase:
         plan_msg.active_plan_id = active_id
         if action is not Action.ACTIVATED:
             plan_msg.status_text = solved.status_text
-        # a plan a queued solve replaces at once is not drawn (bursts)
-        views = (self.out.plan_views(job.nav, result, plan_id,
-                                     lambda: self.pipeline.safety_model(job.request),
-                                     self.scenario, self._log())
-                 if action is Action.ACTIVATED and not self.core.job_queued() else [])
         # recorded (and fsync'ed) before it is published: a crash never loses a published plan
-        if not self.recording.record(job, result, plan_id, plan_msg, views):
-            recorder = self.recording.recorder
-            self._log().error(f"recording failed, guidance continues: {recorder.last_error}")
-            self.out.diag("art_guidance/recorder", ERROR, recorder.last_error,
-                          {"errors": recorder.errors})
+        self._recorded(self.recording.record(job, result, plan_id, plan_msg))
+        self.out.plan_pub.publish(plan_msg)
         self.budget.add_post_solve_s(time.perf_counter() - t_solved)
-        self.out.publish_plan(plan_msg, views)
+        # a plan a queued solve replaces at once is not drawn (bursts)
+        if action is Action.ACTIVATED and not self.core.job_queued():
+            views = self.out.plan_views(job.nav, result, plan_id,
+                                        lambda: self.pipeline.safety_model(job.request),
+                                        self.scenario, self._log())
+            self.out.publish_views(views)
+            self._recorded(self.recording.record_views(views))
         level = OK if result.scp.feasible else WARN
         t = result.timings_ms
         self._log().info(
@@ -288,6 +288,15 @@ class GuidanceNodeBase:
                        "art_ms": round(t["art"], 2), "scp_ms": round(t["scp"], 2),
                        "record_dir": self.recording.directory,
                        **self._model_values(), **self._proposal_worker_values()})
+
+    def _recorded(self, ok: bool) -> None:
+        """Report a recording that failed (guidance goes on)."""
+        if ok:
+            return
+        recorder = self.recording.recorder
+        self._log().error(f"recording failed, guidance continues: {recorder.last_error}")
+        self.out.diag("art_guidance/recorder", ERROR, recorder.last_error,
+                      {"errors": recorder.errors})
 
     def _proposal_worker_values(self) -> dict:
         """The proposal worker process for the plan diagnostic (none: no values); a death

@@ -66,9 +66,8 @@ class NodeOutputs:
         values = {"nav_stamp_ns": str(stamp_ns), "decision": decision, **extra}
         self.diag("art_guidance/nav", level, decision, values)
 
-    def publish_plan(self, plan_msg: ManeuverPlan, views: list[tuple[str, object]]) -> None:
-        """A plan and its visualisation messages."""
-        self.plan_pub.publish(plan_msg)
+    def publish_views(self, views: list[tuple[str, object]]) -> None:
+        """A plan's visualisation messages (`plan_views`)."""
         for topic, msg in views:
             self.viz_pubs[topic].publish(msg)
 

@@ -4,8 +4,8 @@
 it works before the endpoints exist, as in a lifecycle node's configure), opens the
 `record.McapRecorder` with the run's metadata (configuration, versions, model, parameters) and
 writes each solve: the fix, the replan request once (a request played back would reset a live
-node's plan each time), the solve record, the plan and its visualisation, fsync'ed before the
-plan is published.
+node's plan each time), the solve record and the plan, fsync'ed before the plan is published;
+then the plan's visualisation, in a write of its own after the plan is out.
 """
 from __future__ import annotations
 
@@ -76,9 +76,9 @@ class SolveRecording:
                                      topics=recorded,
                                      max_total_bytes=params.record_max_total_bytes)
 
-    def record(self, job: Job, result: PlanResult, plan_id: str, plan_msg: Any,
-               views: list[tuple[str, object]]) -> bool:
-        """Write one solve (True: written or not recording; False: see the recorder's
+    def record(self, job: Job, result: PlanResult, plan_id: str, plan_msg: Any) -> bool:
+        """Write one solve: the fix, the request (once), the solve record and the plan, before
+        the plan is published (True: written or not recording; False: see the recorder's
         `last_error`)."""
         if self.recorder is None:
             return True
@@ -94,12 +94,19 @@ class SolveRecording:
                      result, job.nav.stamp_ns, plan_id, job.trigger, request_ns,
                      self.model_load_ms)),
                  (topic[PLAN_TYPE], plan_msg)]
-        msgs += [(self.viz_topics[t], msg) for t, msg in views]
         if not self.recorder.record_solve(msgs, time.time_ns()):
             return False
         if new_request:
             self._recorded_request = request
         return True
+
+    def record_views(self, views: list[tuple[str, object]]) -> bool:
+        """Write a published plan's visualisation messages (after the plan is out: derived
+        data, drawn again from the recorded plan if lost); True as `record`."""
+        if self.recorder is None or not views:
+            return True
+        return self.recorder.record_solve([(self.viz_topics[t], msg) for t, msg in views],
+                                          time.time_ns(), solve=False)
 
     @property
     def directory(self) -> str:

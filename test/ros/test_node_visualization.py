@@ -140,10 +140,16 @@ def test_visualisation_topics_over_dds_and_in_the_bag(ros_env, python_exe, tmp_p
         out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, out
     with AnyReader([bag]) as reader:
-        counts, last = {}, {}
-        for conn, _, raw in reader.messages():
+        counts, last, log_ns = {}, {}, {}
+        for conn, t_ns, raw in reader.messages():
             counts[conn.topic] = counts.get(conn.topic, 0) + 1
             last[conn.topic] = reader.deserialize(raw, conn.msgtype)
+            log_ns.setdefault(conn.topic, []).append(t_ns)
+    # the plan is recorded and published first; its views are drawn, published and recorded
+    # after it, in a write of their own
+    plan_ns = sorted(log_ns["/guidance/maneuver_plan"])
+    for topic in TOPICS:
+        assert all(v > p for v, p in zip(sorted(log_ns[f"/{topic}"]), plan_ns)), topic
     # one plan per answered fix: send_nav resends when the node's answer is late (a loaded
     # machine), and a resent fix can be planned for too; every plan carries its views
     n_plans = counts["/guidance/maneuver_plan"]
