@@ -1,7 +1,8 @@
 """Benchmark: nav message in -> plan out latency of the guidance node over real DDS.
 
 The node runs in its own process (as `ros2 run` would start it) with every nav message forced to
-replan; the client publishes a nav state, waits for the plan with that stamp, and repeats. Three
+replan; the client publishes a nav state, waits for the plan with that stamp (the latency), then
+for the node to be idle (its plan diagnostic, the last work of a plan), and repeats. Three
 configurations: with the learned warm start (`warm_start auto`, the shipped model or `--model`),
 CVX only, and `auto` with the proposal made in a worker process (`propose_concurrently`), each
 run in ROUNDS rounds over its share of the states (the order rotating), so that the machine's drift
@@ -79,11 +80,23 @@ def _node_latency(warm_start: str, states: list[np.ndarray], client_cls, nav_msg
                 raise RuntimeError(f"no plan for nav {k}")
             if k > 0:
                 latency.append(1e3 * (time.perf_counter() - t0))
+            _wait_idle(client, stamp)
     finally:
         client.close()
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=30)
     return latency
+
+
+def _wait_idle(client, stamp_ns: int, timeout_s: float = 30.0) -> None:
+    """Wait for the "art_guidance/plan" status of the plan for `stamp_ns`: the node's last
+    work of a plan (its views come before it), so the next fix finds the node idle, as a fix
+    every few seconds does in flight. Without it the views of one plan, drawn after it is
+    published, would be counted in the next plan's latency."""
+    def done(_, diags):
+        return any(name == "art_guidance/plan" and v.get("nav_stamp_ns") == str(stamp_ns)
+                   for _, v, name in diags)
+    client.wait_for(done, timeout_s)
 
 
 def _node_latencies(states: list[np.ndarray], client_cls, nav_msg,
