@@ -1,5 +1,6 @@
 # Two-command set-up: `make demo` and `make test` each build what they need first.
-# .venv (ROS 2 Jazzy wheels + deps) -> art_guidance_msgs built into it -> this package editable.
+# .venv (ROS 2 Jazzy wheels + deps) -> art_guidance_msgs built into it -> this package editable,
+# with the [train] extra (torch, onnx: a flight install, `pip install .`, has neither; README).
 SHELL := /bin/bash
 .SHELLFLAGS := -eo pipefail -c
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
@@ -46,8 +47,10 @@ $(VENV)/.stamp-msgs: $(VENV)/.stamp-ros $(MSG_SRC)
 	touch $@
 
 $(VENV)/.stamp-pkg: $(VENV)/.stamp-msgs setup.py setup.cfg Makefile $(CONSTRAINTS)
-	$(PIP) install -c $(CONSTRAINTS) -e ".[test,distributed]" 2>&1 | sed "/^WARNING: Location/d"
-	$(PY) -c "import art_guidance, torch, clarabel, osqp, cvxpy, rosbags, mcap_ros2" >/dev/null
+	$(PIP) install -c $(CONSTRAINTS) -e ".[train,test,distributed]" 2>&1 \
+		| sed "/^WARNING: Location/d"
+	$(PY) -c "import art_guidance, torch, onnx, onnxruntime, clarabel, osqp, cvxpy, rosbags, \
+		mcap_ros2" >/dev/null
 	touch $@
 
 setup: $(VENV)/.stamp-pkg
@@ -73,7 +76,8 @@ lock:
 	rm -rf $(BUILD)/lock-venv
 	$(PYTHON) -m venv $(BUILD)/lock-venv
 	$(BUILD)/lock-venv/bin/python -m pip --disable-pip-version-check -q install \
-		-r .ci/requirements-ros.txt ".[test,distributed]" 2>&1 | sed "/^WARNING: Location/d"
+		-r .ci/requirements-ros.txt ".[train,test,distributed]" 2>&1 \
+		| sed "/^WARNING: Location/d"
 	head -3 $(CONSTRAINTS) > $(BUILD)/constraints.txt
 	$(BUILD)/lock-venv/bin/python -m pip freeze --exclude art_guidance \
 		| sed 's/^torch==\([0-9.]*\)+cpu$$/torch==\1/' >> $(BUILD)/constraints.txt

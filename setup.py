@@ -24,10 +24,9 @@ setup(
         "pyyaml>=6",
         "clarabel>=0.9",
         "osqp>=1.0",
-        "torch==2.13.0",
-        # the torch-free runtime of exported models (`art-guidance export`, art_runtime onnx)
+        # the learned warm start flies the exported models (`.onnx`) on ONNX Runtime: a flight
+        # install (`pip install .`) has no torch and no onnx (README "Installing")
         "onnxruntime==1.30.0",
-        "onnx==1.23.1",
         # the recorder uses Writer.flush() and the private mcap_ros2._dynamic encoder: bounded
         # to the minor versions tested (.ci/constraints.txt pins mcap 1.6.0, support 0.6.0)
         "mcap>=1.6,<1.7",
@@ -36,6 +35,9 @@ setup(
         "matplotlib>=3.8",
     ],
     extras_require={
+        # train, export, distill, dagger (and the torch runtime of checkpoints); the commands
+        # name this extra when it is missing (art_guidance.extras)
+        "train": ["torch==2.13.0", "onnx==1.23.1"],
         "test": ["pytest>=8", "pytest-xdist>=3.6", "cvxpy>=1.5", "rosbags>=0.10", "flake8>=7"],
         "distributed": ["ray[default]>=2.9"],
     },

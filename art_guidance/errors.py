@@ -44,6 +44,23 @@ class ModelError(GuidanceError, RuntimeError):
     """A model checkpoint is missing, corrupt or incompatible."""
 
 
+class MissingDependencyError(GuidanceError, ImportError):
+    """What was asked needs Python packages that this install does not have (the flight install
+    has no torch: `art_guidance.extras`).
+
+    Attributes:
+        what: what needs them (e.g. "art-guidance train").
+        modules: the missing modules.
+        extra: the extra of art_guidance that installs them.
+    """
+
+    def __init__(self, what: str, modules: list[str], extra: str) -> None:
+        self.what, self.modules, self.extra = what, list(modules), extra
+        super().__init__(f"{what} needs {' and '.join(self.modules)}, which this install does "
+                         f"not have: install the [{extra}] extra, pip install "
+                         f"'art_guidance[{extra}]' (from a checkout: pip install '.[{extra}]')")
+
+
 class CheckpointError(ModelError):
     """A checkpoint file is refused: missing, truncated, corrupt, unsafe or incompatible.
 

@@ -1,4 +1,5 @@
-"""Benchmark: the distilled slim ART against its teacher, the shipped default of its mode.
+"""Benchmark: the distilled slim ART against its teacher, the shipped small model of its mode
+(`provider.TEACHERS`; the chance-constrained default is itself a student now).
 
 For chance-constrained `plan` scenarios (seeds FIRST.., held out from every training set) on
 which CVX is not passively safe (where `auto` runs ART), the learned step as the pipeline makes
@@ -25,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from art_guidance.art.provider import ArtWarmStart, default_model_path
+from art_guidance.art.provider import TEACHERS, ArtWarmStart, models_dir
 from art_guidance.config import GuidanceConfig
 from art_guidance.optim import Scvx
 from art_guidance.planning import GuidancePipeline
@@ -37,9 +38,9 @@ SLIM_MODEL = Path(__file__).resolve().parent / "results" / "slim" / "art_slim_ch
 def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None,
         reference: str | None = None) -> dict:
     """Teacher and student alternated over `repeats` scenarios; medians [ms]. `model`: another
-    student (e.g. `results/slim/art_slim_det_roe.pt`), measured against the shipped default
-    of its dataset's mode on scenarios of that mode; `reference`: a model measured in the
-    teacher's place (e.g. another student)."""
+    student (e.g. `results/slim/art_slim_det_roe.pt`), measured against the teacher of its
+    dataset's mode (`TEACHERS`) on scenarios of that mode; `reference`: a model measured in
+    the teacher's place (e.g. another student, or the chance-constrained default)."""
     import torch
 
     from bench_proposal import StepTimer, unsafe_cases
@@ -48,7 +49,7 @@ def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None,
     config = GuidanceConfig.load()
     student = ArtWarmStart.load(model or SLIM_MODEL)
     mode = student.art.meta.get("dataset", {}).get("mode", "chance")
-    models = {"teacher": ArtWarmStart.load(reference or default_model_path(mode)),
+    models = {"teacher": ArtWarmStart.load(reference or models_dir() / TEACHERS[mode]),
               "student": student}
     timers = {}
     for name, provider in models.items():

@@ -5,12 +5,14 @@ causal GPT over goal / R / C / state / control tokens and its loss), `normalizat
 (training-split statistics), `data` (dataset directories -> batches), `train` and
 `distributed` (`art-guidance train`, also under torchrun), `checkpoint` (checksummed,
 weights-only files), `kv_cache` (incremental decoding), `onnx_export` and `onnx_art` (the
-exported model and its torch-free runtime on ONNX Runtime), `rollout` (dynamics in the loop;
+exported model and its torch-free runtime on ONNX Runtime; `onnx_wire` reads the file without
+the onnx package), `rollout` (dynamics in the loop;
 `art_guidance.art.rollout.rollout`) and `provider` (the warm start as the planner flies it:
 conditioning sweep, judging, post hoc check). Scoring rollouts on held-out scenarios lives in
 `art_guidance.eval` (`scoring`, `suite`), the DAgger dataset generator in
 `art_guidance.data.dagger`. Importing this package imports nothing heavy: the names below are
-loaded on first use, so the flight path (`provider`, `rollout`, `onnx_art`) runs without torch.
+loaded on first use, so the flight path (`provider`, `rollout`, `onnx_art`) runs without torch
+and onnx (the flight install: `art_guidance.extras`).
 """
 from __future__ import annotations
 

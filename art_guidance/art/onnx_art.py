@@ -1,11 +1,13 @@
 """An exported ART flown on ONNX Runtime, without torch (`art-guidance export` writes the file).
 
 `load_exported(path)` reads an exported model (`onnx_export`) and checks it before it is
-flown: the file parses as ONNX, its metadata is this format, the sha256 of its weights is the
-one recorded at export (a changed weight is refused), the source checkpoint is the expected one
-when the caller names it, and ONNX Runtime reproduces the probe torch computed at export (to
-`PROBE_TOL`). The result, `ExportedArt`, has what `rollout` reads of a `TrainedArt` (config,
-normalizer, meta, decoder) and imports neither torch nor the training code.
+flown: the file parses as ONNX (its protobuf, `onnx_wire`), its metadata is this format, the
+sha256 of its weights is the one recorded at export (a changed weight is refused), the source
+checkpoint is the expected one when the caller names it, and ONNX Runtime reproduces the probe
+torch computed at export (to `PROBE_TOL`). The result, `ExportedArt`, has what `rollout` reads
+of a `TrainedArt` (config, normalizer, meta, decoder) and imports neither torch, nor the `onnx`
+package, nor the training code: a flight install has ONNX Runtime only (`onnx_wire` reads the
+weights and metadata and sets the attention heads per batch size from the file's bytes).
 
 `OnnxDecoder` is `kv_cache.CachedDecoder` on ONNX Runtime: one session per batch size (the
 batch is folded into the attention heads), one thread, no spinning; the key/value caches are
@@ -15,15 +17,16 @@ values (no copy of the cache).
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 
+from art_guidance.art import onnx_wire
 from art_guidance.art.config import FEATURES, ArtConfig, check_steps
 from art_guidance.art.normalization import Normalizer
 from art_guidance.errors import CheckpointError, ConfigError, ModelError
+from art_guidance.extras import installed  # `provider` imports it from here
 
 FORMAT = "art-guidance-onnx-step"
 FORMAT_VERSION = 1
@@ -34,20 +37,18 @@ RUNTIMES = ("auto", "torch", "onnx")
 ONNX_SUFFIX = ".onnx"
 
 
-def installed(module: str) -> bool:
-    """Whether `module` can be imported here (found, not imported)."""
-    try:
-        return importlib.util.find_spec(module) is not None
-    except (ImportError, ValueError):
-        return False
-
-
 def weights_sha256(initializers: list) -> str:
-    """sha256 over a graph's weights (name, then raw bytes, in graph order)."""
+    """sha256 over a graph's weights (name, then raw bytes, in graph order): `initializers`
+    are onnx TensorProtos (at export)."""
+    return weights_digest((t.name.encode(), t.raw_data) for t in initializers)
+
+
+def weights_digest(pairs) -> str:
+    """`weights_sha256` of (name, raw_data) byte pairs (`onnx_wire.initializers`)."""
     h = hashlib.sha256()
-    for t in initializers:
-        h.update(t.name.encode())
-        h.update(t.raw_data)
+    for name, raw in pairs:
+        h.update(name)
+        h.update(raw)
     return h.hexdigest()
 
 
@@ -60,9 +61,9 @@ class OnnxDecoder:
 
     np_dtype = np.dtype(np.float32)
 
-    def __init__(self, model, config: ArtConfig) -> None:
-        """`model`: the parsed ONNX model (its attention nodes carry one sample's heads)."""
-        self._model, self._cfg = model, config
+    def __init__(self, model: bytes, config: ArtConfig) -> None:
+        """`model`: the serialised ONNX model (its attention nodes carry one sample's heads)."""
+        self._model, self._cfg = bytes(model), config
         # batch -> (session, binding, control, capacity, caches): the caches' wrappers keep
         # their numpy buffers alive while the binding points at them
         self._bound: dict[int, tuple] = {}
@@ -72,24 +73,17 @@ class OnnxDecoder:
     def _session(self, batch: int):
         """A new session for a batch size: the attention nodes get batch x heads."""
         import onnxruntime as ort
-        from onnx import helper
 
-        model = type(self._model)()
-        model.CopyFrom(self._model)
         heads = batch * self._cfg.n_heads
-        for node in model.graph.node:
-            if node.op_type == "GroupQueryAttention":
-                del node.attribute[:]
-                node.attribute.extend([helper.make_attribute("num_heads", heads),
-                                       helper.make_attribute("kv_num_heads", heads)])
+        model = onnx_wire.with_node_attributes(
+            self._model, "GroupQueryAttention", {"num_heads": heads, "kv_num_heads": heads})
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
         opts.log_severity_level = 3
-        return ort.InferenceSession(model.SerializeToString(), opts,
-                                    providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
 
     def reset(self, batch: int, n_steps: int, t0: int) -> None:
         """Start a new batch of rollouts of `n_steps` steps whose first time index is `t0`.
@@ -161,7 +155,7 @@ class ExportedArt:
 
     runtime = "onnx"
 
-    def __init__(self, path: Path, blob: bytes, model, meta: dict) -> None:
+    def __init__(self, path: Path, blob: bytes, meta: dict) -> None:
         try:
             self.config = ArtConfig.from_dict(dict(meta["config"]))
             self.normalizer = Normalizer.from_dict(meta["normalization"])
@@ -173,7 +167,7 @@ class ExportedArt:
         self.sha256 = str(meta.get("checkpoint_sha256", ""))
         self.checkpoint_file = str(meta.get("checkpoint_file", ""))
         self.n_parameters = int(meta.get("n_parameters", 0))
-        self.decoder = OnnxDecoder(model, self.config)
+        self.decoder = OnnxDecoder(blob, self.config)
 
 
 def load_exported(path: str | Path, expected_checkpoint_sha256: str | None = None,
@@ -186,17 +180,14 @@ def load_exported(path: str | Path, expected_checkpoint_sha256: str | None = Non
         expected_file_sha256: pin the file itself (e.g. a shipped one; None: not pinned).
 
     Raises:
-        ModelError: ONNX Runtime or onnx is not installed.
+        ModelError: ONNX Runtime is not installed.
         CheckpointError: unreadable, not ONNX (corrupt, truncated), not this format, altered
             weights, another checkpoint than expected, a pinned checksum that differs, or a
             probe ONNX Runtime does not reproduce.
     """
-    for module in ("onnxruntime", "onnx"):
-        if not installed(module):
-            raise ModelError(f"the ONNX runtime needs the Python package {module}, which is "
-                             "not installed (pip install art_guidance brings it)")
-    import onnx
-
+    if not installed("onnxruntime"):
+        raise ModelError("the ONNX runtime needs the Python package onnxruntime, which is "
+                         "not installed (pip install art_guidance brings it)")
     path = Path(path)
     try:
         blob = path.read_bytes()
@@ -208,10 +199,9 @@ def load_exported(path: str | Path, expected_checkpoint_sha256: str | None = Non
         raise CheckpointError(path, f"not the expected file: sha256 {digest[:16]}..., "
                                     f"expected {expected_file_sha256[:16]}...")
     try:
-        model = onnx.load_model_from_string(blob)
-        props = {p.key: p.value for p in model.metadata_props}
-        meta = json.loads(props[METADATA_KEY])
-    except Exception as exc:  # DecodeError, KeyError, ValueError: all a refusal
+        onnx_wire.check(blob)
+        meta = json.loads(onnx_wire.metadata_props(blob)[METADATA_KEY])
+    except Exception as exc:  # WireError, KeyError, ValueError: all a refusal
         raise CheckpointError(path, "not an exported art_guidance model (corrupt, truncated "
                                     "or another ONNX file): "
                                     f"{str(exc).splitlines()[0][:200] if str(exc) else exc!r}"
@@ -219,7 +209,7 @@ def load_exported(path: str | Path, expected_checkpoint_sha256: str | None = Non
     if not isinstance(meta, dict) or meta.get("format") != FORMAT \
             or meta.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(path, f"not format {FORMAT} v{FORMAT_VERSION}")
-    if weights_sha256(model.graph.initializer) != meta.get("weights_sha256"):
+    if weights_digest(onnx_wire.initializers(blob)) != meta.get("weights_sha256"):
         raise CheckpointError(path, "its weights are not those recorded at export (altered "
                                     "after `art-guidance export`)")
     source = str(meta.get("checkpoint_sha256", ""))
@@ -227,7 +217,7 @@ def load_exported(path: str | Path, expected_checkpoint_sha256: str | None = Non
         raise CheckpointError(path, f"not the expected model: exported from checkpoint "
                                     f"{source[:16] or '?'}..., expected "
                                     f"{expected_checkpoint_sha256[:16]}...")
-    art = ExportedArt(path, blob, model, meta)
+    art = ExportedArt(path, blob, meta)
     _check_probe(path, art, meta.get("probe"))
     return art
 

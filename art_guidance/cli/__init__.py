@@ -2,7 +2,10 @@
 
 Each subcommand is a module of this package with `add_parser(sub)` and `run(args) -> int`; what
 a command needs is imported inside its `run`, and no module imports ROS at load time, so
-`plan`, `generate`, `replay` and `bench` never import rclpy (tested).
+`plan`, `generate`, `replay` and `bench` never import rclpy (tested). A command that needs an
+extra of the install (torch and onnx: `[train]`) names the modules in its parser
+(`set_defaults(needs=extras.TRAIN)`); `main` checks them before it runs the command, so a
+flight install (no torch) answers with the extra to install, exit 2 (`art_guidance.extras`).
 """
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ from typing import Sequence
 
 from art_guidance import __version__
 from art_guidance.errors import GuidanceError
+from art_guidance.extras import require
 
 SUBCOMMANDS = ("demo", "plan", "generate", "train", "distill", "dagger", "evaluate", "export",
                "replay", "bag", "bench", "node", "sim")
@@ -36,6 +40,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the process exit code (2 for bad input, 1 for failures)."""
     args = build_parser().parse_args(argv)
     try:
+        require(f"art-guidance {args.command}", getattr(args, "needs", ()))
         return int(args.func(args))
     except GuidanceError as exc:
         print(json.dumps({"error": type(exc).__name__, "message": str(exc)}), file=sys.stderr)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from art_guidance.extras import TRAIN
 from art_guidance.jobs import ENGINES
 
 
@@ -59,4 +60,4 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="Ray cluster address (default: start a local instance; --model and "
                    "--data must be readable from every node)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, needs=TRAIN)

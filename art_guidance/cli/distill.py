@@ -6,6 +6,8 @@ import json
 import shlex
 import sys
 
+from art_guidance.extras import TRAIN
+
 
 def run(args: argparse.Namespace) -> int:
     """Distil a student (preset --student, default slim: 2 x 64) from a teacher checkpoint:
@@ -45,4 +47,4 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=2, help="torch threads for the training")
     p.add_argument("--seed", type=int, default=0, help="training seed (split, order, init)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, needs=TRAIN)

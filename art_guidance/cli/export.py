@@ -5,6 +5,8 @@ import argparse
 import json
 from pathlib import Path
 
+from art_guidance.extras import EXPORT
+
 
 def run(args: argparse.Namespace) -> int:
     """Export a trained checkpoint's decoding step, with its configuration, normalisation,
@@ -37,4 +39,4 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None, help="the ONNX file to write (default: beside the "
                    "checkpoint, same name with .onnx: where `art_runtime` auto and onnx look)")
     p.add_argument("--force", action="store_true", help="replace an existing file")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, needs=EXPORT)

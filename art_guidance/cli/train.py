@@ -5,6 +5,8 @@ import argparse
 import shlex
 import sys
 
+from art_guidance.extras import TRAIN
+
 # art_guidance.art.config.PRESETS (import-free)
 _PRESETS = ("small", "medium", "paper", "slim", "slim1", "tiny")
 _DAGGER_REWARDS = ("hindsight", "fed")  # art_guidance.art.config.DAGGER_REWARDS (import-free)
@@ -85,7 +87,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "describe it; the data must be of its mode and configuration); its "
                    "validation loss is the best to beat, so OUT is MODEL if no epoch improves")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, needs=TRAIN)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -14,7 +14,7 @@ from art_guidance.config import GuidanceConfig
 from art_guidance.data.storage import SUMMARY, load_dataset, read_manifest
 from art_guidance.errors import DatasetError
 from art_guidance.eval import example as ex_io
-from art_guidance.eval.warmstart import columns, gains, summarize
+from art_guidance.eval.warmstart import columns, gains, standard_error, summarize
 from art_guidance.eval.inputs import FORMAT, KIND, ModelInfo, load_model, request_of
 
 
@@ -53,6 +53,40 @@ def model_summaries(head: dict, cols: dict[str, np.ndarray]) -> list[dict]:
     return out
 
 
+def flown_pairs(head: dict, cols: dict[str, np.ndarray]) -> list[dict]:
+    """Every two models of one mode, paired on the scenarios both ran: the per-scenario
+    difference of what they fly (what `benchmarks/default_models.py` takes its interval from).
+
+    For models a and b (a listed first) over the scenarios (dataset, sample) where each one's
+    flown plan (`warm_start auto`) and SCVx* from CVX are feasible, the flown saving of a over
+    CVX alone minus b's: (J_auto,b - J_SCP,CVX) - (J_auto,a - J_SCP,CVX) per scenario; its mean
+    "saving_a_minus_b_mmps", standard error "sem_mmps" [mm/s] and the scenario count "n".
+    """
+    if not cols:
+        return []
+    data = columns(cols)
+    flown = []
+    for k in range(len(head["evaluation"]["models"])):
+        ok = ((cols["model"] == k) & data["ok_auto"].astype(bool)
+              & data["ok_scp_cvx"].astype(bool))
+        keys = zip(cols["dataset"][ok].tolist(), cols["sample"][ok].tolist())
+        flown.append(dict(zip(keys, (data["j_auto"][ok] - data["j_scp_cvx"][ok]).tolist())))
+    models = [ModelInfo(**m) for m in head["evaluation"]["models"]]
+    out = []
+    for a, ma in enumerate(models):
+        for b in range(a + 1, len(models)):
+            mb = models[b]
+            common = sorted(set(flown[a]) & set(flown[b]))
+            if ma.mode != mb.mode or not common:
+                continue
+            diff = 1e3 * np.array([flown[b][s] - flown[a][s] for s in common])
+            out.append({"mode": ma.mode, "a": Path(ma.path).name, "b": Path(mb.path).name,
+                        "sha256_a": ma.sha256, "sha256_b": mb.sha256, "n": int(diff.size),
+                        "saving_a_minus_b_mmps": float(diff.mean()),
+                        "sem_mmps": standard_error(diff)})
+    return out
+
+
 def example_index(cols: dict[str, np.ndarray], k: int) -> int | None:
     """Pair index of model k's scenario with the largest J_SCP,CVX - J_SCP,ART (None: none
     with both SCVx* runs converged)."""
@@ -85,6 +119,7 @@ def build_summary(out: Path, this: dict | None, held: list[dict] | None = None) 
         "this_run": this or previous.get("this_run"), "runs": runs,
         "wall_s_total": float(sum(r.get("wall_s", 0.0) for r in runs)),
         "datasets": datasets, "models": model_summaries(head, cols),
+        "flown_pairs": flown_pairs(head, cols),
         "sizes": {"shards": len(shards), "bytes": int(sum(e["bytes"] for e in shards))},
         "config_sha256": head["config_sha256"], "art_guidance_version": __version__,
         "definitions": DEFINITIONS, "figures": previous.get("figures", []),
@@ -107,6 +142,10 @@ DEFINITIONS = {
                               "rollout: PS-CVX, difference 0)",
     "posthoc_maps": "cells of (100 E_R [%], E_C): population, mean improvement ratio, mean "
                     "SCP iterations saved by ART",
+    "auto_minus_scp_cvx_mps": "the plan flown (warm_start auto) minus SCVx* from CVX alone, "
+                              "both feasible [m/s]: mean, its standard error (sem), extremes",
+    "flown_pairs": "two models of one mode on the scenarios both ran: the flown saving of a "
+                   "minus b's per scenario, mean and standard error [mm/s]",
 }
 
 

@@ -215,6 +215,13 @@ def _stat(values: np.ndarray, how: str) -> float | None:
     return float(getattr(np, how)(values)) if values.size else None
 
 
+def standard_error(values: np.ndarray) -> float | None:
+    """The standard error of the mean of `values` (sample standard deviation / sqrt(n); None
+    for fewer than two)."""
+    v = np.asarray(values, dtype=float)
+    return float(np.std(v, ddof=1) / np.sqrt(v.size)) if v.size > 1 else None
+
+
 def gains(data: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Per-scenario differences (M,), NaN where undefined.
 
@@ -344,7 +351,7 @@ def summarize(rows: Sequence[WarmStartRow] | Mapping[str, np.ndarray]) -> dict:
     d = data["j_auto"][both] - data["j_scp_cvx"][both]
     out["auto_minus_scp_cvx_mps"] = {
         "min": _stat(d, "min"), "median": _stat(d, "median"), "max": _stat(d, "max"),
-        "mean": _stat(d, "mean"), "n": int(d.size),
+        "mean": _stat(d, "mean"), "sem": standard_error(d), "n": int(d.size),
         "n_better_by_1mm": int(np.sum(d < -1e-3)), "n_worse_by_1mm": int(np.sum(d > 1e-3))}
     out["accepted"] = int(data["accepted"].sum())
     out["frac_accepted"] = float(np.mean(data["accepted"]))

@@ -100,8 +100,26 @@ def test_the_layout_survives_a_checkpoint_and_an_export(setup, packed, tmp_path)
 
 
 SLIM_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "slim"
+MODELS_DIR = Path(__file__).resolve().parents[2] / "art_guidance" / "models"
 SLIM1 = {"art_slim1_chance_rtn.pt": "chance", "art_slim1_det_roe.pt": "deterministic",
          "art_slim1e40_chance_rtn.pt": "chance"}  # committed student -> its mode
+# where each is: the 40-epoch one is the shipped chance-constrained default (its provenance in
+# models.json, "file_sha256" the file's checksum), the others stay in benchmarks/results/slim
+SLIM1_DIR = {name: MODELS_DIR if name == "art_slim1e40_chance_rtn.pt" else SLIM_DIR
+             for name in SLIM1}
+
+
+def _student_provenance(name: str) -> tuple[Path, str, str]:
+    """(path, file sha256, export sha256) of a committed one-token student."""
+    import json
+
+    if SLIM1_DIR[name] == MODELS_DIR:
+        entry = json.loads((MODELS_DIR / "models.json").read_text())[name]
+        return MODELS_DIR / name, entry["file_sha256"], entry["export"]["sha256"]
+    prov = json.loads((SLIM_DIR / "provenance.json").read_text())[name]
+    return SLIM_DIR / name, prov["sha256"], prov["export"]["sha256"]
+
+
 STUDENT_DV_TOL_MPS = 1e-3  # as test_onnx_runtime's DV_TOL_MPS
 
 
@@ -112,22 +130,20 @@ def test_the_committed_students_are_packed_and_fly_alike_on_both_runtimes(name):
     ONNX Runtime as on torch on held-out scenarios of their teacher's dataset."""
     pytest.importorskip("onnxruntime")
     import hashlib
-    import json
 
     from helpers.shipped import heldout_requests, runtimes_agree
 
-    from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart
+    from art_guidance.art.provider import TEACHERS, ArtWarmStart
 
-    path = SLIM_DIR / name
-    prov = json.loads((SLIM_DIR / "provenance.json").read_text())[name]
-    assert hashlib.sha256(path.read_bytes()).hexdigest() == prov["sha256"]
+    path, file_sha, export_sha = _student_provenance(name)
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == file_sha
     onnx_sha = hashlib.sha256(path.with_suffix(".onnx").read_bytes()).hexdigest()
-    assert onnx_sha == prov["export"]["sha256"]
+    assert onnx_sha == export_sha
     torch_p = ArtWarmStart.load(path, runtime="torch")
     onnx_p = ArtWarmStart.load(path, runtime="onnx")
     assert torch_p.art.config.tokens_per_step == onnx_p.art.config.tokens_per_step == 1
     assert onnx_p.sha256 == torch_p.sha256  # the checkpoint payload the export names
-    requests = heldout_requests(6, DEFAULT_MODELS[SLIM1[name]])
+    requests = heldout_requests(6, TEACHERS[SLIM1[name]])
     assert runtimes_agree(torch_p, onnx_p, requests, STUDENT_DV_TOL_MPS) >= 4
 
 
@@ -141,6 +157,6 @@ def test_a_student_is_never_evaluated_on_the_scenarios_it_was_distilled_on():
 
     assert 9_000_000 <= sample_seed(9, 0) <= 9_002_499  # dataset seed 9 starts inside
     for name in SLIM1:
-        info = model_info(SLIM_DIR / name)
+        info = model_info(SLIM1_DIR[name] / name)
         for base, seen in ((8, True), (9, True), (10, False), (11, False)):
             assert info.saw(DatasetInfo("d", "sha", info.mode, 1000, base)) is seen, (name, base)

@@ -9,25 +9,28 @@ import torch
 from art_guidance.art.distill import distill, features, teacher_sequences
 from art_guidance.art.onnx_art import load_exported
 from art_guidance.art.onnx_export import export
-from art_guidance.art.provider import ArtWarmStart, default_model_path
+from art_guidance.art.provider import TEACHERS, ArtWarmStart, models_dir
 from art_guidance.art.rollout import GATE_LOGIT_THRESHOLD, build_safety
 from art_guidance.errors import InputError
 from art_guidance.optim import solve_cvx
 from art_guidance.planning import PlanRequest
 
 SEEDS = [9_000_000, 9_000_001]
+# the chance-constrained teacher (the RTN model the shipped default student was distilled from),
+# by its path: the default itself is a student now
+TEACHER = models_dir() / TEACHERS["chance"]
 
 
 @pytest.fixture(scope="module")
 def teacher() -> ArtWarmStart:
-    return ArtWarmStart.load(default_model_path("chance"), runtime="torch")
+    return ArtWarmStart.load(TEACHER, runtime="torch")
 
 
 def test_teacher_forcing_on_the_sequences_gives_the_teachers_controls(teacher):
     """The teacher's own model, fed its sequences as training batches (`features`), predicts
     at every step the control it applied there: the student learns from what the teacher saw,
     normalised as it saw it."""
-    data = teacher_sequences(str(default_model_path("chance")), SEEDS)
+    data = teacher_sequences(str(TEACHER), SEEDS)
     assert data["reward"].shape == (8 * len(SEEDS), 100) and data["dv_rtn_mps"].shape[-1] == 3
     batch = features(teacher, data)
     model = teacher.art.model
@@ -44,8 +47,7 @@ def test_teacher_forcing_on_the_sequences_gives_the_teachers_controls(teacher):
 
 def test_a_distilled_student_loads_proposes_and_exports(tmp_path, teacher):
     out = tmp_path / "student.pt"
-    summary = distill(default_model_path("chance"), out, scenarios=3, epochs=2, workers=1,
-                      threads=1, progress=False)
+    summary = distill(TEACHER, out, scenarios=3, epochs=2, workers=1, threads=1, progress=False)
     assert summary["sequences"] == 8 * summary["scenarios"] and summary["best_epoch"] >= 1
     assert (tmp_path / "student.pt.sequences.npz").is_file()
     student = ArtWarmStart.load(out, runtime="torch")
@@ -65,5 +67,4 @@ def test_a_distilled_student_loads_proposes_and_exports(tmp_path, teacher):
     exported = load_exported(tmp_path / "student.onnx", student.sha256)
     assert exported.n_parameters == student.art.n_parameters
     with pytest.raises(InputError, match="never overwritten"):
-        distill(default_model_path("chance"), out, scenarios=3, epochs=1, workers=1,
-                progress=False)
+        distill(TEACHER, out, scenarios=3, epochs=1, workers=1, progress=False)

@@ -309,6 +309,33 @@ def test_summary_of_stored_columns_equals_summary_of_rows():
     assert json.dumps(summarize(cols)) == json.dumps(summarize(rows))
 
 
+def test_flown_pairs_pair_two_models_of_a_mode_on_the_scenarios_both_flew():
+    """`flown_pairs`: the per-scenario difference of two models' flown savings, over the
+    scenarios (dataset, sample) where both flew a feasible plan beside a feasible SCVx* from
+    CVX; models of another mode are not paired; the per-model standard error beside it."""
+    models = [{"path": f"m/{n}.pt", "sha256": n * 64, "mode": mode, "representation": "rtn"}
+              for n, mode in (("a", "chance"), ("d", "deterministic"), ("b", "chance"))]
+    head = {"evaluation": {"models": models}}
+    # (model, dataset, sample, J_auto); J_SCP,CVX = 1.2 everywhere; b's plan on (1, 0) and a's
+    # on (0, 1) are infeasible, a did not run (1, 0): a and b pair on (0, 0) and (1, 1) only
+    spec = [(0, 0, 0, 1.19), (0, 0, 1, 1.0), (0, 1, 1, 1.17), (2, 0, 0, 1.2), (2, 0, 1, 1.1),
+            (2, 1, 0, 1.0), (2, 1, 1, 1.2), (1, 0, 0, 1.0), (1, 1, 1, 1.0)]
+    rows = [replace(_BASE, j_auto=j, ok_auto=not (k == 2 and (d, i) == (1, 0)) and
+                    not (k == 0 and (d, i) == (0, 1))) for k, d, i, j in spec]
+    cols = {f: np.array([getattr(r, f) for r in rows]) for f in ROW_FIELDS}
+    cols.update(model=np.array([k for k, *_ in spec]), dataset=np.array([d for _, d, *_ in spec]),
+                sample=np.array([i for _, _, i, _ in spec]), index=np.arange(len(spec)))
+    pairs = results.flown_pairs(head, cols)
+    assert [(p["a"], p["b"], p["mode"], p["n"]) for p in pairs] == [("a.pt", "b.pt", "chance", 2)]
+    diff = 1e3 * np.array([1.2 - 1.19, 1.2 - 1.17])  # J_auto,b - J_auto,a on (0, 0), (1, 1)
+    assert pairs[0]["saving_a_minus_b_mmps"] == pytest.approx(diff.mean())
+    assert pairs[0]["sem_mmps"] == pytest.approx(np.std(diff, ddof=1) / np.sqrt(2))
+    assert pairs[0]["sha256_a"] == "a" * 64 and pairs[0]["sha256_b"] == "b" * 64
+    d = np.array([1.2, 1.1, 1.2]) - 1.2  # model b's feasible rows: J_auto - J_SCP,CVX
+    flown = summarize([r for r, (k, *_) in zip(rows, spec) if k == 2])["auto_minus_scp_cvx_mps"]
+    assert flown["n"] == 3 and flown["sem"] == pytest.approx(np.std(d, ddof=1) / np.sqrt(3))
+
+
 def test_heldout_reads_the_same_scenarios_as_the_full_load(inputs):
     from art_guidance.eval.scoring import heldout_scenarios
     from art_guidance.data.storage import load_dataset
@@ -325,14 +352,16 @@ def test_the_committed_results_are_complete_and_match_the_shipped_models(run):
     """benchmarks/results/warmstart (the sweep) and warmstart_single_rollout: the README's
     results tables are rows of `report.md`, which is the report of the committed summary.json;
     it covers >= 1,000 held-out scenarios per mode with the shipped models (their pinned
-    checksums), and every figure it lists is there."""
+    checksums; the four trained ones: the distilled chance-constrained default has its own
+    evaluation, `test_shipped_model.py`), and every figure it lists is there."""
     from art_guidance.art.provider import shipped_models
 
     root = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / run
     summary = json.loads((root / "summary.json").read_text())
     assert (root / REPORT).read_text() == report_markdown(summary)
     assert summary["complete"] and summary["n_done"] == summary["n_scenarios"]
-    pinned = {e["sha256"]: name for name, e in shipped_models().items()}
+    pinned = {e["sha256"]: name for name, e in shipped_models().items()
+              if "distilled_from" not in e}
     assert sorted(pinned[m["sha256"]] for m in summary["models"]) == sorted(pinned.values())
     for mode in ("chance", "deterministic"):
         models = [m for m in summary["models"] if m["mode"] == mode]

@@ -10,7 +10,6 @@ refused with a message that names it; the planner then flies the CVX warm start.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -18,6 +17,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from helpers.flight import blocked_env, blocker_site
 from helpers.shipped import heldout_requests, runtimes_agree
 
 from art_guidance.art.onnx_art import METADATA_KEY, load_exported
@@ -29,7 +29,6 @@ from art_guidance.errors import CheckpointError, InputError
 
 DV_TOL_MPS = 1e-3   # largest difference of a proposed control, ONNX vs torch [m/s]
 N_SCENARIOS = 12    # held-out scenarios per mode here (the benchmark runs 100)
-ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -38,18 +37,9 @@ def chance_onnx() -> Path:
 
 
 def _python(code: str, block: str, tmp_path: Path, timeout: float = 300.0):
-    """Run `code` in a fresh interpreter in which importing `block` fails."""
-    site = tmp_path / "site"
-    site.mkdir(exist_ok=True)
-    (site / "sitecustomize.py").write_text(
-        "import sys\n"
-        "class _Block:\n"
-        "    def find_spec(self, name, path=None, target=None):\n"
-        f"        if name == {block!r} or name.startswith({block + '.'!r}):\n"
-        f"            raise ImportError('{block} is not installed here')\n"
-        "sys.meta_path.insert(0, _Block())\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(ROOT)]),
-           "OMP_NUM_THREADS": "1"}
+    """Run `code` in a fresh interpreter in which importing `block` fails (`helpers.flight`;
+    test/e2e/test_flight_install.py flies the node and the CLI without torch and onnx)."""
+    env = blocked_env(blocker_site(tmp_path, block))
     return subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path,
                           capture_output=True, text=True, timeout=timeout)
 
@@ -68,12 +58,16 @@ def test_onnx_proposals_match_torch_on_heldout_scenarios(mode):
 
 
 def test_the_shipped_exports_are_pinned_and_name_their_checkpoints():
+    from art_guidance.art.provider import shipped_models
+
     for mode in DEFAULT_MODELS:
         pt = default_model_path(mode)
         art = load_exported(pt.with_suffix(".onnx"), pinned_sha256(pt),
                             pinned_sha256(pt.with_suffix(".onnx")))
         assert art.sha256 == pinned_sha256(pt) and art.checkpoint_file == pt.name
-        assert art.config.width == 96 and art.n_parameters > 0
+        entry = shipped_models()[pt.name]
+        assert art.config.width == entry["model_config"]["width"]
+        assert art.n_parameters == entry["n_parameters"]
 
 
 def test_auto_takes_onnx_where_the_export_is_there_and_torch_elsewhere(tmp_path):

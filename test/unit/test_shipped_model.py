@@ -1,10 +1,13 @@
 """The shipped models (`art_guidance/models/`), on scenarios they never saw in training.
 
 Per passive-safety mode (chance-constrained and deterministic) an ROE and an RTN model are
-shipped (the defaults: the chance-constrained RTN and the deterministic ROE model), each
-trained on the train split of `generate --n N --mode MODE --seed S` (S recorded in
-models.json). The held-out scenarios here are that dataset's own test split
-(`train_test_split(S, N)`; the training never reads it), drawn again from their seeds.
+shipped, each trained on the train split of `generate --n N --mode MODE --seed S` (S recorded
+in models.json), and beside them the chance-constrained default: the one-token student
+distilled from the chance-constrained RTN model (its teacher's dataset, normalisation and
+held-out split; its training scenarios are recorded under "distillation"). The defaults: that
+student (chance-constrained) and the deterministic ROE model. The held-out scenarios here are
+the dataset's own test split (`train_test_split(S, N)`; the training never reads it), drawn
+again from their seeds.
 """
 from __future__ import annotations
 
@@ -14,8 +17,8 @@ import numpy as np
 import pytest
 
 from art_guidance.art.provider import (
-    DEFAULT_MODELS, ArtWarmStart, default_model_path, models_dir,
-    shipped_model_with_sha256, shipped_models,
+    DEFAULT_MODELS, TEACHERS, ArtWarmStart, default_model_path, models_dir,
+    pinned_sha256, shipped_defaults, shipped_model_with_sha256, shipped_models,
 )
 from art_guidance.art.rollout import rollout
 from art_guidance.cli import main
@@ -35,8 +38,10 @@ SHIPPED = sorted(shipped_models())
 
 
 # Each mode's default, chosen by what is flown on 2,000 fresh scenarios per mode
-# (benchmarks/default_models.py; docs/results.md, "Shipped defaults").
+# (benchmarks/default_models.py; docs/results.md, "Shipped defaults"): the chance-constrained
+# one is the one-token student of the RTN teacher, the deterministic one the ROE teacher.
 DEFAULT_REPRESENTATIONS = {"chance": "rtn", "deterministic": "roe"}
+DEFAULT_TOKENS_PER_STEP = {"chance": 1, "deterministic": 5}
 
 
 def test_shipped_models_are_pinned_and_described(provider):
@@ -45,10 +50,28 @@ def test_shipped_models_are_pinned_and_described(provider):
     entries = shipped_models()
     assert {(e["dataset"]["mode"], e["representation"]) for e in entries.values()} == {
         (mode, r) for mode in DEFAULT_MODELS for r in ("roe", "rtn")}
+    # models.json says which model is each mode's default, and why
+    statement = shipped_defaults()
+    assert "default_models.py" in statement["rule"]
+    assert {mode: statement[mode]["model"] for mode in DEFAULT_MODELS} == DEFAULT_MODELS
+    assert all(len(statement[mode]["why"]) > 100 for mode in DEFAULT_MODELS)
     for mode, name in DEFAULT_MODELS.items():
         assert default_model_path(mode).name == name
         assert (entries[name]["dataset"]["mode"], entries[name]["representation"]) == (
             mode, DEFAULT_REPRESENTATIONS[mode])
+        model = ArtWarmStart.load(default_model_path(mode))
+        assert model.art.config.tokens_per_step == DEFAULT_TOKENS_PER_STEP[mode]
+    # the teachers stay shipped at their paths, with their exports; the student names its own
+    student = entries[DEFAULT_MODELS["chance"]]
+    assert student["distilled_from"] == TEACHERS["chance"]
+    assert student["teacher_sha256"] == entries[TEACHERS["chance"]]["sha256"]
+    for name in ("art_small_chance_roe.pt", "art_small_chance_rtn.pt", "art_small_det_roe.pt",
+                 "art_small_det_rtn.pt"):
+        assert entries[name]["preset"] == "small" and (models_dir() / name).is_file()
+        assert pinned_sha256(models_dir() / name) == entries[name]["sha256"]
+        onnx = models_dir() / entries[name]["export"]["file"]
+        assert onnx == (models_dir() / name).with_suffix(".onnx") and onnx.is_file()
+        assert pinned_sha256(onnx) == entries[name]["export"]["sha256"]
     for name in SHIPPED:
         entry = entries[name]
         model = ArtWarmStart.load(models_dir() / name)
@@ -103,3 +126,14 @@ def test_plan_loads_the_default_model_of_its_mode(mode, tmp_path):
     data = json.loads(out.read_text())
     assert data["mode"] == mode
     assert data["model_sha256"] == shipped_models()[DEFAULT_MODELS[mode]]["sha256"]
+
+
+def test_plan_flies_a_teacher_given_by_path(tmp_path):
+    """The teachers stay loadable by path (`--model`, the node's `model_path`): `plan` with the
+    chance-constrained teacher rolls it out, not the default student."""
+    out = tmp_path / "plan.json"
+    teacher = models_dir() / TEACHERS["chance"]
+    assert main(["plan", "--seed", "4", "--model", str(teacher), "--json", str(out)]) in (0, 1)
+    data = json.loads(out.read_text())
+    assert data["model_sha256"] == shipped_models()[TEACHERS["chance"]]["sha256"]
+    assert data["model_sha256"] != shipped_models()[DEFAULT_MODELS["chance"]]["sha256"]
