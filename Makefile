@@ -49,7 +49,7 @@ $(VENV)/.stamp-msgs: $(VENV)/.stamp-ros $(MSG_SRC)
 $(VENV)/.stamp-pkg: $(VENV)/.stamp-msgs setup.py setup.cfg Makefile $(CONSTRAINTS)
 	$(PIP) install -c $(CONSTRAINTS) -e ".[train,test,distributed]" 2>&1 \
 		| sed "/^WARNING: Location/d"
-	$(PY) -c "import art_guidance, torch, onnx, onnxruntime, clarabel, osqp, cvxpy, rosbags, \
+	$(PY) -c "import art_guidance, torch, onnx, onnxruntime, numba, clarabel, osqp, cvxpy, rosbags, \
 		mcap_ros2" >/dev/null
 	touch $@
 

@@ -27,6 +27,10 @@ setup(
         # the learned warm start flies the exported models (`.onnx`) on ONNX Runtime: a flight
         # install (`pip install .`) has no torch and no onnx (README "Installing")
         "onnxruntime==1.30.0",
+        # the compiled per-step numerics (art_guidance/kernels; numpy is their oracle and the
+        # fallback where numba is missing): pinned with the llvmlite it is built against
+        "numba==0.68.1",
+        "llvmlite==0.50.0",
         # the recorder uses Writer.flush() and the private mcap_ros2._dynamic encoder: bounded
         # to the minor versions tested (.ci/constraints.txt pins mcap 1.6.0, support 0.6.0)
         "mcap>=1.6,<1.7",

@@ -260,6 +260,7 @@ class PosthocThresholds:
 # terminal condition (`optim.terminal_warm_start`, what SCVx* starts from), or "rollout", the
 # rollout as the model produced it (the paper's check; the rollout misses the target).
 POSTHOC_SUBJECTS = ("warm_start", "rollout")
+NUMERICS = ("compiled", "numpy")  # `art_guidance.kernels`: numba kernels or their numpy oracles
 
 
 @dataclass(frozen=True)
@@ -275,8 +276,11 @@ class PlanningConfig:
     art_min_gain_mps: float = 0.001
     skip_art_when_cvx_safe: bool = True
     propose_concurrently: bool = False
+    numerics: str = "compiled"
 
     def __post_init__(self) -> None:
+        if self.numerics not in NUMERICS:
+            raise ConfigError(f"numerics must be one of {NUMERICS}, got {self.numerics!r}")
         if self.posthoc_subject not in POSTHOC_SUBJECTS:
             raise ConfigError(f"posthoc_subject must be one of {POSTHOC_SUBJECTS}, got "
                               f"{self.posthoc_subject!r}")
@@ -313,7 +317,7 @@ class PlanningConfig:
 # in-flight choices between warm starts); `samples_per_node` shapes SCVx* and does matter.
 FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
                         "also_solve_from_art", "posthoc_subject", "art_min_gain_mps",
-                        "skip_art_when_cvx_safe", "propose_concurrently")
+                        "skip_art_when_cvx_safe", "propose_concurrently", "numerics")
 
 
 # What the pipeline did before these planning fields existed: fly the cheaper plan whatever

@@ -142,3 +142,12 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             if names and "@" not in item.nodeid and hasattr(node_id, "parse"):
                 item._id = type(node_id).parse(item.nodeid + suffix)
     return result
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Compile the numba kernels (or load them from their cache) once per run, in the
+    controller, before pytest-xdist starts its workers: they then load the cached kernels."""
+    if not hasattr(config, "workerinput"):
+        from art_guidance import kernels
+
+        kernels.warm_up()

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from art_guidance import kernels
 from art_guidance.checks import as_finite_array
 from art_guidance.dynamics.deputy import (
     DeputyLinearization, _control_deputy, _curvature_slope, _deputy_burn_jacobian,
@@ -130,11 +131,17 @@ class Horizon:
             (N, 6) pre-burn ROE [m].
         """
         x0 = as_finite_array("roe0_m", roe0_m, (6,))
-        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (self.n_nodes, 3)).tolist()
+        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (self.n_nodes, 3))
         lat, n, a, inc = self._deputy_constants()
+        if kernels.compiled():  # the same operations compiled (tested bit for bit)
+            from art_guidance.kernels import horizon as kernel
+
+            return kernel.propagate_nonlinear(x0, np.ascontiguousarray(u), lat, n, a, inc,
+                                              self._stm_c, self._curvature_m)
+        u = u.tolist()
         lat = lat.tolist()
         stm = self._stm_rows
-        curv = (a * n * np.diff(self.epochs_s)).tolist()  # (N-1,) [m]
+        curv = self._curvature_m.tolist()
         out = [x0.tolist()]
         x = out[0]
         for k in range(self.n_nodes - 1):
@@ -162,6 +169,17 @@ class Horizon:
         x1[:, 1] += along_track_curvature_m(a, z_m[:, 0],
                                             self.epochs_s[k + 1] - self.epochs_s[k])
         return x1
+
+    @functools.cached_property
+    def _curvature_m(self) -> np.ndarray:
+        """(N - 1,) the along-track curvature factor a n dt of each step [m]."""
+        _, n, a, _ = self._deputy_constants()
+        return a * n * np.diff(self.epochs_s)
+
+    @functools.cached_property
+    def _stm_c(self) -> np.ndarray:
+        """`stm` C-contiguous (the compiled kernel's input)."""
+        return np.ascontiguousarray(self.stm)
 
     @functools.cached_property
     def _stm_rows(self) -> list:

@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from art_guidance import kernels
 from art_guidance.config import GuidanceConfig
 from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, InputError
@@ -66,6 +67,7 @@ class GuidancePipeline:
                 None: the default); recorded with the configuration (`config_json`).
         """
         self.config = config or GuidanceConfig.load()
+        kernels.set_numerics(self.config.planning.numerics)  # process-wide (`kernels`)
         self.scenario = self.config.scenario
         self.uncertainty = self.config.uncertainty
         self.scp_config = self.config.scp

@@ -34,6 +34,7 @@ import threading
 import time
 from typing import Any
 
+from art_guidance import kernels
 from art_guidance.deadline import Deadline
 
 STARTUP_TIMEOUT_S = 120.0  # importing torch and loading the model in the spawned process
@@ -129,6 +130,8 @@ def _run(job: dict, state: dict) -> tuple:
         provider = ArtWarmStart.load(path, expected_sha256=sha, threads=threads,
                                      reward_scales=scales, runtime=runtime)
         config = GuidanceConfig.from_json(job["config"])
+        kernels.set_numerics(config.planning.numerics)
+        kernels.warm_up()  # at the worker's warm-up job, before the first fix
         state.update(key=key, provider=provider, config=config,
                      transfers=Transfers(config.scenario, config.uncertainty))
     if job.get("warm_up"):

@@ -28,7 +28,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from art_guidance import topics
+from art_guidance import kernels, topics
 from art_guidance.config import GuidanceConfig, ScenarioConfig, node_parameter_defaults
 from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, GuidanceError
@@ -43,7 +43,7 @@ from art_guidance.ros.parameters import (
     PLANNING_PARAMETERS, SPECS, NodeParameters, check_table, descriptor,
 )
 from art_guidance.ros.node_status import (
-    fix_counts, guard_change_state, load_model, model_values,
+    fix_counts, guard_change_state, load_model, model_values, prepare_numerics,
 )
 from art_guidance.ros.solve_recording import SolveRecording
 
@@ -88,6 +88,7 @@ class GuidanceNodeBase:
         self.scenario: ScenarioConfig | None = None
         self.provider: object | None = None
         self.model_status = ""
+        self.numerics_status = ""
         self.budget = ReplanBudget()
         self.recording: SolveRecording | None = None
         self._recorded_before = False  # a configure of this node run has opened a recorder
@@ -106,7 +107,7 @@ class GuidanceNodeBase:
         config = GuidanceConfig.load(p.config_dir or None)
         config = config.replace(planning=dataclasses.replace(
             config.planning, samples_per_node=p.samples_per_node,
-            propose_concurrently=p.propose_concurrently))
+            propose_concurrently=p.propose_concurrently, numerics=p.numerics))
         self.scenario = config.scenario
         if p.default_waypoint not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {p.default_waypoint!r} is not one of "
@@ -114,6 +115,7 @@ class GuidanceNodeBase:
         self.provider, self.model_status = load_model(self.params, self.get_logger())
         self.pipeline = GuidancePipeline(config, provider=self.provider,
                                          deadline_s=p.solve_deadline_s)
+        self.numerics_status = prepare_numerics(p.numerics, self.get_logger())
         if config.planning.propose_concurrently and self.provider is not None:
             if self.pipeline.start_proposal_worker():
                 self.get_logger().info("learned proposals are made in a worker process")
@@ -167,6 +169,10 @@ class GuidanceNodeBase:
                                f"{self.params.warm_start}, {self.model_status})")
         self.out.diag("art_guidance/model", OK if self.provider is not None else WARN,
                       self.model_status, self._model_values())
+        self.out.diag("art_guidance/numerics", OK if kernels.compiled() == (
+            self.params.numerics == "compiled") else WARN, self.numerics_status,
+            {"numerics": "compiled" if kernels.compiled() else "numpy",
+             "kernels_ready_s": kernels.warm_up() or 0.0, "cache": kernels.cache_note})
         where = self.recording.directory
         self.out.diag("art_guidance/recording", OK,
                       f"recording to {where}" if where else "not recording",

@@ -40,6 +40,26 @@ def load_model(params: Any, log: Any) -> tuple[object | None, str]:
     return provider, status
 
 
+def prepare_numerics(numerics: str, log: Any) -> str:
+    """Choose the per-step numerics (`kernels.set_numerics`) and compile or load the kernels
+    now, at configure, not at the first fix; returns the status in words (logged: the time
+    and the cache, or why the numpy path is taken)."""
+    from art_guidance import kernels
+
+    kernels.set_numerics(numerics)
+    if numerics == "numpy":
+        status = "numerics: numpy (as configured)"
+    elif kernels.warm_up() is None:
+        status = f"numerics: numpy, the compiled kernels are not available: {kernels.error()}"
+        log.warning(status)
+        return status
+    else:
+        status = (f"numerics: compiled, kernels ready in {kernels.warm_up():.2f} s (cache: "
+                  f"{kernels.cache_note})")
+    log.info(status)
+    return status
+
+
 def model_values(provider: Any, status: str) -> dict:
     """The model's key-values for the diagnostics."""
     values = {"model": status}

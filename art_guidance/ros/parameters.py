@@ -15,6 +15,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from art_guidance.config import NUMERICS
 from art_guidance.errors import ConfigError
 from art_guidance.planning import WARM_STARTS
 from art_guidance.planning.replan import STAMP_CHECKS, ReplanSettings
@@ -142,9 +143,13 @@ SPECS: dict[str, ParamSpec] = {
                                         "3 * record_max_bytes", "int", minimum=0),
     "samples_per_node": ParamSpec("drift samples linearised per node in SCP (default: "
                                   "planning.yaml)", "int", minimum=1),
+    "numerics": ParamSpec("the per-step numerics: 'compiled' (numba kernels, compiled or "
+                          "loaded from their cache at configure) or 'numpy' (their oracles); "
+                          "numba missing or failing to compile is said at configure and the "
+                          "numpy path taken (default: planning.yaml)", "str", NUMERICS),
 }
 # parameters whose defaults come from planning.yaml, not guidance_node.yaml
-PLANNING_PARAMETERS = ("samples_per_node",)
+PLANNING_PARAMETERS = ("samples_per_node", "numerics")
 # the replan policy's parameters (`planning.replan.ReplanSettings`)
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
@@ -180,6 +185,7 @@ class NodeParameters:
     record_max_bytes: int
     record_max_total_bytes: int
     samples_per_node: int
+    numerics: str
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any]) -> "NodeParameters":

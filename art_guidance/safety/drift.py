@@ -59,11 +59,13 @@ bounds against dense minima on random intervals).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from math import comb
 
 import numpy as np
 
+from art_guidance import kernels
 from art_guidance.safety.drift_bounds import N_ORDERS, ArcItems, ArcPoints, lower_bound
 from art_guidance.dynamics import (
     j2_secular_rates, mean_arg_latitude, psi_from_latitude, stm_basis_orders, stm_j2_terms,
@@ -338,6 +340,29 @@ class DriftArcs:
         self._search(it, item, lo, hi, np.zeros(item.size, bool), best, floor, [],
                      sign_only=True)
         return np.minimum(floor, best) < 0.0
+
+    def violated_at(self, node: np.ndarray, z_m: np.ndarray, x_cov: np.ndarray | None,
+                    q: float) -> np.ndarray:
+        """(M,) bool: `violated` of the arcs of post-burn states `z_m` (M, 6) [m] from nodes
+        `node` (M,), with covariances `x_cov` (M, 6, 6) [m^2] or None: one compiled call
+        (`kernels.drift.violated`) where the compiled numerics are in use, else the numpy
+        oracle `violated(items(...))`."""
+        if not kernels.compiled():
+            return self.violated(self.items(node, z_m, x_cov, q))
+        from art_guidance.kernels import drift as kernel
+
+        chance = x_cov is not None
+        cov = np.ascontiguousarray(x_cov) if chance else np.zeros((node.size, 6, 6))
+        return kernel.violated(np.ascontiguousarray(node, dtype=np.int64),
+                               np.ascontiguousarray(z_m, dtype=float), cov, float(q), chance,
+                               self.maps, self._sup, self._u0, self._udot, self._wdot,
+                               self.tau_s, *self._grid_c)
+
+    @functools.cached_property
+    def _grid_c(self) -> tuple[np.ndarray, ...]:
+        """`_grid` as C-contiguous (N, S, 18) arrays (the compiled kernel's input)."""
+        n, s = self.n_nodes, self.n_samples
+        return tuple(np.ascontiguousarray(g.reshape(n, s, N_TERMS)) for g in self._grid)
 
     def _search(self, it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints,
                 refined: np.ndarray, best: np.ndarray, floor: np.ndarray, cands: list,

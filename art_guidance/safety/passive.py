@@ -332,7 +332,7 @@ class PassiveSafety:
             dv_rtn_mps: (K, N, 3) impulsive delta-v in RTN [m/s].
         """
         node, x, u, z, k = self._batch_arcs(roe_m, dv_rtn_mps)
-        return self.arcs.violated(self._items_at(node, x, u, z)).reshape(k, self.n_nodes)
+        return self._violated_at(node, x, u, z).reshape(k, self.n_nodes)
 
     def _batch_arcs(self, roe_m: object, dv_rtn_mps: object) -> tuple:
         """K validated trajectories as K N arcs: (node (KN,), pre-burn states (KN, 6) [m],
@@ -387,14 +387,14 @@ class PassiveSafety:
         """`node_violations` for the rollout's loop, which has the post-burn states already
         (`Horizon.post_burn_step`, `z_m` (B, 6) [m]); the arrays are not validated (finite by
         construction there)."""
-        return self.arcs.violated(self._items_at(int(i), roe_m, dv_rtn_mps, z_m))
+        return self._violated_at(int(i), roe_m, dv_rtn_mps, z_m)
 
     def steps_violations(self, nodes: np.ndarray, roe_m: np.ndarray, dv_rtn_mps: np.ndarray,
                          z_m: np.ndarray) -> np.ndarray:
         """`step_violations` of M (state, burn) pairs at nodes `nodes` (M,) of any mix, in one
         search (the speculative rollout checks several steps of a batch at once; each arc's
         decision is its own: the same as one node at a time, tested)."""
-        return self.arcs.violated(self._items_at(np.asarray(nodes), roe_m, dv_rtn_mps, z_m))
+        return self._violated_at(np.asarray(nodes), roe_m, dv_rtn_mps, z_m)
 
     # ------------------------------------------------------------------ internals
     def _node_items(self, i: int, roe_m: object, dv_rtn_mps: object) -> ArcItems:
@@ -410,6 +410,18 @@ class PassiveSafety:
                   ) -> ArcItems:
         """Drift arcs of B post-burn states `z` at node i, or at nodes i (B,) (pre-burn `x`,
         burns `u`)."""
+        return self.arcs.items(*self._arcs_at(i, x, u, z), self.q_sigma)
+
+    def _violated_at(self, i: int | np.ndarray, x: np.ndarray, u: np.ndarray, z: np.ndarray
+                     ) -> np.ndarray:
+        """(B,) bool: the violation indicator of the arcs of `_items_at` (`DriftArcs.
+        violated_at`: compiled where the compiled numerics are in use)."""
+        return self.arcs.violated_at(*self._arcs_at(i, x, u, z), self.q_sigma)
+
+    def _arcs_at(self, i: int | np.ndarray, x: np.ndarray, u: np.ndarray, z: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(nodes (B,), post-burn states (B, 6) [m], post-burn covariances (B, 6, 6) [m^2] or
+        None) of B (state, burn) pairs at node i or nodes i (B,)."""
         m = x.shape[0]
         x_cov = None
         if self.uncertainty is not None:
@@ -417,7 +429,7 @@ class PassiveSafety:
             x_cov = post_burn_covariance_checked(
                 x, u, np.broadcast_to(b, (m, 6, 3)), np.broadcast_to(psi, (m, 6, 6)),
                 self.uncertainty)
-        return self.arcs.items(np.broadcast_to(i, (m,)).copy(), z, x_cov, self.q_sigma)
+        return np.broadcast_to(i, (m,)).copy(), z, x_cov
 
     def _check(self, roe_m: object, dv_rtn_mps: object) -> tuple[np.ndarray, np.ndarray]:
         x = as_finite_array("roe_m", roe_m, (self.n_nodes, 6))

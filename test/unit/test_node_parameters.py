@@ -18,7 +18,8 @@ def params() -> NodeParameters:
     check_table(defaults)
     planning = GuidanceConfig.load().planning
     return NodeParameters.from_values({**defaults,
-                                       "samples_per_node": planning.samples_per_node})
+                                       "samples_per_node": planning.samples_per_node,
+                                       "numerics": planning.numerics})
 
 
 def test_every_spec_is_a_typed_field_in_order(params):

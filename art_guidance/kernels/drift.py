@@ -1,0 +1,422 @@
+"""Compiled form of `safety.drift.DriftArcs.violated`: the sign-only certified search of the
+passive-safety margin on drift arcs, one arc at a time.
+
+The numpy oracle (`safety/drift.py` and `safety/drift_bounds.py`, whose docstrings hold the
+mathematics) runs the search vectorised over every interval of every arc of a batch: ~650
+numpy calls of 1-5 us per rollout step over arrays of 8 x ~40. Here the same steps run in one
+compiled call per batch, arc by arc, with scalar arithmetic: the drift samples, the staged
+lower bounds (Lipschitz, the Hermite interpolants of d^2 and |v|^2, the chord bound), the
+safeguarded cubic-Hermite refinement of bracketed minima, and the splitting of uncertified
+intervals. Only the decision (minimum margin below zero or not) is returned.
+
+What differs from the oracle: sums are taken in another order (rounding: a decision can differ
+only where the certified minimum is within rounding of zero), and the cap on intervals split
+per level is per arc (MAX_OPEN of its own) where the oracle caps the batch at MAX_OPEN times the
+number of arcs (so an arc's result there could depend on its batch-mates; only degenerate arcs,
+e.g. through the ellipsoid's centre, reach either cap).
+
+Imports only numpy and numba.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+N_TERMS = 18
+N_SUB = 32
+CERT_TOL = 1e-4
+CERT_TOL_REL = 1e-3
+SPLIT = 4
+MAX_LEVELS = 8
+MAX_OPEN = 32
+REFINE_ITERS = 4
+D_FLOOR = 1e-12
+# an evaluated point: tau, m, dm, f, df, big_w, dbig_w
+TAU, M, DM, F, DF, W, DW = range(7)
+WS_SIZE = 84  # work array of `_point`
+
+_JIT = dict(cache=True, nogil=True)
+
+
+@njit(**_JIT)
+def _point(tau, coef, maps, x_cov, q, chance, u0, udot, wdot, out, ws):
+    """The margin and certificate quantities of one arc at offset `tau` [s] into `out` (7,)
+    (`DriftArcs.points` for one point); `ws`: a work array (WS_SIZE,)."""
+    u = u0 + udot * tau
+    cu, su = math.cos(u), math.sin(u)
+    c, s = math.cos(wdot * tau), math.sin(wdot * tau)
+    b0 = ws[0:18]
+    b1 = ws[18:36]
+    s0 = (1.0, tau, c, s, tau * c, tau * s)
+    s1 = (0.0, 1.0, -wdot * s, wdot * c, c - wdot * tau * s, s + wdot * tau * c)
+    for j in range(6):
+        b0[j] = s0[j]
+        b0[6 + j] = cu * s0[j]
+        b0[12 + j] = su * s0[j]
+        b1[j] = s1[j]
+        b1[6 + j] = -udot * su * s0[j] + cu * s1[j]
+        b1[12 + j] = udot * cu * s0[j] + su * s1[j]
+    mt = ws[36:54]
+    dmt = ws[54:72]
+    if chance:
+        for r in range(18):
+            acc0 = 0.0
+            acc1 = 0.0
+            for k in range(N_TERMS):
+                acc0 += b0[k] * maps[k, r]
+                acc1 += b1[k] * maps[k, r]
+            mt[r] = acc0
+            dmt[r] = acc1
+    _point_at(tau, b0, b1, mt, dmt, coef, x_cov, q, chance, out, ws)
+
+
+@njit(**_JIT)
+def _point_at(tau, b0, b1, mt, dmt, coef, x_cov, q, chance, out, ws):
+    """`_point` from the basis b0, b1 (18,) and (chance) ``Mt = b0 @ G``, ``b1 @ G`` (18,)."""
+    y0 = y1 = y2 = dy0 = dy1 = dy2 = 0.0
+    for k in range(N_TERMS):
+        y0 += b0[k] * coef[k, 0]
+        y1 += b0[k] * coef[k, 1]
+        y2 += b0[k] * coef[k, 2]
+        dy0 += b1[k] * coef[k, 0]
+        dy1 += b1[k] * coef[k, 1]
+        dy2 += b1[k] * coef[k, 2]
+    f = y0 * y0 + y1 * y1 + y2 * y2
+    df = 2.0 * (y0 * dy0 + y1 * dy1 + y2 * dy2)
+    d = max(math.sqrt(f), D_FLOOR)
+    dd = 0.5 * df / d
+    out[TAU] = tau
+    out[F] = f
+    out[DF] = df
+    if not chance:
+        out[M] = math.sqrt(f) - 1.0
+        out[DM] = dd
+        out[W] = 0.0
+        out[DW] = 0.0
+        return
+    w = ws[72:78]
+    dw = ws[78:84]
+    for i in range(6):
+        w[i] = mt[i] * y0 + mt[6 + i] * y1 + mt[12 + i] * y2
+        dw[i] = (dmt[i] * y0 + dmt[6 + i] * y1 + dmt[12 + i] * y2
+                 + mt[i] * dy0 + mt[6 + i] * dy1 + mt[12 + i] * dy2)
+    big_w = 0.0
+    dbig_w = 0.0
+    for i in range(6):
+        xw = 0.0
+        for j in range(6):
+            xw += w[j] * x_cov[j, i]
+        big_w += xw * w[i]
+        dbig_w += xw * dw[i]
+    big_w = max(big_w, 0.0)
+    dbig_w *= 2.0
+    v = math.sqrt(big_w)
+    dv = 0.5 * dbig_w / v if v > 0.0 else 0.0
+    sigma = v / d
+    dsigma = dv / d - v * dd / (d * d)
+    out[M] = math.sqrt(f) - 1.0 - q * sigma
+    out[DM] = dd - q * dsigma
+    out[W] = big_w
+    out[DW] = dbig_w
+
+
+@njit(**_JIT)
+def _cubic(f0, f1, g0, g1, h):
+    """(c2, c3, crit0, crit1) of the cubic Hermite interpolant on [0, h] (`_Cubic`)."""
+    hh = h if h > 0.0 else 1.0
+    slope = (f1 - f0) / hh
+    c2 = (3.0 * slope - 2.0 * g0 - g1) / hh
+    c3 = (g0 + g1 - 2.0 * slope) / (hh * hh)
+    disc = max(c2 * c2 - 3.0 * c3 * g0, 0.0)
+    qq = -(c2 + (1.0 if c2 >= 0.0 else -1.0) * math.sqrt(disc))
+    crit0 = qq / (3.0 * c3) if c3 != 0.0 else math.nan
+    crit1 = g0 / qq if qq != 0.0 else math.nan
+    if not math.isfinite(crit0):
+        crit0 = 0.0
+    if not math.isfinite(crit1):
+        crit1 = 0.0
+    return c2, c3, min(max(crit0, 0.0), h), min(max(crit1, 0.0), h)
+
+
+@njit(**_JIT)
+def _cubic_at(f0, g0, c2, c3, s):
+    return f0 + s * (g0 + s * (c2 + s * c3))
+
+
+@njit(**_JIT)
+def _cubic_min(f0, f1, g0, c2, c3, k0, k1):
+    return min(min(f0, f1), min(_cubic_at(f0, g0, c2, c3, k0), _cubic_at(f0, g0, c2, c3, k1)))
+
+
+@njit(**_JIT)
+def _cubic_max(f0, f1, g0, c2, c3, k0, k1):
+    return max(max(f0, f1), max(_cubic_at(f0, g0, c2, c3, k0), _cubic_at(f0, g0, c2, c3, k1)))
+
+
+@njit(**_JIT)
+def _hermite_error(a0, a1, a2, a3, a4, h):
+    return 2.0 * (a0 * a4 + 4.0 * a1 * a3 + 3.0 * a2 * a2) * h ** 4 / 384.0
+
+
+@njit(**_JIT)
+def _sigma_up(w_up, d_lo, k0):
+    if d_lo > 0.0:
+        return min(math.sqrt(max(w_up, 0.0)) / d_lo, k0)
+    return k0
+
+
+@njit(**_JIT)
+def _lower_bound(lo, hi, ys, ks, q, chance, target):
+    """`drift_bounds.lower_bound(..., sign_only=True)` for one interval."""
+    h = hi[TAU] - lo[TAU]
+    k0 = ks[0] if chance else 0.0
+    lb = max(0.5 * (math.sqrt(lo[F]) + math.sqrt(hi[F]) - ys[1] * h), 0.0) - 1.0 - q * k0
+    if not lb < target:
+        return lb
+    y0 = min(math.sqrt(max(lo[F], hi[F])) + 0.5 * h * ys[1], ys[0])
+    e_f = _hermite_error(y0, ys[1], ys[2], ys[3], ys[4], h)
+    c2, c3, k_0, k_1 = _cubic(lo[F], hi[F], lo[DF], hi[DF], h)
+    d_lo = math.sqrt(max(_cubic_min(lo[F], hi[F], lo[DF], c2, c3, k_0, k_1) - e_f, 0.0))
+    if not chance:
+        return max(lb, d_lo - 1.0)
+    lb = max(lb, d_lo - 1.0 - q * ks[0])
+    if not lb < max(target, 0.0):
+        return lb
+    # stage 2: sigma from the interpolant of W = |v|^2
+    yl = (y0, ys[1], ys[2], ys[3], ys[4])
+    vs0 = ks[0] * yl[0]
+    vs1 = ks[0] * yl[1] + ks[1] * yl[0]
+    vs2 = ks[0] * yl[2] + 2.0 * ks[1] * yl[1] + ks[2] * yl[0]
+    vs3 = ks[0] * yl[3] + 3.0 * ks[1] * yl[2] + 3.0 * ks[2] * yl[1] + ks[3] * yl[0]
+    vs4 = (ks[0] * yl[4] + 4.0 * ks[1] * yl[3] + 6.0 * ks[2] * yl[2] + 4.0 * ks[3] * yl[1]
+           + ks[4] * yl[0])
+    v0 = min(math.sqrt(max(lo[W], hi[W])) + 0.5 * h * vs1, vs0)
+    e_w = _hermite_error(v0, vs1, vs2, vs3, vs4, h)
+    w2, w3, j_0, j_1 = _cubic(lo[W], hi[W], lo[DW], hi[DW], h)
+    w_up = _cubic_max(lo[W], hi[W], lo[DW], w2, w3, j_0, j_1) + e_w
+    lb = max(lb, d_lo - 1.0 - q * _sigma_up(w_up, d_lo, ks[0]))
+    if not lb < target:
+        return lb
+    # stage 3: the chord bound on g = d - q sigma
+    g_min = math.inf
+    for j in range(N_SUB + 1):
+        s = h * j / N_SUB
+        f_pt = max(_cubic_at(lo[F], lo[DF], c2, c3, s) - e_f, 0.0)
+        w_pt = _cubic_at(lo[W], lo[DW], w2, w3, s) + e_w
+        g = math.sqrt(f_pt) - q * _sigma_up(w_pt, math.sqrt(f_pt), ks[0])
+        g_min = min(g_min, g)
+    f_hi = _cubic_max(lo[F], hi[F], lo[DF], c2, c3, k_0, k_1) + e_f
+    w_lo = max(_cubic_min(lo[W], hi[W], lo[DW], w2, w3, j_0, j_1) - e_w, 0.0)
+    if not (d_lo > 0.0 and f_hi > 0.0):
+        return lb
+    sig_lo = math.sqrt(w_lo / f_hi)
+    if not sig_lo > 0.0:
+        return lb
+    e1 = ys[1] / d_lo
+    e2 = 2.0 * ys[2] / d_lo + 5.0 * e1 * e1
+    u1 = ks[1] + ks[0] * e1
+    u2 = ks[2] + 2.0 * ks[1] * e1 + ks[0] * e2
+    curv = ys[2] + q * (u2 + u1 * u1 / sig_lo)
+    chord = g_min - 1.0 - curv * (h / N_SUB) ** 2 / 8.0
+    if math.isfinite(chord):
+        lb = max(lb, chord)
+    return lb
+
+
+@njit(**_JIT)
+def _sign_target(best):
+    if best < 0.0:
+        return -math.inf
+    return min(best - CERT_TOL - CERT_TOL_REL * abs(best), 0.0)
+
+
+@njit(**_JIT)
+def _refine(lo0, hi0, coef, maps, x_cov, q, chance, u0, udot, wdot, ws):
+    """The best margin found by safeguarded cubic-Hermite bracketing of m' = 0 on one bracket
+    (`DriftArcs._refine`)."""
+    lo = lo0.copy()
+    hi = hi0.copy()
+    best_m = min(lo[M], hi[M])
+    bisect = False
+    p = np.empty(7)
+    for _ in range(REFINE_ITERS):
+        width = hi[TAU] - lo[TAU]
+        slope = (hi[M] - lo[M]) / (width if width > 0.0 else 1.0)
+        d1 = lo[DM] + hi[DM] - 3.0 * slope
+        d2 = math.sqrt(max(d1 * d1 - lo[DM] * hi[DM], 0.0))
+        den = hi[DM] - lo[DM] + 2.0 * d2
+        t = hi[TAU] - width * (hi[DM] + d2 - d1) / den if den != 0.0 else math.nan
+        if not math.isfinite(t) or bisect:
+            t = 0.5 * (lo[TAU] + hi[TAU])
+        t = min(max(t, lo[TAU] + 0.05 * width), hi[TAU] - 0.05 * width)
+        _point(t, coef, maps, x_cov, q, chance, u0, udot, wdot, p, ws)
+        best_m = min(best_m, p[M])
+        if p[DM] < 0.0:
+            lo[:] = p
+        else:
+            hi[:] = p
+        bisect = (hi[TAU] - lo[TAU]) > 0.95 * width
+    return best_m
+
+
+@njit(**_JIT)
+def _arc_violated(coef, maps, x_cov, q, chance, y_sup, k_sup, u0, udot, wdot, tau_grid,
+                  grid_b0, grid_b1, grid_mt, grid_dmt, ws):
+    """Whether the certified minimum margin of one arc is below zero (`DriftArcs.violated`
+    with `_search(sign_only=True)` for one arc); grid_*: (S, 18) the basis and maps at the
+    drift samples (`DriftArcs._grid` of the arc's node)."""
+    n_s = tau_grid.size
+    pts = np.empty((n_s, 7))
+    for j in range(n_s):
+        _point_at(tau_grid[j], grid_b0[j], grid_b1[j], grid_mt[j], grid_dmt[j], coef, x_cov,
+                  q, chance, pts[j], ws)
+    best = pts[0, M]
+    for j in range(1, n_s):
+        best = min(best, pts[j, M])
+    if best < 0.0 or n_s == 1:
+        return best < 0.0
+    floor = best
+    lo = pts[:-1].copy()
+    hi = pts[1:].copy()
+    refined = np.zeros(n_s - 1, np.bool_)
+    for level in range(MAX_LEVELS + 1):
+        n_i = lo.shape[0]
+        lb = np.empty(n_i)
+        target = _sign_target(best)
+        for i in range(n_i):
+            lb[i] = _lower_bound(lo[i], hi[i], y_sup, k_sup, q, chance, target)
+        any_bracket = False
+        for i in range(n_i):
+            if lb[i] < target and lo[i, DM] < 0.0 and hi[i, DM] > 0.0 and not refined[i]:
+                best = min(best, _refine(lo[i], hi[i], coef, maps, x_cov, q, chance, u0,
+                                         udot, wdot, ws))
+                refined[i] = True
+                any_bracket = True
+        if any_bracket:
+            target = _sign_target(best)
+        n_open = 0
+        for i in range(n_i):
+            if lb[i] < target:
+                n_open += 1
+        if n_open == 0 or level == MAX_LEVELS:
+            for i in range(n_i):
+                floor = min(floor, lb[i])
+            return min(floor, best) < 0.0
+        keep = np.zeros(n_i, np.bool_)
+        if n_open > MAX_OPEN:  # the MAX_OPEN lowest bounds of this arc
+            order = np.argsort(lb, kind="mergesort")
+            for r in range(MAX_OPEN):
+                keep[order[r]] = True
+            n_open = MAX_OPEN
+        else:
+            for i in range(n_i):
+                keep[i] = lb[i] < target
+        for i in range(n_i):
+            if not keep[i]:
+                floor = min(floor, lb[i])
+        new_lo = np.empty((n_open * SPLIT, 7))
+        new_hi = np.empty((n_open * SPLIT, 7))
+        new_ref = np.zeros(n_open * SPLIT, np.bool_)
+        ends = np.empty((SPLIT + 1, 7))
+        r = 0
+        for i in range(n_i):
+            if not keep[i]:
+                continue
+            ends[0] = lo[i]
+            ends[SPLIT] = hi[i]
+            span = hi[i, TAU] - lo[i, TAU]
+            for j in range(1, SPLIT):
+                _point(lo[i, TAU] + span * (j / SPLIT), coef, maps, x_cov, q, chance, u0,
+                       udot, wdot, ends[j], ws)
+                best = min(best, ends[j, M])
+            for j in range(SPLIT):
+                new_lo[r] = ends[j]
+                new_hi[r] = ends[j + 1]
+                new_ref[r] = refined[i]
+                r += 1
+        lo, hi, refined = new_lo, new_hi, new_ref
+    return min(floor, best) < 0.0  # not reached: the loop returns at MAX_LEVELS
+
+
+@njit(**_JIT)
+def _items(maps, sup, z, x_cov, chance, coef, y_sup, k_sup):
+    """One arc's `DriftArcs.items`: ``coef = G_k z`` (18, 3) and the bounds y_sup, k_sup (5,),
+    written into the arrays given (maps (18, 18), sup (5, 18) of its node)."""
+    norm = np.empty(N_TERMS)
+    knorm = np.empty(N_TERMS)
+    for k in range(N_TERMS):
+        acc = 0.0
+        for c in range(3):
+            v = 0.0
+            for i in range(6):
+                v += maps[k, 6 * c + i] * z[i]
+            coef[k, c] = v
+            acc += v * v
+        norm[k] = math.sqrt(acc)
+        if chance:
+            kk = 0.0
+            for c in range(3):
+                for j in range(6):
+                    gx = 0.0
+                    for i in range(6):
+                        gx += maps[k, 6 * c + i] * x_cov[i, j]
+                    kk += gx * maps[k, 6 * c + j]
+            knorm[k] = math.sqrt(max(kk, 0.0))
+    for r in range(5):
+        a = 0.0
+        b = 0.0
+        for k in range(N_TERMS):
+            a += sup[r, k] * norm[k]
+            if chance:
+                b += sup[r, k] * knorm[k]
+        y_sup[r] = a
+        k_sup[r] = b
+
+
+@njit(**_JIT)
+def violated(node, z, x_cov, q, chance, maps, sup, u0, udot, wdot, tau_grid, grid_b0,
+             grid_b1, grid_mt, grid_dmt):
+    """(M,) bool: whether the certified minimum margin of the drift arc of each post-burn
+    state is below zero (`DriftArcs.violated` of `DriftArcs.items(node, z, x_cov, q)`).
+
+    Args:
+        node: (M,) int node of each arc; z: (M, 6) post-burn ROE [m]; x_cov: (M, 6, 6)
+            post-burn covariance [m^2] (chance; any (M, 6, 6) array otherwise).
+        q: confidence multiplier [-]; chance: the chance-constrained margin.
+        maps: (N, 18, 18) ``G_k`` [1/m]; sup: (N, 5, 18) derivative bounds of the basis;
+        u0, udot, wdot: (N,) chief latitude [rad] and rates [rad/s] at the nodes.
+        tau_grid: (S,) drift sample offsets [s]; grid_b0, grid_b1, grid_mt, grid_dmt:
+            (N, S, 18) the basis, its derivative and the maps at the samples.
+    """
+    n = node.size
+    out = np.empty(n, np.bool_)
+    ws = np.empty(WS_SIZE)
+    coef = np.empty((N_TERMS, 3))
+    y_sup = np.empty(5)
+    k_sup = np.empty(5)
+    for i in range(n):
+        k = node[i]
+        _items(maps[k], sup[k], z[i], x_cov[i], chance, coef, y_sup, k_sup)
+        out[i] = _arc_violated(coef, maps[k], x_cov[i], q, chance, y_sup, k_sup, u0[k],
+                               udot[k], wdot[k], tau_grid, grid_b0[k], grid_b1[k],
+                               grid_mt[k], grid_dmt[k], ws)
+    return out
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) `violated` for the argument types the doors pass."""
+    n_s = 3
+    node = np.zeros(1, np.int64)
+    z = np.zeros((1, 6))
+    z[0, 0] = 1.0
+    maps = np.zeros((1, N_TERMS, 18))
+    maps[0, 0, 0] = 2.0  # an arc outside the ellipsoid: the search runs
+    x_cov = np.zeros((1, 6, 6))
+    sup = np.zeros((1, 5, N_TERMS))
+    one = np.zeros(1)
+    grid = np.zeros((1, n_s, N_TERMS))
+    for chance in (True, False):
+        violated(node, z, x_cov, 3.0, chance, maps, sup, one, one, one,
+                 np.linspace(0.0, 100.0, n_s), grid, grid, grid, grid)

@@ -1,0 +1,91 @@
+"""Benchmark: the learned proposal with the compiled numerics against the numpy path, and SCVx*
+from CVX, on the same fresh scenarios, one thread.
+
+On each of `repeats` chance-constrained scenarios whose CVX plan is unsafe (where `auto` runs
+the model; seeds from `first_seed`, `bench proposal`'s screen) the default model (or `model`)
+proposes once on the numpy path and once compiled (`art_guidance.kernels`), in alternating
+order, and SCVx* is solved from CVX on the compiled path: CPU time of each, paired medians,
+whether the two proposals are the same bit for bit, and the kernels' start-up: compiled from
+nothing in a fresh interpreter with an empty cache, and loaded from the cache.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+from tqdm import tqdm
+
+from art_guidance import kernels
+from art_guidance.art.provider import ArtWarmStart
+from art_guidance.config import GuidanceConfig
+from art_guidance.planning import GuidancePipeline
+from bench_proposal import unsafe_cases
+
+_START = ("import time; t = time.perf_counter(); from art_guidance import kernels; "
+          "kernels.warm_up(); print(time.perf_counter() - t)")
+
+
+def _cpu_ms(fn) -> tuple[object, float]:
+    t = time.process_time()
+    out = fn()
+    return out, 1e3 * (time.process_time() - t)
+
+
+def _start_s(cache_dir: str) -> float:
+    """Seconds to import the kernels and have them ready, in a fresh interpreter."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": cache_dir}
+    out = subprocess.run([sys.executable, "-c", _START], env=env, capture_output=True,
+                         text=True, timeout=600, check=True)
+    return float(out.stdout.split()[-1])
+
+
+def _same(a, b) -> bool:
+    return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in (
+        "dv_rtn_mps", "constraint_to_go", "warm_start_dv_rtn_mps", "warm_start_roe_m"))
+
+
+def run(repeats: int = 20, first_seed: int = 60000, model: str | None = None) -> dict:
+    """Paired medians over `repeats` scenarios [ms CPU], and the kernels' start-up [s]."""
+    with tempfile.TemporaryDirectory() as cache:
+        cold_s, warm_s = _start_s(cache), _start_s(cache)
+    kernels.warm_up()
+    provider = ArtWarmStart.load(model or None)
+    planning = GuidanceConfig.load().planning
+    pipeline = GuidancePipeline(provider=provider)
+    cases = unsafe_cases(pipeline, True, int(first_seed), max(int(repeats), 1))
+    transfer, cvx = cases[0]
+    provider.propose(transfer.request, transfer.safety, cvx, planning)  # warm-up
+    rows, same = [], 0
+    for k, (transfer, cvx) in enumerate(tqdm(cases, desc="bench numerics", unit="scenario")):
+        times, out = {}, {}
+        for mode in (("numpy", "compiled") if k % 2 == 0 else ("compiled", "numpy")):
+            kernels.set_numerics(mode)
+            out[mode], times[mode] = _cpu_ms(lambda: provider.propose(
+                transfer.request, transfer.safety, cvx, planning))
+        kernels.set_numerics("compiled")
+        _, times["scvx"] = _cpu_ms(lambda: transfer.scvx(pipeline.config, pipeline.subproblem)
+                                   .solve(cvx.dv_rtn_mps))
+        same += _same(out["numpy"], out["compiled"])
+        rows.append(times)
+    col = {key: np.array([r[key] for r in rows]) for key in rows[0]}
+    return {"scenarios": len(rows), "model": os.path.basename(provider.path),
+            "proposal_numpy_ms_median": float(np.median(col["numpy"])),
+            "proposal_compiled_ms_median": float(np.median(col["compiled"])),
+            "compiled_over_numpy_paired_median": float(np.median(col["compiled"]
+                                                                 / col["numpy"])),
+            "scvx_from_cvx_ms_median": float(np.median(col["scvx"])),
+            "proposal_compiled_over_scvx_paired_median": float(np.median(col["compiled"]
+                                                                         / col["scvx"])),
+            "proposal_numpy_over_scvx_paired_median": float(np.median(col["numpy"]
+                                                                      / col["scvx"])),
+            "same_proposal": f"{same}/{len(rows)}",
+            "kernels_ready_cold_s": cold_s, "kernels_ready_cached_s": warm_s}
+
+
+if __name__ == "__main__":
+    for key, value in run().items():
+        print(f"{key}: {value}")
