@@ -4,9 +4,10 @@ from CVX, on the same fresh scenarios, one thread.
 On each of `repeats` chance-constrained scenarios whose CVX plan is unsafe (where `auto` runs
 the model; seeds from `first_seed`, `bench proposal`'s screen) the default model (or `model`)
 proposes once on the numpy path and once compiled (`art_guidance.kernels`), in alternating
-order, and SCVx* is solved from CVX on the compiled path: CPU time of each, paired medians,
-whether the two proposals are the same bit for bit, and the kernels' start-up: compiled from
-nothing in a fresh interpreter with an empty cache, and loaded from the cache.
+order, and SCVx* is solved from CVX on both paths: CPU time of each, paired medians, whether
+the two proposals are the same bit for bit, whether SCVx* ends the same (status, iterations;
+its cost to rounding), and the kernels' start-up: compiled from nothing in a fresh interpreter
+with an empty cache, and loaded from the cache.
 """
 from __future__ import annotations
 
@@ -59,17 +60,22 @@ def run(repeats: int = 20, first_seed: int = 60000, model: str | None = None) ->
     cases = unsafe_cases(pipeline, True, int(first_seed), max(int(repeats), 1))
     transfer, cvx = cases[0]
     provider.propose(transfer.request, transfer.safety, cvx, planning)  # warm-up
-    rows, same = [], 0
+    rows, same, same_path, cost_diff = [], 0, 0, 0.0
     for k, (transfer, cvx) in enumerate(tqdm(cases, desc="bench numerics", unit="scenario")):
         times, out = {}, {}
         for mode in (("numpy", "compiled") if k % 2 == 0 else ("compiled", "numpy")):
             kernels.set_numerics(mode)
             out[mode], times[mode] = _cpu_ms(lambda: provider.propose(
                 transfer.request, transfer.safety, cvx, planning))
-        kernels.set_numerics("compiled")
-        _, times["scvx"] = _cpu_ms(lambda: transfer.scvx(pipeline.config, pipeline.subproblem)
-                                   .solve(cvx.dv_rtn_mps))
+        scvx = {}
+        for mode in ("numpy", "compiled"):
+            kernels.set_numerics(mode)
+            scvx[mode], times[f"scvx_{mode}"] = _cpu_ms(lambda: transfer.scvx(
+                pipeline.config, pipeline.subproblem).solve(cvx.dv_rtn_mps))
         same += _same(out["numpy"], out["compiled"])
+        a, b = scvx["numpy"], scvx["compiled"]
+        same_path += (a.status, a.iterations) == (b.status, b.iterations)
+        cost_diff = max(cost_diff, abs(a.cost_mps - b.cost_mps))
         rows.append(times)
     col = {key: np.array([r[key] for r in rows]) for key in rows[0]}
     return {"scenarios": len(rows), "model": os.path.basename(provider.path),
@@ -77,12 +83,17 @@ def run(repeats: int = 20, first_seed: int = 60000, model: str | None = None) ->
             "proposal_compiled_ms_median": float(np.median(col["compiled"])),
             "compiled_over_numpy_paired_median": float(np.median(col["compiled"]
                                                                  / col["numpy"])),
-            "scvx_from_cvx_ms_median": float(np.median(col["scvx"])),
-            "proposal_compiled_over_scvx_paired_median": float(np.median(col["compiled"]
-                                                                         / col["scvx"])),
-            "proposal_numpy_over_scvx_paired_median": float(np.median(col["numpy"]
-                                                                      / col["scvx"])),
+            "scvx_numpy_ms_median": float(np.median(col["scvx_numpy"])),
+            "scvx_compiled_ms_median": float(np.median(col["scvx_compiled"])),
+            "scvx_compiled_over_numpy_paired_median": float(np.median(col["scvx_compiled"]
+                                                                      / col["scvx_numpy"])),
+            "proposal_compiled_over_scvx_compiled_paired_median": float(np.median(
+                col["compiled"] / col["scvx_compiled"])),
+            "proposal_numpy_over_scvx_numpy_paired_median": float(np.median(
+                col["numpy"] / col["scvx_numpy"])),
             "same_proposal": f"{same}/{len(rows)}",
+            "scvx_same_status_and_iterations": f"{same_path}/{len(rows)}",
+            "scvx_cost_difference_mps_max": cost_diff,
             "kernels_ready_cold_s": cold_s, "kernels_ready_cached_s": warm_s}
 
 

@@ -168,8 +168,8 @@ def _sigma_up(w_up, d_lo, k0):
 
 
 @njit(**_JIT)
-def _lower_bound(lo, hi, ys, ks, q, chance, target):
-    """`drift_bounds.lower_bound(..., sign_only=True)` for one interval."""
+def _lower_bound(lo, hi, ys, ks, q, chance, target, sign_only):
+    """`drift_bounds.lower_bound(..., target, sign_only)` for one interval."""
     h = hi[TAU] - lo[TAU]
     k0 = ks[0] if chance else 0.0
     lb = max(0.5 * (math.sqrt(lo[F]) + math.sqrt(hi[F]) - ys[1] * h), 0.0) - 1.0 - q * k0
@@ -181,8 +181,8 @@ def _lower_bound(lo, hi, ys, ks, q, chance, target):
     d_lo = math.sqrt(max(_cubic_min(lo[F], hi[F], lo[DF], c2, c3, k_0, k_1) - e_f, 0.0))
     if not chance:
         return max(lb, d_lo - 1.0)
-    lb = max(lb, d_lo - 1.0 - q * ks[0])
-    if not lb < max(target, 0.0):
+    lb = max(lb, d_lo - 1.0 - q * ks[0])  # never above stage 2's: the same result
+    if sign_only and not lb < max(target, 0.0):
         return lb
     # stage 2: sigma from the interpolant of W = |v|^2
     yl = (y0, ys[1], ys[2], ys[3], ys[4])
@@ -226,18 +226,23 @@ def _lower_bound(lo, hi, ys, ks, q, chance, target):
 
 
 @njit(**_JIT)
-def _sign_target(best):
+def _target(best, sign_only):
+    """`drift._target` (the full search) or `drift._sign_target` (the sign-only one)."""
+    full = best - CERT_TOL - CERT_TOL_REL * abs(best)
+    if not sign_only:
+        return full
     if best < 0.0:
         return -math.inf
-    return min(best - CERT_TOL - CERT_TOL_REL * abs(best), 0.0)
+    return min(full, 0.0)
 
 
 @njit(**_JIT)
 def _refine(lo0, hi0, coef, maps, x_cov, q, chance, u0, udot, wdot, ws):
-    """The best margin found by safeguarded cubic-Hermite bracketing of m' = 0 on one bracket
-    (`DriftArcs._refine`)."""
+    """(offset [s], margin) of the best point found by safeguarded cubic-Hermite bracketing of
+    m' = 0 on one bracket (`DriftArcs._refine`)."""
     lo = lo0.copy()
     hi = hi0.copy()
+    best_tau = lo[TAU] if lo[M] <= hi[M] else hi[TAU]
     best_m = min(lo[M], hi[M])
     bisect = False
     p = np.empty(7)
@@ -252,31 +257,51 @@ def _refine(lo0, hi0, coef, maps, x_cov, q, chance, u0, udot, wdot, ws):
             t = 0.5 * (lo[TAU] + hi[TAU])
         t = min(max(t, lo[TAU] + 0.05 * width), hi[TAU] - 0.05 * width)
         _point(t, coef, maps, x_cov, q, chance, u0, udot, wdot, p, ws)
-        best_m = min(best_m, p[M])
+        if p[M] < best_m:
+            best_tau = p[TAU]
+            best_m = p[M]
         if p[DM] < 0.0:
             lo[:] = p
         else:
             hi[:] = p
         bisect = (hi[TAU] - lo[TAU]) > 0.95 * width
-    return best_m
+    return best_tau, best_m
 
 
 @njit(**_JIT)
-def _arc_violated(coef, maps, x_cov, q, chance, y_sup, k_sup, u0, udot, wdot, tau_grid,
-                  grid_b0, grid_b1, grid_mt, grid_dmt, ws):
-    """Whether the certified minimum margin of one arc is below zero (`DriftArcs.violated`
-    with `_search(sign_only=True)` for one arc); grid_*: (S, 18) the basis and maps at the
-    drift samples (`DriftArcs._grid` of the arc's node)."""
+def _record(cands, n_c, tau, m, row):
+    """Append a candidate (tau, m, row) to `cands` (C, 3); returns the new count."""
+    if n_c < cands.shape[0]:
+        cands[n_c, 0] = tau
+        cands[n_c, 1] = m
+        cands[n_c, 2] = 1.0 if row else 0.0
+        return n_c + 1
+    return n_c
+
+
+@njit(**_JIT)
+def _arc_search(coef, maps, x_cov, q, chance, y_sup, k_sup, u0, udot, wdot, tau_grid,
+                grid_b0, grid_b1, grid_mt, grid_dmt, ws, sign_only, decide, cands):
+    """The certified search of one arc (`DriftArcs.minimum` / `violated` for one arc; grid_*:
+    (S, 18) the basis and maps at the drift samples of the arc's node).
+
+    Returns (certified lower bound of the minimum margin, number of candidates recorded in
+    `cands` (C, 3): tau [s], margin, 1 for a row candidate (samples and refined minima), 0
+    for split points, in the order the oracle appends them). `decide`: `violated`'s form
+    (sign-only, an arc a drift sample shows inside is decided by it; nothing recorded)."""
     n_s = tau_grid.size
     pts = np.empty((n_s, 7))
+    n_c = 0
     for j in range(n_s):
         _point_at(tau_grid[j], grid_b0[j], grid_b1[j], grid_mt[j], grid_dmt[j], coef, x_cov,
                   q, chance, pts[j], ws)
+        if not decide:
+            n_c = _record(cands, n_c, pts[j, TAU], pts[j, M], True)
     best = pts[0, M]
     for j in range(1, n_s):
         best = min(best, pts[j, M])
-    if best < 0.0 or n_s == 1:
-        return best < 0.0
+    if n_s == 1 or (decide and best < 0.0):
+        return best, n_c
     floor = best
     lo = pts[:-1].copy()
     hi = pts[1:].copy()
@@ -284,18 +309,21 @@ def _arc_violated(coef, maps, x_cov, q, chance, y_sup, k_sup, u0, udot, wdot, ta
     for level in range(MAX_LEVELS + 1):
         n_i = lo.shape[0]
         lb = np.empty(n_i)
-        target = _sign_target(best)
+        target = _target(best, sign_only)
         for i in range(n_i):
-            lb[i] = _lower_bound(lo[i], hi[i], y_sup, k_sup, q, chance, target)
+            lb[i] = _lower_bound(lo[i], hi[i], y_sup, k_sup, q, chance, target, sign_only)
         any_bracket = False
         for i in range(n_i):
             if lb[i] < target and lo[i, DM] < 0.0 and hi[i, DM] > 0.0 and not refined[i]:
-                best = min(best, _refine(lo[i], hi[i], coef, maps, x_cov, q, chance, u0,
-                                         udot, wdot, ws))
+                tau_r, m_r = _refine(lo[i], hi[i], coef, maps, x_cov, q, chance, u0, udot,
+                                     wdot, ws)
+                if not decide:
+                    n_c = _record(cands, n_c, tau_r, m_r, True)
+                best = min(best, m_r)
                 refined[i] = True
                 any_bracket = True
         if any_bracket:
-            target = _sign_target(best)
+            target = _target(best, sign_only)
         n_open = 0
         for i in range(n_i):
             if lb[i] < target:
@@ -303,7 +331,7 @@ def _arc_violated(coef, maps, x_cov, q, chance, y_sup, k_sup, u0, udot, wdot, ta
         if n_open == 0 or level == MAX_LEVELS:
             for i in range(n_i):
                 floor = min(floor, lb[i])
-            return min(floor, best) < 0.0
+            return min(floor, best), n_c
         keep = np.zeros(n_i, np.bool_)
         if n_open > MAX_OPEN:  # the MAX_OPEN lowest bounds of this arc
             order = np.argsort(lb, kind="mergesort")
@@ -331,13 +359,15 @@ def _arc_violated(coef, maps, x_cov, q, chance, y_sup, k_sup, u0, udot, wdot, ta
                 _point(lo[i, TAU] + span * (j / SPLIT), coef, maps, x_cov, q, chance, u0,
                        udot, wdot, ends[j], ws)
                 best = min(best, ends[j, M])
+                if not decide:
+                    n_c = _record(cands, n_c, ends[j, TAU], ends[j, M], False)
             for j in range(SPLIT):
                 new_lo[r] = ends[j]
                 new_hi[r] = ends[j + 1]
                 new_ref[r] = refined[i]
                 r += 1
         lo, hi, refined = new_lo, new_hi, new_ref
-    return min(floor, best) < 0.0  # not reached: the loop returns at MAX_LEVELS
+    return min(floor, best), n_c  # not reached: the loop returns at MAX_LEVELS
 
 
 @njit(**_JIT)
@@ -396,13 +426,61 @@ def violated(node, z, x_cov, q, chance, maps, sup, u0, udot, wdot, tau_grid, gri
     coef = np.empty((N_TERMS, 3))
     y_sup = np.empty(5)
     k_sup = np.empty(5)
+    cands = np.empty((0, 3))
     for i in range(n):
         k = node[i]
         _items(maps[k], sup[k], z[i], x_cov[i], chance, coef, y_sup, k_sup)
-        out[i] = _arc_violated(coef, maps[k], x_cov[i], q, chance, y_sup, k_sup, u0[k],
-                               udot[k], wdot[k], tau_grid, grid_b0[k], grid_b1[k],
-                               grid_mt[k], grid_dmt[k], ws)
+        low, _ = _arc_search(coef, maps[k], x_cov[i], q, chance, y_sup, k_sup, u0[k],
+                             udot[k], wdot[k], tau_grid, grid_b0[k], grid_b1[k], grid_mt[k],
+                             grid_dmt[k], ws, True, True, cands)
+        out[i] = low < 0.0
     return out
+
+
+@njit(**_JIT)
+def minimum(node, coef, x_cov, q, chance, y_sup, k_sup, sign_only, maps, u0, udot, wdot,
+            tau_grid, grid_b0, grid_b1, grid_mt, grid_dmt):
+    """`DriftArcs.minimum` of M arcs given as `DriftArcs.items` gives them: the certified
+    lower bound of each arc's minimum margin (M,), t* (M,) [s], the margin at t* (M,), and
+    (M, S) offsets [s]: t*, then the S - 1 row candidates other than t* by increasing margin
+    (`ArcMinimum.top_k`; ties in the oracle's order).
+
+    Args: node (M,) int; coef (M, 18, 3); x_cov (M, 6, 6) (chance; any otherwise); q;
+    chance; y_sup, k_sup (M, 5); sign_only: the sign-only search; the node tables as
+    `violated` takes them.
+    """
+    n = node.size
+    n_s = tau_grid.size
+    margin = np.empty(n)
+    t_star = np.empty(n)
+    m_star = np.empty(n)
+    top = np.empty((n, n_s))
+    ws = np.empty(WS_SIZE)
+    cap = n_s + (MAX_LEVELS + 1) * (max(n_s - 1, MAX_OPEN * SPLIT) + (SPLIT - 1) * MAX_OPEN)
+    cands = np.empty((cap, 3))
+    for i in range(n):
+        k = node[i]
+        low, n_c = _arc_search(coef[i], maps[k], x_cov[i], q, chance, y_sup[i], k_sup[i],
+                               u0[k], udot[k], wdot[k], tau_grid, grid_b0[k], grid_b1[k],
+                               grid_mt[k], grid_dmt[k], ws, sign_only, False, cands)
+        first = 0
+        for c in range(1, n_c):
+            if cands[c, 1] < cands[first, 1]:
+                first = c
+        margin[i] = low
+        t_star[i] = cands[first, 0]
+        m_star[i] = cands[first, 1]
+        top[i, 0] = t_star[i]
+        rows = np.empty(n_c, np.int64)
+        n_r = 0
+        for c in range(n_c):
+            if cands[c, 2] > 0.0 and cands[c, 0] != t_star[i]:
+                rows[n_r] = c
+                n_r += 1
+        order = np.argsort(cands[rows[:n_r], 1], kind="mergesort")
+        for r in range(1, n_s):
+            top[i, r] = cands[rows[order[min(r - 1, n_r - 1)]], 0] if n_r else t_star[i]
+    return margin, t_star, m_star, top
 
 
 def warm_up() -> None:
@@ -417,6 +495,13 @@ def warm_up() -> None:
     sup = np.zeros((1, 5, N_TERMS))
     one = np.zeros(1)
     grid = np.zeros((1, n_s, N_TERMS))
+    tau = np.linspace(0.0, 100.0, n_s)
+    coef = np.zeros((1, N_TERMS, 3))
+    coef[0, 0, 0] = 2.0
+    bounds = np.zeros((1, 5))
     for chance in (True, False):
-        violated(node, z, x_cov, 3.0, chance, maps, sup, one, one, one,
-                 np.linspace(0.0, 100.0, n_s), grid, grid, grid, grid)
+        violated(node, z, x_cov, 3.0, chance, maps, sup, one, one, one, tau, grid, grid, grid,
+                 grid)
+        for sign_only in (True, False):
+            minimum(node, coef, x_cov, 3.0, chance, bounds, bounds, sign_only, maps, one, one,
+                    one, tau, grid, grid, grid, grid)

@@ -100,7 +100,10 @@ class ArcMinimum:
         cand_item, cand_tau_s, cand_margin: (C,) the drift samples and refined local minima
             other than t* (the candidate linearisation instants; split points excluded: they
             crowd around t*): arc index, offset [s] and margin.
-        levels: number of split levels that were needed.
+        levels: number of split levels that were needed (-1: not counted, the compiled
+            search).
+        top: (M, S) `top_k`'s offsets precomputed by the compiled search (the candidates are
+            then not kept: empty), or None.
     """
 
     margin: np.ndarray
@@ -110,12 +113,15 @@ class ArcMinimum:
     cand_tau_s: np.ndarray
     cand_margin: np.ndarray
     levels: int
+    top: np.ndarray | None = None
 
     def top_k(self, k: int) -> np.ndarray:
         """(M, k) drift offsets [s]: t*, then the k - 1 smallest-margin candidates of the arc.
 
         Every arc has at least S - 1 candidates (its samples other than t*), k <= S.
         """
+        if self.top is not None:
+            return self.top[:, :k]
         order = np.lexsort((self.cand_margin, self.cand_item))
         item = self.cand_item[order]
         first = np.searchsorted(item, np.arange(self.margin.size))
@@ -298,6 +304,8 @@ class DriftArcs:
         except for minima within the certification tolerance of zero); t* and the candidates
         are those of the shortened search.
         """
+        if kernels.compiled():
+            return self._minimum_compiled(it, sign_only)
         m_items = it.node.size
         sel = np.arange(m_items)
         grid = self.points(it, sel, np.broadcast_to(self.tau_s, (m_items, self.n_samples)),
@@ -357,6 +365,20 @@ class DriftArcs:
                                np.ascontiguousarray(z_m, dtype=float), cov, float(q), chance,
                                self.maps, self._sup, self._u0, self._udot, self._wdot,
                                self.tau_s, *self._grid_c)
+
+    def _minimum_compiled(self, it: ArcItems, sign_only: bool) -> ArcMinimum:
+        """`minimum` by the compiled kernel (`kernels.drift.minimum`, arc by arc)."""
+        from art_guidance.kernels import drift as kernel
+
+        m, chance = it.node.size, it.maps is not None
+        c = np.ascontiguousarray
+        margin, t_star, m_star, top = kernel.minimum(
+            c(it.node, dtype=np.int64), c(it.coef), c(it.x_cov) if chance else
+            np.zeros((m, 6, 6)), float(it.q), chance, c(it.y_sup),
+            c(it.k_sup) if chance else np.zeros((m, 5)), bool(sign_only), self.maps, self._u0,
+            self._udot, self._wdot, self.tau_s, *self._grid_c)
+        empty = np.empty(0)
+        return ArcMinimum(margin, t_star, m_star, empty.astype(int), empty, empty, -1, top)
 
     @functools.cached_property
     def _grid_c(self) -> tuple[np.ndarray, ...]:
