@@ -191,8 +191,8 @@ class GuidanceCore:
 
     # ------------------------------------------------------------------ the mailbox
     def take_job(self, wait: bool = True) -> Job | None:
-        """The newest queued job (marked busy until `job_done`); None once stopped, or when
-        nothing is queued and `wait` is False."""
+        """The newest queued job (marked busy until its plan is decided in `solve`, or until
+        `job_done`); None once stopped, or when nothing is queued and `wait` is False."""
         with self._lock:
             while wait and self._job is None and not self._stop:
                 self._lock.wait()
@@ -232,6 +232,10 @@ class GuidanceCore:
         with self._lock:  # an unusable replan never replaces the plan in force
             action = self.policy.on_result(plan_id, job.nav.stamp_ns, result)
             active_id = self.policy.active_id
+            # the solve is over once its plan is decided: a fix that arrives while the node
+            # records, publishes and draws it is judged against the plan in force (not
+            # replanned as if a solve were under way)
+            self._busy = False
         text = (result.status.name if action is Action.ACTIVATED
                 else unusable_text(result, active_id))
         self.stats["plans"] += 1
