@@ -126,7 +126,7 @@ def versions() -> dict:
 
     out = {}
     for pkg in ("art_guidance", "clarabel", "osqp", "numpy", "scipy", "mcap",
-                "mcap-ros2-support", "torch", "rclpy"):
+                "mcap-ros2-support", "torch", "onnxruntime", "numba", "rclpy"):
         try:
             out[pkg] = version(pkg)
         except PackageNotFoundError:
