@@ -220,7 +220,7 @@ class GuidanceNodeBase:
             return
         self.out.publish_deputy(nav, self.get_logger())
         self.out.nav_diag(nav.stamp_ns, OK, decision.value,
-                          {"deviation_sigma": round(deviation, 3), **fix_counts(self.core)})
+                          {"deviation_sigma": round(deviation, 3), **fix_counts(core)})
 
     def _on_request(self, msg: ReplanRequest) -> None:
         if self.core is None or self.out is None:  # taken between unsubscribe and delivery

@@ -69,20 +69,30 @@ class Walked:
         self.sent: list[tuple[float, int]] = []  # (monotonic time, stamp) of streamed fixes
         self.lock = threading.Lock()
 
-    def call(self, srv, request, timeout_s: float = 60.0):
+    def call(self, srv, request, timeout_s: float = 20.0):
+        """The service's answer, or None after `timeout_s`. Under load Fast DDS may drop a
+        reply ("failed to send response (timeout)" in the node's log) whose writer had not
+        matched the client's reader yet: the caller decides whether to ask again."""
         assert srv.wait_for_service(timeout_sec=60.0), f"{self.ns}: no {srv.srv_name}"
         future = srv.call_async(request)
         end = time.monotonic() + timeout_s
         while not future.done() and time.monotonic() < end:
             time.sleep(0.02)
-        assert future.done(), f"{self.ns}: no answer from {srv.srv_name}"
-        return future.result()
+        return future.result() if future.done() else None
 
     def state(self) -> int:
-        return self.call(self.get, GetState.Request()).current_state.id
+        for _ in range(3):  # asking again is harmless
+            answer = self.call(self.get, GetState.Request())
+            if answer is not None:
+                return answer.current_state.id
+        raise AssertionError(f"{self.ns}: no answer from {self.get.srv_name}")
 
-    def transition(self, tid: int) -> bool:
-        return self.call(self.change, ChangeState.Request(transition=Transition(id=tid))).success
+    def transition(self, tid: int, expected: int) -> bool:
+        """Request a transition; a lost reply is judged by the state it left (asking again
+        would request a second transition)."""
+        answer = self.call(self.change, ChangeState.Request(transition=Transition(id=tid)),
+                           timeout_s=60.0)
+        return answer.success if answer is not None else self.state() == expected
 
     def stream_one(self) -> None:
         stamp = (time.time_ns() // 10) * 10 + self.index  # unique across the three streams
@@ -104,7 +114,7 @@ class Walked:
 def _walk(node: Walked, steps: list[tuple[int, int]]) -> None:
     assert node.state() == State.PRIMARY_STATE_UNCONFIGURED
     for tid, expected in steps:
-        assert node.transition(tid), (node.ns, tid)
+        assert node.transition(tid, expected), (node.ns, tid)
         t_done = time.monotonic()
         assert node.state() == expected, (node.ns, tid)
         assert node.proc.poll() is None, (node.ns, tid)
@@ -155,7 +165,9 @@ def test_every_valid_transition_from_every_state_under_streaming_fixes(ros_env, 
             out = outputs[node.ns]
             assert not failures.get(node.ns), f"{failures[node.ns]!r}\n{out}"
             assert node.proc.returncode == 0, f"{node.ns}:\n{out}"
-            assert "Traceback" not in out and "failed" not in out, f"{node.ns}:\n{out}"
+            assert "Traceback" not in out, f"{node.ns}:\n{out}"
+            assert not any("lifecycle" in line and "failed" in line
+                           for line in out.splitlines()), f"{node.ns}:\n{out}"
     finally:
         streaming.set()
         for node in nodes:
