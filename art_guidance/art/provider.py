@@ -54,11 +54,11 @@ from art_guidance.safety import PassiveSafety
 # by what the node flies on >= 2,000 fresh scenarios per mode (benchmarks/default_models.py:
 # never worse than CVX alone by > 1 mm/s, a mean flown saving within the paired 95 % interval
 # of the best's, then the cheapest proposal; docs/results.md "Shipped defaults"), not by the
-# rollout metrics. models.json says the same under "defaults", with the reasons. The
-# chance-constrained default is the one-token student of the RTN teacher; the teachers stay
-# shipped beside it (TEACHERS), loadable by path.
+# rollout metrics. models.json says the same under "defaults", with the reasons. The defaults
+# are the one-token students of the RTN (chance-constrained) and ROE (deterministic) teachers;
+# the teachers stay shipped beside them (TEACHERS), loadable by path.
 DEFAULT_MODEL = "art_slim1e40_chance_rtn.pt"
-DEFAULT_MODELS = {"chance": DEFAULT_MODEL, "deterministic": "art_small_det_roe.pt"}
+DEFAULT_MODELS = {"chance": DEFAULT_MODEL, "deterministic": "art_slim1e40_det_roe.pt"}
 TEACHERS = {"chance": "art_small_chance_rtn.pt", "deterministic": "art_small_det_roe.pt"}
 DEFAULTS_KEY = "defaults"  # models.json: the default per mode and why (not a model entry)
 SPACING_REL_TOL = 0.01  # node spacing of a request vs the training horizon's [-]
@@ -72,8 +72,8 @@ def models_dir() -> Path:
 
 def default_model_path(mode: str = "chance") -> Path:
     """The shipped default model of a passive-safety mode ("chance" or "deterministic"),
-    trained on data of that mode (`DEFAULT_MODELS`: the one-token student of the RTN teacher
-    for "chance", the small ROE model for "deterministic").
+    trained on data of that mode (`DEFAULT_MODELS`: the one-token students of the RTN teacher
+    for "chance" and of the ROE teacher for "deterministic").
 
     Raises:
         ValueError: an unknown mode.

@@ -57,12 +57,12 @@ def test_the_cheapest_proposal_within_the_paired_interval_of_the_best(rule):
 
 
 def test_the_committed_evaluations_choose_the_shipped_defaults(rule, tmp_path, capsys):
-    """The rule on the committed summaries (deterministic: the defaults' 2,000-scenario
-    analysis; chance-constrained: the student with its teacher on 2,000 held-out scenarios)
-    and the recorded paired figures picks the shipped defaults, and writes the committed
-    choice."""
+    """The rule on the committed summaries (deterministic: the student with its teacher on
+    1,000 fresh scenarios, paired figures in the summary; chance-constrained: the student with
+    its teacher on 2,000 held-out scenarios and the recorded paired figures) picks the shipped
+    defaults, and writes the committed choice."""
     out = tmp_path / "choice.json"
-    argv = ["--eval", f"deterministic={RESULTS / 'default_models' / 'summary.json'}",
+    argv = ["--eval", f"deterministic={RESULTS / 'slim' / 'eval_slim1e40_det_1000_summary.json'}",
             "--eval", f"chance={RESULTS / 'slim' / 'eval_slim1e40_s11s12_summary.json'}",
             "--paired", str(RESULTS / "default_models" / "paired.json"), "--json", str(out)]
     assert rule.main(argv) == 0
