@@ -47,14 +47,15 @@ def prepare_numerics(numerics: str, log: Any) -> str:
     from art_guidance import kernels
 
     kernels.set_numerics(numerics)
+    ready_s = None if numerics == "numpy" else kernels.warm_up()
     if numerics == "numpy":
         status = "numerics: numpy (as configured)"
-    elif kernels.warm_up() is None:
+    elif ready_s is None:
         status = f"numerics: numpy, the compiled kernels are not available: {kernels.error()}"
         log.warning(status)
         return status
     else:
-        status = (f"numerics: compiled, kernels ready in {kernels.warm_up():.2f} s (cache: "
+        status = (f"numerics: compiled, kernels ready in {ready_s:.2f} s (cache: "
                   f"{kernels.cache_note})")
     log.info(status)
     return status

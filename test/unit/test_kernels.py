@@ -163,6 +163,18 @@ def test_proposals_are_bit_for_bit_those_of_the_numpy_path():
     assert proposed >= N_SCENARIOS // 2
 
 
+def test_the_kernels_search_with_the_oracles_constants():
+    """The kernel module imports only numpy and numba, so it states the search's constants
+    again: they must be the oracle's."""
+    from art_guidance.kernels import drift as kernel
+    from art_guidance.safety import drift, drift_bounds
+
+    for name in ("N_TERMS", "CERT_TOL", "CERT_TOL_REL", "SPLIT", "MAX_LEVELS", "MAX_OPEN",
+                 "REFINE_ITERS"):
+        assert getattr(kernel, name) == getattr(drift, name), name
+    assert kernel.D_FLOOR == drift._D_FLOOR and kernel.N_SUB == drift_bounds.N_SUB
+
+
 def test_the_setting_is_validated_and_numba_missing_takes_the_numpy_path(tmp_path):
     with pytest.raises(ValueError, match="numerics must be one of"):
         kernels.set_numerics("jax")
