@@ -49,7 +49,8 @@ def run(args: argparse.Namespace) -> int:
 _PASSED = {"out": "--out", "workers": "--workers", "engine": "--engine",
            "ray_address": "--ray-address", "seeds": "--seeds",
            "missed_per_seed": "--missed-per-seed", "first_seed": "--first-seed",
-           "model": "--model", "reference": "--reference", "min_c_cvx": "--min-c-cvx"}
+           "model": "--model", "reference": "--reference", "min_c_cvx": "--min-c-cvx",
+           "horizons": "--horizons", "targets": "--targets", "trigger": "--trigger"}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -81,5 +82,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-c-cvx", type=int, default=None, metavar="N",
                    help="closed_loop: fly the hard family, the first --repeats seeds from "
                    "--first-seed whose initial CVX warm start violates passive safety at N or "
-                   "more nodes, with the learned warm start against CVX only")
+                   "more nodes, with the learned warm start against CVX only (mpc: the same "
+                   "screen)")
+    p.add_argument("--horizons", default=None, metavar="H,H,...",
+                   help="mpc: the replan windows to fly [nodes], e.g. 10,20,40")
+    p.add_argument("--targets", default=None, metavar="T,T",
+                   help="mpc: the windows' terminal targets, art and/or cvx")
+    p.add_argument("--trigger", default=None, choices=("sigma", "every"),
+                   help="mpc: replan on the node's deviation rule (and when half a window is "
+                   "flown) or at every node")
     p.set_defaults(func=run)

@@ -68,6 +68,10 @@ def run(args: argparse.Namespace) -> int:
     node_cmd = [sys.executable, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                 "-p", "stamp_check:=order", "-p", f"record_dir:={bag}",
                 "-p", f"default_waypoint:={args.waypoint}"]
+    if args.replan_window_nodes is not None:  # else the node's default (guidance_node.yaml)
+        node_cmd += ["-p", f"replan_window_nodes:={int(args.replan_window_nodes)}"]
+    if args.terminal_target is not None:
+        node_cmd += ["-p", f"terminal_target:={args.terminal_target}"]
     sim_cmd = [sys.executable, "-m", "art_guidance.ros.sim_node", "--ros-args",
                "-p", f"waypoint:={args.waypoint}", "-p", f"seed:={args.seed}",
                "-p", f"png_path:={run / 'rendezvous.png'}",
@@ -190,6 +194,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", default=None, help="scenario YAML (default: packaged)")
     p.add_argument("--waypoint", default="plus_vbar", help="terminal waypoint name")
     p.add_argument("--seed", type=int, default=0, help="simulator seed (initial state, errors)")
+    p.add_argument("--replan-window-nodes", type=int, default=None, metavar="H",
+                   help="the node's replan_window_nodes: each replan optimises H nodes ahead "
+                   "to a terminal target (0 = the whole remainder; default: the node's)")
+    p.add_argument("--terminal-target", choices=("art", "cvx"), default=None,
+                   help="the node's terminal_target: where a window ends (default: the "
+                   "node's)")
     p.add_argument("--out", default="out/demo", help="where the run folder goes")
     p.add_argument("--timeout", type=float, default=900.0, help="wall-clock limit [s]")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: "

@@ -163,7 +163,8 @@ class GuidanceCore:
             job = None
             if self._latest is not None:
                 nav, nav_payload = self._latest
-                job = Job(nav, request_for(nav, target, fresh), "request", nav_payload, payload)
+                job = Job(nav, request_for(nav, target, fresh, self.policy.settings), "request",
+                          nav_payload, payload)
             else:
                 check_target(target)
             self.target, self._target_payload = target, payload
@@ -175,12 +176,13 @@ class GuidanceCore:
         """New policy settings (the AE -> KOZ switch node of the plans in force stays)."""
         with self._lock:
             self.policy.settings = dataclasses.replace(
-                settings, ae_to_koz_node=self.policy.settings.ae_to_koz_node)
+                settings, ae_to_koz_node=self.policy.settings.ae_to_koz_node,
+                horizon_nodes=self.policy.settings.horizon_nodes)
 
     def _job_for(self, nav: NavState, payload: Any, trigger: str) -> Job:
         window = self.policy.window(nav, self.target.n_orbits)
-        return Job(nav, request_for(nav, self.target, window), trigger, payload,
-                   self._target_payload)
+        return Job(nav, request_for(nav, self.target, window, self.policy.settings), trigger,
+                   payload, self._target_payload)
 
     def _submit(self, job: Job) -> None:
         """Called with the lock held: replace any queued job, wake the worker."""

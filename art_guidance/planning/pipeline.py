@@ -33,6 +33,7 @@ from art_guidance.planning.proposal_process import (
     GRACE_S, NO_DEADLINE_TIMEOUT_S, ProposalProcess, model_key,
 )
 from art_guidance.planning.transfer import Transfer, Transfers
+from art_guidance.planning.window import needs_window, plan_window, waypoint_window
 from art_guidance.planning.types import (
     PlanRequest, PlanResult, ScpAttempt, WarmStart, WarmStartProvider, WarmStartSource,
 )
@@ -132,6 +133,15 @@ class GuidancePipeline:
         It is overrun by at most one SCVx* iteration, one rollout step and the final safety
         evaluation.
         """
+        if request.window_nodes:  # optimised over its window (`planning.window`)
+            n_nodes = self.transfer(request).horizon.n_nodes
+            if needs_window(request, n_nodes):
+                if deadline is None and self.deadline_s is not None:
+                    deadline = Deadline(time.perf_counter() + self.deadline_s)
+                return plan_window(self, request, deadline)
+            return dataclasses.replace(self.plan(dataclasses.replace(request, window_nodes=0),
+                                                 deadline),
+                                       request=request, window=waypoint_window(request, n_nodes))
         with self._pools_lock:
             pool = self._pools.pop() if self._pools else SubproblemPool()
         try:

@@ -19,7 +19,9 @@ from art_guidance.dynamics import (
     control_matrix, orbital_period_s, propagate_mean_oe, stm_j2,
 )
 from art_guidance.errors import ConfigError, GuidanceError
-from art_guidance.planning.types import NavState, PlanRequest, PlanResult, Target
+from art_guidance.planning.types import (
+    TERMINAL_TARGETS, NavState, PlanRequest, PlanResult, Target,
+)
 
 STAMP_CHECKS = ("wallclock", "order", "off")
 _NODE = node_parameter_defaults()  # the defaults are the node's: config/guidance_node.yaml
@@ -53,7 +55,14 @@ class ReplanSettings:
         max_nav_age_s, max_nav_future_s: wall-clock stamp limits [s].
         max_stamp_jump_s: "order": largest step of a stamp ahead of the last accepted one [s].
         min_remaining_nodes: below this many nodes left the plan in force is flown out.
+        replan_window_nodes: H, the nodes after the first a replan optimises (0: the whole
+            remainder); a windowed plan is replanned at the latest when fewer than H / 2 of
+            its window's nodes are left (`planning.window`).
+        terminal_target: where a window shorter than the remainder ends: "art" (the learned
+            proposal's state there; CVX's where it is rejected or missing) or "cvx".
         ae_to_koz_node: node of the approach-ellipsoid -> keep-out-zone switch of a new plan.
+        horizon_nodes: nodes of a fresh plan's horizon (the scenario's: a window may not be
+            longer).
     """
 
     replan_sigma_threshold: float = _NODE["replan_sigma_threshold"]
@@ -63,7 +72,10 @@ class ReplanSettings:
     max_nav_future_s: float = _NODE["max_nav_future_s"]
     max_stamp_jump_s: float = _NODE["max_stamp_jump_s"]
     min_remaining_nodes: int = _NODE["min_remaining_nodes"]
+    replan_window_nodes: int = _NODE["replan_window_nodes"]
+    terminal_target: str = _NODE["terminal_target"]
     ae_to_koz_node: int = ScenarioConfig().ae_to_koz_node
+    horizon_nodes: int = ScenarioConfig().n_nodes
 
     def __post_init__(self) -> None:
         if self.stamp_check not in STAMP_CHECKS:
@@ -77,6 +89,25 @@ class ReplanSettings:
             raise ConfigError(f"replan_period_s must be >= 0, got {self.replan_period_s}")
         if int(self.min_remaining_nodes) < 2:
             raise ConfigError("min_remaining_nodes must be >= 2")
+        check_window(self.replan_window_nodes, self.terminal_target, self.horizon_nodes)
+
+
+def check_window(window_nodes: int, terminal_target: str, horizon_nodes: int) -> None:
+    """Refuse a replan window outside 0 (the whole remainder) or [2, horizon_nodes - 1], or an
+    unknown terminal target.
+
+    Raises:
+        ConfigError: with the reason.
+    """
+    h = window_nodes
+    if isinstance(h, bool) or not isinstance(h, (int, np.integer)) \
+            or not (h == 0 or 2 <= h <= int(horizon_nodes) - 1):
+        raise ConfigError(f"replan_window_nodes must be 0 (the whole remainder) or in [2, "
+                          f"{int(horizon_nodes) - 1}] (the horizon's nodes after the first), "
+                          f"got {h!r}")
+    if terminal_target not in TERMINAL_TARGETS:
+        raise ConfigError(f"terminal_target must be one of {TERMINAL_TARGETS}, got "
+                          f"{terminal_target!r}")
 
 
 @dataclass(frozen=True)
@@ -90,6 +121,8 @@ class ActivePlan:
         end_ns: epoch of its last node [ns].
         dt_s: node spacing [s].
         switch_ns: absolute epoch of the AE -> KOZ switch [ns].
+        window_end_ns: epoch of the last node of its window [ns] (None: not windowed, or its
+            window reaches the waypoint).
     """
 
     plan_id: str
@@ -98,6 +131,7 @@ class ActivePlan:
     end_ns: int
     dt_s: float
     switch_ns: int
+    window_end_ns: int | None = None
 
 
 @dataclass(frozen=True)
@@ -175,6 +209,9 @@ class ReplanPolicy:
         deviation = deviation_sigma(active, nav)
         due = (s.replan_period_s > 0
                and (nav.stamp_ns - (self.last_plan_ns or 0)) * 1e-9 >= s.replan_period_s)
+        if active.window_end_ns is not None and s.replan_window_nodes > 0:
+            window_left = (active.window_end_ns - nav.stamp_ns) * 1e-9 / active.dt_s
+            due = due or window_left < 0.5 * s.replan_window_nodes - 1e-6
         if deviation > s.replan_sigma_threshold or due:
             return Decision.REPLANNING, deviation
         return Decision.ON_PLAN, deviation
@@ -204,18 +241,28 @@ class ReplanPolicy:
             switch_ns = t0_ns + int(self.settings.ae_to_koz_node * dt_s * 1e9)
         else:
             switch_ns = self.active.switch_ns
+        window = result.window
+        window_end_ns = None
+        if window is not None and window.end_node < len(result.epochs_s) - 1:
+            window_end_ns = t0_ns + int(round(result.epochs_s[window.end_node] * 1e9))
         self.active = ActivePlan(plan_id, t0_ns, result,
-                                 t0_ns + int(round(result.epochs_s[-1] * 1e9)), dt_s, switch_ns)
+                                 t0_ns + int(round(result.epochs_s[-1] * 1e9)), dt_s, switch_ns,
+                                 window_end_ns)
         self.last_plan_ns = t0_ns
         return Action.ACTIVATED
 
 
-def request_for(nav: NavState, target: Target, window: ReplanWindow) -> PlanRequest:
-    """The planning request for a fix, a target and a replan window."""
+def request_for(nav: NavState, target: Target, window: ReplanWindow,
+                settings: ReplanSettings | None = None) -> PlanRequest:
+    """The planning request for a fix, a target and a replan window (optimised over the
+    `settings`' window, if any)."""
+    s = settings or ReplanSettings()
     return PlanRequest(nav.chief_oe, nav.roe_m, target.target_rtn,
                        chance_constrained=target.chance_constrained,
                        warm_start=target.warm_start, n_nodes=window.n_nodes,
-                       n_orbits=window.n_orbits, koz_switch_node=window.koz_switch_node)
+                       n_orbits=window.n_orbits, koz_switch_node=window.koz_switch_node,
+                       window_nodes=int(s.replan_window_nodes),
+                       terminal_target=s.terminal_target)
 
 
 def check_target(target: Target) -> None:

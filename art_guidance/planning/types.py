@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -53,6 +53,7 @@ class WarmStartSource(enum.Enum):
 
 
 N_ORBITS_RANGE = (0.01, 20.0)  # a plan's horizon [orbits], inclusive
+TERMINAL_TARGETS = ("art", "cvx")  # where a replan window ends (`planning.window`)
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,9 @@ class PlanRequest:
         n_nodes, n_orbits: horizon; None uses the scenario's.
         koz_switch_node: node index where the approach ellipsoid switches to the keep-out zone;
             None uses the scenario's (a replan over the remaining horizon shifts it).
+        window_nodes: H > 0 optimises only nodes 0..H when the horizon is longer, to
+            `terminal_target`'s state at node H (`planning.window`); 0 the whole horizon.
+        terminal_target: "art" or "cvx" (`planning.window`).
     """
 
     chief_oe: np.ndarray
@@ -78,6 +82,8 @@ class PlanRequest:
     n_nodes: int | None = None
     n_orbits: float | None = None
     koz_switch_node: int | None = None
+    window_nodes: int = 0
+    terminal_target: str = "art"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "chief_oe", check_chief(self.chief_oe))
@@ -99,6 +105,13 @@ class PlanRequest:
             raise InputError("n_orbits", f"must be in [{lo:g}, {hi:g}] orbits", self.n_orbits)
         if self.koz_switch_node is not None and int(self.koz_switch_node) < 0:
             raise InputError("koz_switch_node", "must be >= 0", self.koz_switch_node)
+        h = self.window_nodes
+        if isinstance(h, bool) or not isinstance(h, (int, np.integer)) \
+                or not (h == 0 or 2 <= h <= 1000):
+            raise InputError("window_nodes", "must be 0 (the whole horizon) or in [2, 1000]", h)
+        if self.terminal_target not in TERMINAL_TARGETS:
+            raise InputError("terminal_target", f"must be one of {TERMINAL_TARGETS}",
+                             self.terminal_target)
 
     def to_json(self) -> dict:
         """Everything needed to solve this request again (see `from_json`)."""
@@ -106,7 +119,9 @@ class PlanRequest:
                 "target_rtn": self.target_rtn.tolist(),
                 "chance_constrained": bool(self.chance_constrained),
                 "warm_start": self.warm_start, "n_nodes": self.n_nodes,
-                "n_orbits": self.n_orbits, "koz_switch_node": self.koz_switch_node}
+                "n_orbits": self.n_orbits, "koz_switch_node": self.koz_switch_node,
+                "window_nodes": int(self.window_nodes),
+                "terminal_target": self.terminal_target}
 
     @classmethod
     def from_json(cls, data: dict) -> "PlanRequest":
@@ -115,7 +130,8 @@ class PlanRequest:
             return cls(np.asarray(data["chief_oe"]), np.asarray(data["roe0_m"]),
                        np.asarray(data["target_rtn"]), bool(data["chance_constrained"]),
                        data["warm_start"], data.get("n_nodes"), data.get("n_orbits"),
-                       data.get("koz_switch_node"))
+                       data.get("koz_switch_node"), data.get("window_nodes", 0),
+                       data.get("terminal_target", "art"))
         except (KeyError, TypeError) as exc:
             raise InputError("request_json", f"malformed: {exc!r}") from exc
 
@@ -197,6 +213,7 @@ class PlanResult:
     proposal: WarmStartProposal | None = None  # the learned warm start, if one was proposed
     warm_start_reason: str = ""  # why this warm start, in words
     discarded: ScpAttempt | None = None  # an SCP run replaced by a better retry
+    window: Any = None  # `planning.window.PlanWindow` of a windowed replan (None: not one)
 
     @property
     def art_dv_rtn_mps(self) -> np.ndarray | None:
@@ -228,6 +245,7 @@ class PlanResult:
                 "cost_mps": d.cost_mps, "iterations": d.iterations},
             "timings_ms": dict(self.timings_ms),
             "constraint_margin_m": self.constraint_margin_m,
+            "window": None if self.window is None else self.window.to_json(),
         }
 
 

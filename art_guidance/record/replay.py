@@ -253,6 +253,19 @@ def _replay_provider(log: RecordedLog, model: str | Path | None) -> tuple[object
                       "(sha256 matches)")
 
 
+def _window_rows(record: object, result: object) -> dict:
+    """The window of one solve (recorded vs replayed): the same end node and target source
+    (a record from before windows, or not windowed, has none)."""
+    text = str(getattr(record, "window_json", "") or "")
+    recorded = json.loads(text) if text else None
+    replayed = None if result.window is None else result.window.to_json()
+    same = (recorded is None) == (replayed is None) and (recorded is None or all(
+        recorded.get(k) == replayed[k] for k in ("window_nodes", "end_node", "target_source")))
+    return {"window_target": None if recorded is None else recorded.get("target_source"),
+            "replayed_window_target": None if replayed is None else replayed["target_source"],
+            "window_match": bool(same)}
+
+
 def _art_rows(record: object, result: object) -> dict:
     """Rollout and decision comparison of one solve (recorded vs replayed)."""
     rec_dv = np.asarray(getattr(record, "warm_start_art_dv_rtn_mps", []), float)
@@ -375,8 +388,9 @@ def replay(path: str | Path, model: str | Path | None = None,
         row.update(replayed_cost_mps=result.cost_mps, cost_rel_diff=d_cost,
                    dv_max_abs_diff_mps=d_dv, replayed_status=result.status.name,
                    **_art_rows(record, result))
+        row.update(_window_rows(record, result))
         row["match"] = bool(d_cost <= COST_REL_TOL and d_dv <= DV_ABS_TOL_MPS
-                            and row["decision_match"])
+                            and row["decision_match"] and row["window_match"])
         rows.append(row)
     compared = [r for r in rows if r["match"] is not None]
     mismatched = sum(not r["match"] for r in compared)

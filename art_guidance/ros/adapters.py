@@ -176,6 +176,7 @@ def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str, trigger: s
     msg.timing_art_ms, msg.timing_cvx_ms = float(t.get("art", 0.0)), float(t.get("cvx", 0.0))
     msg.timing_scp_ms, msg.timing_total_ms = float(t.get("scp", 0.0)), float(t.get("total", 0.0))
     msg.request_json = json.dumps(result.request.to_json() if result.request else {})
+    msg.window_json = "" if result.window is None else json.dumps(result.window.to_json())
     return msg
 
 

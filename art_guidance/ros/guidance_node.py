@@ -112,6 +112,8 @@ class GuidanceNodeBase:
         if p.default_waypoint not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {p.default_waypoint!r} is not one of "
                               f"{sorted(self.scenario.waypoints_rtn)}")
+        settings = p.replan_settings(ae_to_koz_node=self.scenario.ae_to_koz_node,
+                                     horizon_nodes=self.scenario.n_nodes)  # checked first
         self.provider, self.model_status = load_model(self.params, self.get_logger())
         self.pipeline = GuidancePipeline(config, provider=self.provider,
                                          deadline_s=p.solve_deadline_s)
@@ -126,8 +128,7 @@ class GuidanceNodeBase:
         target = Target(p.default_waypoint,
                         np.asarray(self.scenario.waypoints_rtn[p.default_waypoint]),
                         p.chance_constrained, p.warm_start, None)
-        self.core = GuidanceCore(self.pipeline, p.replan_settings(
-            ae_to_koz_node=self.scenario.ae_to_koz_node), target)
+        self.core = GuidanceCore(self.pipeline, settings, target)
         self._worker, self._worker_deaths = None, 0
         self.budget = ReplanBudget()
         self.recording = SolveRecording(self.resolve_topic_name, p, self.pipeline,
@@ -192,12 +193,14 @@ class GuidanceNodeBase:
         """Validate and apply run-time parameter changes (all or none)."""
         try:
             new = self.params.changed({prm.name: prm.value for prm in params})
+            if self.core is not None:  # a window no longer than this scenario's horizon
+                settings = new.replan_settings(horizon_nodes=self.scenario.n_nodes)
         except ConfigError as exc:
             self.get_logger().warning(f"parameter change refused: {exc}")
             return SetParametersResult(successful=False, reason=str(exc))
         self.params = new
         if self.core is not None:  # not configured yet: the values are used at configure
-            self.core.update_settings(new.replan_settings())
+            self.core.update_settings(settings)
         changed = ", ".join(f"{p.name}={getattr(new, p.name)!r}" for p in params)
         self.get_logger().info(f"parameters changed: {changed}")
         return SetParametersResult(successful=True)

@@ -19,6 +19,7 @@ from art_guidance.config import NUMERICS
 from art_guidance.errors import ConfigError
 from art_guidance.planning import WARM_STARTS
 from art_guidance.planning.replan import STAMP_CHECKS, ReplanSettings
+from art_guidance.planning.types import TERMINAL_TARGETS
 
 NAV_QOS = ("best_effort", "reliable")
 
@@ -128,6 +129,15 @@ SPECS: dict[str, ParamSpec] = {
                                       "bool"),
     "min_remaining_nodes": ParamSpec("below this many nodes left the plan in force is flown "
                                      "out, not replanned", "int", minimum=2, dynamic=True),
+    "replan_window_nodes": ParamSpec("H: a replan optimises the next H nodes (SCVx* with the "
+                                     "passive-safety constraint) and ends at terminal_target's "
+                                     "state there, replanning before half the window is "
+                                     "flown; 0 = the whole remainder to the waypoint; else in "
+                                     "[2, the horizon's nodes - 1] [nodes]", "int", minimum=0,
+                                     dynamic=True),
+    "terminal_target": ParamSpec("where a window ends: art (the learned proposal's state, "
+                                 "CVX's where it is rejected or missing) or cvx (the convex "
+                                 "solution's state)", "str", TERMINAL_TARGETS, dynamic=True),
     "nav_qos_reliability": ParamSpec("reliability of the nav subscription: best_effort matches "
                                      "both best-effort (sensor data) and reliable publishers",
                                      "str", NAV_QOS),
@@ -153,7 +163,7 @@ PLANNING_PARAMETERS = ("samples_per_node", "numerics")
 # the replan policy's parameters (`planning.replan.ReplanSettings`)
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
-                     "min_remaining_nodes")
+                     "min_remaining_nodes", "replan_window_nodes", "terminal_target")
 
 
 @dataclass(frozen=True)
@@ -178,6 +188,8 @@ class NodeParameters:
     solve_deadline_s: float
     propose_concurrently: bool
     min_remaining_nodes: int
+    replan_window_nodes: int
+    terminal_target: str
     nav_qos_reliability: str
     visualization: bool
     record: bool

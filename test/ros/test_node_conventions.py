@@ -89,6 +89,29 @@ def test_runtime_changes_apply_and_invalid_ones_are_refused(client):
     assert values[0].string_value == "wallclock" and values[1].integer_value == 20
 
 
+def test_a_replan_window_is_set_at_run_time_and_bad_ones_are_refused(client):
+    for name, kind, value, reason in [
+            ("replan_window_nodes", Parameter.Type.INTEGER, 1, "must be 0 (the whole"),
+            ("replan_window_nodes", Parameter.Type.INTEGER, 100, "in [2, 99]"),
+            ("terminal_target", Parameter.Type.STRING, "waypoint", "must be one of")]:
+        bad = _result(client.params.set_parameters([Parameter(name, kind, value)])).results[0]
+        assert not bad.successful and reason in bad.reason, bad.reason
+    ok = _result(client.params.set_parameters(
+        [Parameter("replan_window_nodes", Parameter.Type.INTEGER, 20),
+         Parameter("terminal_target", Parameter.Type.STRING, "cvx")])).results
+    assert all(r.successful for r in ok)
+    try:
+        # far off the plan in force (if any): replanned
+        stamp, _ = client.send_nav(NOMINAL_RTN + np.array([400.0, -900.0, 0, 0, 0, 0]))
+        plan = client.plan_for(stamp, timeout_s=30.0)
+        assert plan is not None and plan.status == ManeuverPlan.STATUS_CONVERGED, plan
+        assert "window of 20 of 99 nodes to a CVX target" in plan.warm_start_reason
+        assert len(plan.epochs_s) == 100  # to the waypoint: the window, then CVX's burns
+    finally:
+        assert _result(client.params.set_parameters(
+            [Parameter("replan_window_nodes", Parameter.Type.INTEGER, 0)])).results[0].successful
+
+
 def test_plans_say_what_they_are(client):
     assert ManeuverPlan().status == ManeuverPlan.STATUS_UNKNOWN  # unset never reads as success
     stamp, decision = client.send_nav(NOMINAL_RTN + [0.0, 400.0, 0, 0, 0, 0])

@@ -3,6 +3,7 @@ rosbags opens; SIGTERM finishes; a namespaced node records its resolved topics; 
 request is recorded once."""
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import time
@@ -144,6 +145,39 @@ def test_namespaced_node_records_resolved_topics_and_each_request_once(
     report = replay(bag)
     assert report["solves"] == 5 and report["mismatched"] == 0, report  # a solve slowed
     # past its deadline by a busy machine is skipped, not compared
+
+
+def test_windowed_solves_are_recorded_with_their_window_and_replay(
+        ros_env, python_exe, tmp_path):
+    bag = tmp_path / "bag"
+    proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
+                             "-p", f"record_dir:={bag}", "-p", "replan_sigma_threshold:=1e-9",
+                             "-p", "replan_window_nodes:=20", "-p", "terminal_target:=art",
+                             "-p", "visualization:=false"],
+                            env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    client = Client("recording_client_window")
+    try:
+        assert client.wait_matched(60.0)
+        ids = _plan_ids(client, 3, np.random.default_rng(9))
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        client.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert proc.returncode == 0, out
+    records = {r.plan_id: r for r, _ in read_log(bag).solves()}
+    assert set(ids) <= set(records)
+    for plan_id in ids:
+        window = json.loads(records[plan_id].window_json)
+        assert window["window_nodes"] == 20 and window["end_node"] == 20
+        assert window["target_source"] in ("art", "cvx") and window["reason"]
+        assert json.loads(records[plan_id].request_json)["window_nodes"] == 20
+    report = replay(bag)
+    assert report["compared"] >= 3 and report["mismatched"] == 0, report
+    assert all(r["window_match"] for r in report["per_solve"] if r["match"] is not None)
 
 
 @pytest.mark.parametrize("where", ["under_a_file", "proc"])

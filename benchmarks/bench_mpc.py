@@ -1,0 +1,148 @@
+"""Benchmark: the windowed replan (receding horizon with a learned terminal target) in the
+closed loop, against the full-horizon replan on the same seeds.
+
+Every seed is flown in truth (two-body + J2, navigation and actuation errors, the in-process
+guidance with the node's replan policy, chance-constrained, warm start `auto` with the shipped
+default model) once per configuration: "full" (every replan re-optimises the whole remainder:
+`replan_window_nodes` 0) and "H{h}_{target}" for each window h of `horizons` and each terminal
+target of `targets` (`planning.window`). Paired on the seeds: the windowed configuration's
+executed delta-v minus the full one's (mean and standard error), its replan times against the
+full one's (median and p95 of every replan's wall time, one process per core).
+
+`min_c_cvx` screens the seeds as `bench closed_loop` does (the first `repeats` seeds from
+`first_seed` whose initial CVX plan violates passive safety at >= N nodes: the hard family).
+`trigger` "sigma" replans on the node's deviation rule and, for a window, when fewer than h / 2
+of its nodes are left; "every" replans at every node.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import tempfile
+import time
+
+import numpy as np
+
+from art_guidance.planning import GuidancePipeline
+from art_guidance.planning.replan import ReplanSettings
+from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
+from art_guidance.sim.inprocess import InProcessGuidance, default_settings
+
+_LOG = logging.getLogger("bench_mpc")
+_PIPELINE: GuidancePipeline | None = None
+
+
+def _pipeline(model: str | None) -> GuidancePipeline:
+    global _PIPELINE
+    if _PIPELINE is None:
+        from art_guidance.art.provider import ArtWarmStart
+
+        _PIPELINE = GuidancePipeline(provider=ArtWarmStart.load(model or None))
+    return _PIPELINE
+
+
+def fly(seed: int, window_nodes: int, target: str, model: str | None = None,
+        trigger: str = "sigma") -> dict:
+    """One closed-loop flight of `seed` with a window of `window_nodes` (0: the full
+    remainder) to `target`; its figures."""
+    pipeline = _pipeline(model)
+    settings = default_settings(pipeline.scenario)
+    import dataclasses
+
+    settings = dataclasses.replace(settings, replan_window_nodes=int(window_nodes),
+                                   terminal_target=target,
+                                   replan_period_s=_every_node_s(pipeline) if trigger == "every"
+                                   else settings.replan_period_s)
+    with tempfile.TemporaryDirectory(prefix="bench_mpc_") as tmp:
+        params = dict(PARAMETERS, rtn0=None, png_path="", summary_path=f"{tmp}/s.json",
+                      seed=int(seed), warm_start="auto", errors=True)
+        guidance = InProcessGuidance(pipeline, SIM_EPOCH0_NS, settings)
+        loop = ClosedLoop(guidance, params, _LOG, settle_s=0.0)
+        summary, _ = loop.finish(loop.run(), 0.0)
+    results = [r for _, r in guidance.results]
+    windows = [r.window for r in results if r.window is not None]
+    return {"seed": int(seed), "reached": bool(summary["reached"]),
+            "dv_mps": float(summary["total_dv_mps"]), "miss_m": float(summary["miss_m"]),
+            "replan_ms": [float(r.timings_ms["total"]) for r in results],
+            "replans": len(results),
+            "targets": {s: sum(w.target_source == s for w in windows)
+                        for s in ("art", "cvx", "waypoint")}}
+
+
+def _every_node_s(pipeline: GuidancePipeline) -> float:
+    """The node spacing of the scenario's horizon [s] (replan period of trigger "every")."""
+    from art_guidance.dynamics import orbital_period_s
+
+    sc = pipeline.scenario
+    return 0.999 * sc.n_orbits * orbital_period_s(sc.chief_oe[0]) / (sc.n_nodes - 1)
+
+
+def _fly_job(job: tuple) -> dict:
+    return fly(*job)
+
+
+def run(repeats: int = 30, first_seed: int = 1000, min_c_cvx: int | None = None,
+        horizons: str = "10,20", targets: str = "art,cvx", model: str | None = None,
+        workers: int = 1, trigger: str = "sigma") -> dict:
+    """Per seed, the full remainder and each (window, target); paired figures (module
+    docstring)."""
+    t0 = time.perf_counter()
+    hs = [int(h) for h in str(horizons).split(",") if h.strip()]
+    ts = [t.strip() for t in str(targets).split(",") if t.strip()]
+    for h in hs:
+        ReplanSettings(replan_window_nodes=h)  # refused with the reason
+    for t in ts:
+        ReplanSettings(terminal_target=t)
+    n = max(int(repeats), 1)
+    if min_c_cvx is None:
+        seeds = list(range(int(first_seed), int(first_seed) + n))
+        out: dict = {}
+    else:
+        from bench_closed_loop import hard_seeds
+
+        seeds, c_cvx, screened = hard_seeds(GuidancePipeline(), int(first_seed), n,
+                                            int(min_c_cvx))
+        out = {"min_c_cvx": int(min_c_cvx), "c_cvx": c_cvx, "screened_seeds": screened}
+    configs = [("full", 0, "cvx")] + [(f"H{h}_{t}", h, t) for h in hs for t in ts]
+    jobs = [(s, h, t, model, trigger) for _, h, t in configs for s in seeds]
+    if int(workers) > 1:
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(int(workers)) as pool:
+            flights = pool.map(_fly_job, jobs, chunksize=1)
+    else:
+        flights = [_fly_job(j) for j in jobs]
+    by = {name: flights[i * len(seeds):(i + 1) * len(seeds)]
+          for i, (name, _, _) in enumerate(configs)}
+    full = by["full"]
+    table = {name: summarise(runs, None if name == "full" else full)
+             for name, runs in by.items()}
+    out.update(seeds=seeds, trigger=trigger, configs=table,
+               per_seed_dv_mps={name: [round(r["dv_mps"], 4) for r in runs]
+                                for name, runs in by.items()},
+               wall_s=time.perf_counter() - t0)
+    return out
+
+
+def summarise(runs: list[dict], full: list[dict] | None) -> dict:
+    """A configuration's figures; paired against `full` (same seeds) when given."""
+    dv = np.array([r["dv_mps"] for r in runs])
+    ms = np.array([t for r in runs for t in r["replan_ms"]])
+    out = {"reached": int(sum(r["reached"] for r in runs)), "flights": len(runs),
+           "dv_mps_mean": float(dv.mean()), "miss_m_max": float(max(r["miss_m"] for r in runs)),
+           "replan_ms_median": float(np.median(ms)), "replan_ms_p95": float(np.percentile(ms, 95)),
+           "replans_mean": float(np.mean([r["replans"] for r in runs])),
+           "targets": {k: int(sum(r["targets"][k] for r in runs))
+                       for k in ("art", "cvx", "waypoint")}}
+    if full is not None:
+        d = dv - np.array([r["dv_mps"] for r in full])
+        f_ms = np.array([t for r in full for t in r["replan_ms"]])
+        out.update(dv_minus_full_mps_mean=float(d.mean()),
+                   dv_minus_full_mps_sem=float(d.std(ddof=1) / np.sqrt(d.size))
+                   if d.size > 1 else float("nan"),
+                   dv_minus_full_pct_mean_plus_2sem=float(
+                       100 * (d.mean() + 2 * (d.std(ddof=1) / np.sqrt(d.size) if d.size > 1
+                                              else 0.0)) / np.mean([r["dv_mps"] for r in full])),
+                   replan_ms_median_vs_full=float(np.median(ms) / np.median(f_ms)),
+                   replan_ms_p95_vs_full=float(np.percentile(ms, 95)
+                                               / np.percentile(f_ms, 95)))
+    return out
