@@ -5,7 +5,7 @@ passive-safety model, for the default (`small`) and the paper-size model on 1 an
 threads:
 - `*_rollout_ms`: median wall time of one 100-step rollout as the planner runs it (KV cache,
   dynamics in the loop, R and C updated every step), and `*_c_update_ms` the part of it spent
-  in the safety module's violation decisions (`node_violations`, `step_violations`);
+  in the safety module's violation decisions (`PassiveSafety.violated`);
 - `*_cached_model_ms` / `*_recompute_model_ms`: the same rollout with the recorded decisions
   replayed, i.e. transformer + dynamics alone, with the KV cache and recomputing the whole
   context at every step; `*_cache_speedup` is their ratio;
@@ -39,7 +39,7 @@ from art_guidance.art.normalization import Normalizer
 from art_guidance.art.rollout import rollout
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.optim import solve_cvx
+from art_guidance.optim import TransferProblem
 from art_guidance.planning.types import PlanRequest
 
 
@@ -64,11 +64,8 @@ class _RecordedSafety:
         if not replay:
             self._tape = []
 
-    def node_violations(self, i, roe_m, dv_rtn_mps):
-        return self._decide(self._safety.node_violations, i, roe_m, dv_rtn_mps)
-
-    def step_violations(self, i, roe_m, dv_rtn_mps, z_m):  # the rollout loop's form
-        return self._decide(self._safety.step_violations, i, roe_m, dv_rtn_mps, z_m)
+    def violated(self, nodes, roe_m, dv_rtn_mps, z_m=None):  # the rollout loop's decision
+        return self._decide(self._safety.violated, nodes, roe_m, dv_rtn_mps, z_m)
 
     def _decide(self, decide, *args):
         if self.replay:
@@ -113,11 +110,12 @@ def _time_proposals(art: TrainedArt, x0: np.ndarray, targets: np.ndarray,
     times = []
     for k, (x, target) in enumerate(zip(x0, targets)):
         request = PlanRequest(horizon.chief_oe[0], x, target, chance_constrained=True)
-        cvx = solve_cvx(horizon, x, np.linalg.solve(horizon.psi[-1], target))
+        problem = TransferProblem.to_target(safety, request.roe0_m, request.target_rtn)
+        cvx = problem.cvx()
         if k == 0:
-            provider.propose(request, safety, cvx)
+            provider.propose(problem, cvx)
         t = time.perf_counter()
-        provider.propose(request, safety, cvx)
+        provider.propose(problem, cvx)
         times.append(1e3 * (time.perf_counter() - t))
     return float(np.median(times))
 

@@ -112,7 +112,6 @@ def hard_seeds(pipeline: GuidancePipeline, first: int, n: int, min_c: int
     """The first `n` seeds from `first` whose initial transfer's CVX warm start has
     C_CVX >= `min_c`; (seeds, their C_CVX, seeds screened)."""
     from art_guidance.dynamics import roe_from_rtn_linear
-    from art_guidance.optim import solve_cvx
     from art_guidance.planning import PlanRequest
     from art_guidance.scenarios import sample_scenario
 
@@ -125,7 +124,7 @@ def hard_seeds(pipeline: GuidancePipeline, first: int, n: int, min_c: int
         request = PlanRequest(chief, roe_from_rtn_linear(chief, rtn0), target,
                               chance_constrained=True)
         transfer = pipeline.transfer(request)
-        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
+        cvx = transfer.problem.cvx()
         if cvx.status.feasible:
             c = int(transfer.safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0])
             if c >= min_c:

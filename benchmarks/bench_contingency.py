@@ -19,13 +19,22 @@ from art_guidance.sim.contingency import ContingencySpec, run as run_mc
 
 def run(repeats: int | None = None, out: str = "out/contingency", workers: int | None = None,
         engine: str = "local", ray_address: str | None = None, seeds: int | None = None,
-        missed_per_seed: int | None = None) -> dict:
+        missed_per_seed: int | None = None, horizons: str | None = None,
+        targets: str | None = None) -> dict:
     """Fly (or resume) the Monte Carlo; the headline numbers per configuration.
 
     `repeats` and `seeds` both set the seeds per configuration (default 24: >= 2,000 losses
-    per configuration)."""
+    per configuration). `horizons` ("20" or "10,20"): the windowed replan instead, flown
+    chance-constrained with ART in the loop ("auto") beside the full-horizon replan of the
+    same seeds, its windows ending at `targets` (one of art, cvx; default art)."""
     base = ContingencySpec()
-    spec = ContingencySpec(n_seeds=int(seeds or repeats or base.n_seeds),
+    configs, target = base.configs, base.terminal_target
+    if horizons:
+        configs = ((True, "auto"),) + tuple((True, "auto", int(h))
+                                            for h in str(horizons).split(",") if h.strip())
+        target = str(targets or target)
+    spec = ContingencySpec(configs=configs, terminal_target=target,
+                           n_seeds=int(seeds or repeats or base.n_seeds),
                            missed_per_seed=base.missed_per_seed if missed_per_seed is None
                            else int(missed_per_seed))
     summary = run_mc(out, spec, workers=workers or default_workers(), engine=engine,

@@ -23,6 +23,7 @@ import time
 
 import numpy as np
 
+from art_guidance.errors import InputError
 from art_guidance.planning import GuidancePipeline
 from art_guidance.planning.replan import ReplanSettings
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
@@ -42,15 +43,16 @@ def _pipeline(model: str | None) -> GuidancePipeline:
 
 
 def fly(seed: int, window_nodes: int, target: str, model: str | None = None,
-        trigger: str = "sigma") -> dict:
+        trigger: str = "sigma", context: bool = False) -> dict:
     """One closed-loop flight of `seed` with a window of `window_nodes` (0: the full
-    remainder) to `target`; its figures."""
+    remainder) to `target`, the learned proposal given the flown steps with `context`; its
+    figures."""
     pipeline = _pipeline(model)
     settings = default_settings(pipeline.scenario)
     import dataclasses
 
     settings = dataclasses.replace(settings, replan_window_nodes=int(window_nodes),
-                                   terminal_target=target,
+                                   terminal_target=target, art_context=bool(context),
                                    replan_period_s=_every_node_s(pipeline) if trigger == "every"
                                    else settings.replan_period_s)
     with tempfile.TemporaryDirectory(prefix="bench_mpc_") as tmp:
@@ -66,7 +68,7 @@ def fly(seed: int, window_nodes: int, target: str, model: str | None = None,
             "replan_ms": [float(r.timings_ms["total"]) for r in results],
             "replans": len(results),
             "targets": {s: sum(w.target_source == s for w in windows)
-                        for s in ("art", "cvx", "waypoint")}}
+                        for s in ("art", "cvx", "scvx", "waypoint")}}
 
 
 def _every_node_s(pipeline: GuidancePipeline) -> float:
@@ -83,9 +85,11 @@ def _fly_job(job: tuple) -> dict:
 
 def run(repeats: int = 30, first_seed: int = 1000, min_c_cvx: int | None = None,
         horizons: str = "10,20", targets: str = "art,cvx", model: str | None = None,
-        workers: int = 1, trigger: str = "sigma") -> dict:
+        workers: int = 1, trigger: str = "sigma", context: str = "off") -> dict:
     """Per seed, the full remainder and each (window, target); paired figures (module
-    docstring)."""
+    docstring). `context` "off", "on" (the learned proposal given the flown steps: T-MPC's
+    context) or "both" (every configuration both ways, "_ctx" naming the one with it; the
+    full-horizon reference is flown without it)."""
     t0 = time.perf_counter()
     hs = [int(h) for h in str(horizons).split(",") if h.strip()]
     ts = [t.strip() for t in str(targets).split(",") if t.strip()]
@@ -103,8 +107,14 @@ def run(repeats: int = 30, first_seed: int = 1000, min_c_cvx: int | None = None,
         seeds, c_cvx, screened = hard_seeds(GuidancePipeline(), int(first_seed), n,
                                             int(min_c_cvx))
         out = {"min_c_cvx": int(min_c_cvx), "c_cvx": c_cvx, "screened_seeds": screened}
-    configs = [("full", 0, "cvx")] + [(f"H{h}_{t}", h, t) for h in hs for t in ts]
-    jobs = [(s, h, t, model, trigger) for _, h, t in configs for s in seeds]
+    if context not in ("off", "on", "both"):
+        raise InputError("--context", "must be off, on or both", context)
+    ctx = {"off": (False,), "on": (True,), "both": (False, True)}[context]
+    configs = [("full", 0, "cvx", False)] + [("full_ctx", 0, "cvx", True)] * ("both" == context)
+    configs += [(f"H{h}_{t}{'_ctx' * c}", h, t, c) for h in hs for t in ts for c in ctx]
+    if context == "on":
+        configs[0] = ("full", 0, "cvx", True)
+    jobs = [(s, h, t, model, trigger, c) for _, h, t, c in configs for s in seeds]
     if int(workers) > 1:
         ctx = multiprocessing.get_context("spawn")
         with ctx.Pool(int(workers)) as pool:
@@ -112,11 +122,11 @@ def run(repeats: int = 30, first_seed: int = 1000, min_c_cvx: int | None = None,
     else:
         flights = [_fly_job(j) for j in jobs]
     by = {name: flights[i * len(seeds):(i + 1) * len(seeds)]
-          for i, (name, _, _) in enumerate(configs)}
+          for i, (name, *_) in enumerate(configs)}
     full = by["full"]
     table = {name: summarise(runs, None if name == "full" else full)
              for name, runs in by.items()}
-    out.update(seeds=seeds, trigger=trigger, configs=table,
+    out.update(seeds=seeds, trigger=trigger, context=context, configs=table,
                per_seed_dv_mps={name: [round(r["dv_mps"], 4) for r in runs]
                                 for name, runs in by.items()},
                wall_s=time.perf_counter() - t0)
@@ -132,7 +142,7 @@ def summarise(runs: list[dict], full: list[dict] | None) -> dict:
            "replan_ms_median": float(np.median(ms)), "replan_ms_p95": float(np.percentile(ms, 95)),
            "replans_mean": float(np.mean([r["replans"] for r in runs])),
            "targets": {k: int(sum(r["targets"][k] for r in runs))
-                       for k in ("art", "cvx", "waypoint")}}
+                       for k in ("art", "cvx", "scvx", "waypoint")}}
     if full is not None:
         d = dv - np.array([r["dv_mps"] for r in full])
         f_ms = np.array([t for r in full for t in r["replan_ms"]])

@@ -14,11 +14,11 @@ update at every step, then the judging of its candidates), on the default runtim
   of the fast one: every rollout step's violations decided by the certified sign-only minimum
   (`DriftArcs.minimum(sign_only=True)`, with its t* and candidate bookkeeping) instead of
   `DriftArcs.violated`, every candidate judged by its own full `PassiveSafety.evaluate`
-  instead of one sign-only `evaluate_batch` over all of them.
+  instead of one sign-only `violations_batch` over all of them.
 
 The three alternate scenario by scenario; the proposals must be identical (controls and
 constraint-to-go), and the numbers are medians of wall and CPU (process) time with the paired
-ratios. The fast path's time is split into the C update (`steps_violations`), the candidates'
+ratios. The fast path's time is split into the C update (`violated`), the candidates'
 terminal corrections, their safety search, and the rest (transformer, dynamics, bookkeeping),
 and into the transformer (the decoder's `step_numpy`, decoded steps counted: speculation
 decodes again the steps after a missed prediction) and the numerics (everything else);
@@ -40,10 +40,8 @@ import art_guidance.art.provider as provider_module
 from art_guidance.art.provider import ArtWarmStart
 from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.optim import solve_cvx
 from art_guidance.planning import GuidancePipeline, PlanRequest
 from art_guidance.planning.learned import cvx_is_safe
-from art_guidance.safety.passive import SafetyEvaluation
 from art_guidance.scenarios import sample_scenario
 
 SWEEPS = {1: (1.0,), 2: (0.9, 1.1), 4: (0.85, 0.95, 1.05, 1.2)}  # and 8: the default
@@ -58,15 +56,14 @@ class _Reference:
     def __getattr__(self, name: str):
         return getattr(self._safety, name)
 
-    def step_violations(self, i, roe_m, dv_rtn_mps, z_m):
+    def violated(self, nodes, roe_m, dv_rtn_mps, z_m):  # the rollout loop's form
         s = self._safety
-        items = s._items_at(int(i), roe_m, dv_rtn_mps, z_m)
+        items = s._items_at(nodes if np.ndim(nodes) else int(nodes), roe_m, dv_rtn_mps, z_m)
         return s.arcs.minimum(items, sign_only=True).margin < 0.0
 
-    def evaluate_batch(self, roe_m, dv_rtn_mps, sign_only=False):
-        evs = [self._safety.evaluate(r, u) for r, u in zip(roe_m, dv_rtn_mps)]
-        return SafetyEvaluation(*(np.stack([getattr(e, f.name) for e in evs])
-                                  for f in dataclasses.fields(SafetyEvaluation)))
+    def violations_batch(self, roe_m, dv_rtn_mps):
+        return np.stack([self._safety.evaluate(r, u).violation.astype(bool)
+                         for r, u in zip(roe_m, dv_rtn_mps)])
 
 
 class StepTimer:
@@ -100,14 +97,11 @@ class _Timed:
         setattr(self, total, getattr(self, total) + time.perf_counter() - t)
         return out
 
-    def step_violations(self, *args):
-        return self._timed("step_violations", "c_update_s", *args)
+    def violated(self, *args):
+        return self._timed("violated", "c_update_s", *args)
 
-    def steps_violations(self, *args):
-        return self._timed("steps_violations", "c_update_s", *args)
-
-    def evaluate_batch(self, *args, **kwargs):
-        return self._timed("evaluate_batch", "judge_eval_s", *args, **kwargs)
+    def violations_batch(self, *args):
+        return self._timed("violations_batch", "judge_eval_s", *args)
 
 
 def unsafe_cases(pipeline: GuidancePipeline, chance: bool, first: int, n: int) -> list:
@@ -122,15 +116,15 @@ def unsafe_cases(pipeline: GuidancePipeline, chance: bool, first: int, n: int) -
         request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
                               chance_constrained=chance)
         transfer = pipeline.transfer(request)
-        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
+        cvx = transfer.problem.cvx()
         if cvx.status.feasible and not cvx_is_safe(cvx, transfer.safety):
             out.append((transfer, cvx))
     return out
 
 
 def _scenarios(pipeline: GuidancePipeline, first: int, n: int) -> list:
-    """(request, safety, cvx) of the first `n` chance-constrained `unsafe_cases`."""
-    return [(t.request, t.safety, cvx) for t, cvx in unsafe_cases(pipeline, True, first, n)]
+    """(problem, cvx) of the first `n` chance-constrained `unsafe_cases`."""
+    return [(t.problem, cvx) for t, cvx in unsafe_cases(pipeline, True, first, n)]
 
 
 def _timed(fn) -> tuple[object, float, float]:
@@ -147,8 +141,8 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
     planning = GuidanceConfig.load().planning  # candidates ranked as the pipeline ranks them
     pipeline = GuidancePipeline(provider=provider)
     cases = _scenarios(pipeline, int(first_seed), max(int(repeats), 1))
-    request, safety, cvx = cases[0]
-    provider.propose(request, safety, cvx, planning)  # warm-up (decoder, caches)
+    problem, cvx = cases[0]
+    provider.propose(problem, cvx, planning)  # warm-up (decoder, caches)
     rows, same = [], 0
     parts = {"c_update": [], "judge_correction": [], "judge_search": [], "transformer": [],
              "numerics": [], "rest": []}
@@ -164,12 +158,11 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
         finally:
             provider_module.rollout = speculative
     steps, decoded = [], []
-    for request, safety, cvx in cases:
-        ref, ref_wall, ref_cpu = one_step(lambda: provider.propose(request, _Reference(safety),
-                                                                   cvx, planning))
-        plain, step_wall, step_cpu = one_step(lambda: provider.propose(request, safety, cvx,
-                                                                       planning))
-        timed = _Timed(safety)
+    for problem, cvx in cases:
+        reference = dataclasses.replace(problem, safety=_Reference(problem.safety))
+        ref, ref_wall, ref_cpu = one_step(lambda: provider.propose(reference, cvx, planning))
+        plain, step_wall, step_cpu = one_step(lambda: provider.propose(problem, cvx, planning))
+        timed = _Timed(problem.safety)
         corr = [0.0]
 
         def corrected(*args, _f=original, _acc=corr):
@@ -181,7 +174,8 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
         provider_module.judged_trajectory = corrected
         decoder.step_numpy, timer.s, timer.n = timer, 0.0, 0
         try:
-            fast, wall, cpu = _timed(lambda: provider.propose(request, timed, cvx, planning))
+            fast, wall, cpu = _timed(lambda: provider.propose(
+                dataclasses.replace(problem, safety=timed), cvx, planning))
         finally:
             provider_module.judged_trajectory = original
             decoder.step_numpy = timer.step
@@ -211,6 +205,6 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
     out.update({f"fast_{k}_ms": float(np.median(v)) for k, v in parts.items()})
     for k, scales in {**SWEEPS, 8: provider.reward_scales}.items():
         sweep = ArtWarmStart(provider.art, reward_scales=scales)
-        cpu_ms = [_timed(lambda: sweep.propose(r, s, c, planning))[2] for r, s, c in cases]
+        cpu_ms = [_timed(lambda: sweep.propose(p, c, planning))[2] for p, c in cases]
         out[f"sweep_{k}_cpu_ms"] = float(np.median(cpu_ms))
     return out

@@ -13,9 +13,9 @@ same process, each path first on a third of the seeds:
   problem sometimes takes another path after a perturbation that small (a step ratio on a
   threshold); what current changes beyond that is what its tolerances change.
 
-All paths run the same dynamics and safety code. Timed: `Scvx(...)` and `solve`, as in
-`plan`'s `timings_ms.scp` (the subproblems, from one `SubproblemPool` as the pipeline
-holds, built before the first timed run).
+All paths run the same dynamics and safety code. Timed: `TransferProblem.scvx(...)` and
+`solve`, as in `plan`'s `timings_ms.scp` (the subproblems, from one `SubproblemPool` as the
+pipeline holds, built before the first timed run).
 
 Reports per mode and path the medians [ms], iterations, converged and feasible shares, and per
 pair (current or equivalent against reference) the paired time ratios, the problems converged by
@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from art_guidance.config import GuidanceConfig
 from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
-from art_guidance.optim import ScpStatus, Scvx, solve_cvx
+from art_guidance.optim import ScpStatus, TransferProblem
 from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions, SubproblemPool
 from art_guidance.safety import PassiveSafety
 from art_guidance.scenarios import sample_scenario
@@ -90,17 +90,16 @@ def compare(current: SubproblemOptions, reference: SubproblemOptions, repeats: i
 def _solve_both(config: GuidanceConfig, safety: PassiveSafety, chief: np.ndarray, seed: int,
                 options: dict, mode: str, pool: SubproblemPool) -> dict:
     """One problem solved by both paths, in an order that alternates with the seed."""
-    horizon = safety.horizon
     s = sample_scenario(config.scenario, seed)
-    x0 = roe_from_rtn_linear(chief, s.rtn0)  # (6,) [m]
-    xf = np.linalg.solve(horizon.psi[-1], s.target_rtn)  # (6,) [m]
-    warm = solve_cvx(horizon, x0, xf).dv_rtn_mps  # (N, 3) [m/s]
+    problem = TransferProblem.to_target(safety, roe_from_rtn_linear(chief, s.rtn0),
+                                        s.target_rtn)
+    warm = problem.cvx().dv_rtn_mps  # (N, 3) [m/s]
     row: dict = {"seed": seed, "mode": mode}
     order = PATHS[seed % 3:] + PATHS[:seed % 3]  # each path first on a third of the seeds
     for name in order:
         t = time.perf_counter()
-        res = Scvx(safety, x0, xf, config.scp, samples_per_node=config.planning.samples_per_node,
-                   subproblem=options[name], pool=pool).solve(warm)
+        res = problem.scvx(config.scp, config.planning.samples_per_node,
+                           subproblem=options[name], pool=pool).solve(warm)
         ms = 1e3 * (time.perf_counter() - t)
         row[name] = {"ms": ms, "status": res.status.name, "iterations": res.iterations,
                      "cost_mps": res.cost_mps,

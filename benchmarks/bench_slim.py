@@ -28,7 +28,6 @@ import numpy as np
 
 from art_guidance.art.provider import TEACHERS, ArtWarmStart, models_dir
 from art_guidance.config import GuidanceConfig
-from art_guidance.optim import Scvx
 from art_guidance.planning import GuidancePipeline
 from art_guidance.planning.learned import learned_warm_start
 
@@ -73,8 +72,8 @@ def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None,
             net[name].append(1e3 * timers[name].s)
             accepted[name] += int(out.posthoc is not None and out.posthoc.accepted)
         t = time.process_time()
-        Scvx(transfer.safety, transfer.request.roe0_m, transfer.roe_f_m, config.scp,
-             samples_per_node=config.planning.samples_per_node).solve(cvx.dv_rtn_mps)
+        transfer.problem.scvx(config.scp, config.planning.samples_per_node).solve(
+            cvx.dv_rtn_mps)
         scvx_ms.append(1e3 * (time.process_time() - t))
     t, s, c = (np.array(x) for x in (cpu["teacher"], cpu["student"], scvx_ms))
     return {"scenarios": len(cases), "first_seed": int(first_seed), "mode": mode,

@@ -17,7 +17,7 @@ from tqdm import tqdm
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import Horizon, time_grid_s
-from art_guidance.optim import ScpStatus, Scvx, solve_cvx
+from art_guidance.optim import ScpStatus, TransferProblem
 from cvxpy_reference import cvxpy_tpbvp
 from art_guidance.safety import PassiveSafety
 
@@ -34,17 +34,18 @@ def run(repeats: int = 50) -> dict:
     cvx_ms, ref_ms, scp_ms, iters, statuses, gap = [], [], [], [], [], []
     for seed in tqdm(range(repeats), desc="bench solvers", unit="scenario"):
         s = sample_scenario(scenario, seed)
-        x0 = np.linalg.solve(horizon.psi[0], s.rtn0)
-        xf = np.linalg.solve(horizon.psi[-1], s.target_rtn)
+        problem = TransferProblem.to_target(safety, np.linalg.solve(horizon.psi[0], s.rtn0),
+                                            s.target_rtn)
+        x0, xf = problem.roe0_m, problem.roe_f_m
         t = time.perf_counter()
-        cvx = solve_cvx(horizon, x0, xf)
+        cvx = problem.cvx()
         cvx_ms.append(1e3 * (time.perf_counter() - t))
         t = time.perf_counter()
         ref_cost, _ = cvxpy_tpbvp(horizon, x0, xf)
         ref_ms.append(1e3 * (time.perf_counter() - t))
         gap.append(abs(cvx.cost_mps - ref_cost) / ref_cost)
         t = time.perf_counter()
-        res = Scvx(safety, x0, xf, cfg, samples_per_node=3).solve(cvx.dv_rtn_mps)
+        res = problem.scvx(cfg, samples_per_node=3).solve(cvx.dv_rtn_mps)
         scp_ms.append(1e3 * (time.perf_counter() - t))
         iters.append(res.iterations)
         statuses.append(res.status)

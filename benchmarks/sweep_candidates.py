@@ -4,7 +4,8 @@ them is worth (docs/art_training.md, "The post hoc check judges the warm start")
 For each scenario of a dataset (every scenario: use a dataset the model was not trained on):
 CVX, the provider's eight candidates (R(t_1) = -s J_CVX, `DEFAULT_REWARD_SCALES`), and per
 candidate the post hoc numbers of the rollout itself and of its terminal warm start
-(`optim.terminal_warm_start`, where SCVx* starts), then SCVx* from it; SCVx* from CVX once.
+(`optim.TransferProblem.terminal_warm_start`, where SCVx* starts), then SCVx* from it; SCVx*
+from CVX once.
 The summary compares selection rules by what SCVx* makes of the pick, against SCVx* from CVX:
 the improvement (ratio of sums over both-converged scenarios, all and C_CVX >= 40), and, when
 the rule also decides whether ART is used (the post hoc check), how many scenarios use it and
@@ -42,7 +43,7 @@ from art_guidance.art.provider import DEFAULT_REWARD_SCALES, best_candidate
 from art_guidance.art.rollout import rollout
 from art_guidance.config import GuidanceConfig
 from art_guidance.eval.inputs import heldout, load_model, model_info
-from art_guidance.optim import Scvx, solve_cvx, terminal_warm_start
+from art_guidance.optim import TransferProblem
 
 SCALES = np.array(DEFAULT_REWARD_SCALES)
 ROOT = Path(__file__).resolve().parent.parent
@@ -64,13 +65,12 @@ def _scenario(args: tuple) -> dict:
     torch.set_num_threads(1)
     provider, safety = load_model(info, single_rollout=True)
     cfg = GuidanceConfig()
-    h = safety.horizon
-    roe_f = np.linalg.solve(h.psi[-1], target)
-    cvx = solve_cvx(h, roe0, roe_f)
+    problem = TransferProblem.to_target(safety, roe0, target)
+    cvx = problem.cvx()
     j = float(cvx.cost_mps)
     res = rollout(provider.art, safety, np.tile(roe0, (SCALES.size, 1)), target, -j * SCALES,
                   0.0)
-    scvx = Scvx(safety, roe0, roe_f, cfg.scp, samples_per_node=cfg.planning.samples_per_node)
+    scvx = problem.scvx(cfg.scp, cfg.planning.samples_per_node)
     ref = scvx.solve(cvx.dv_rtn_mps)
     out = {"j_cvx": j, "c_cvx": int(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps)
                                     .constraint_to_go[0]),
@@ -79,7 +79,7 @@ def _scenario(args: tuple) -> dict:
     for b, dv in enumerate(res.dv_rtn_mps):
         rows["er_roll"].append(float(res.cost_mps[b]) / j - 1.0)
         rows["ec_roll"].append(int(res.realised_constraint_to_go[b, 0]))
-        dv_w, roe_w = terminal_warm_start(h, roe0, roe_f, dv)
+        dv_w, roe_w = problem.terminal_warm_start(dv)
         rows["er_ws"].append(float(np.linalg.norm(dv_w, axis=1).sum()) / j - 1.0)
         rows["ec_ws"].append(int(safety.evaluate(roe_w, dv_w).constraint_to_go[0]))
         r = scvx.solve(dv)

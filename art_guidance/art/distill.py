@@ -51,13 +51,12 @@ def teacher_sequences(teacher_path: str, seeds: Sequence[int]) -> dict[str, np.n
     from art_guidance.art.provider import ArtWarmStart
     from art_guidance.art.rollout import build_safety, rollout, training_config
     from art_guidance.dynamics import roe_from_rtn_linear
-    from art_guidance.optim import solve_cvx
+    from art_guidance.optim import TransferProblem
     from art_guidance.scenarios import sample_scenario
 
     torch.set_num_threads(1)
     teacher = ArtWarmStart.load(teacher_path, runtime="torch")
     safety = build_safety(teacher.art)
-    horizon = safety.horizon
     scenario = training_config(teacher.art).scenario
     chief = np.array(scenario.chief_oe)
     scales = np.array(teacher.reward_scales)
@@ -67,10 +66,11 @@ def teacher_sequences(teacher_path: str, seeds: Sequence[int]) -> dict[str, np.n
     for seed in seeds:
         s = sample_scenario(scenario, int(seed))
         roe0 = roe_from_rtn_linear(chief, s.rtn0)
-        cvx = solve_cvx(horizon, roe0, np.linalg.solve(horizon.psi[-1], s.target_rtn))
+        problem = TransferProblem.to_target(safety, roe0, s.target_rtn)
+        cvx = problem.cvx()
         if not cvx.status.feasible:
             continue
-        res = rollout(teacher.art, safety, np.tile(roe0, (k, 1)), s.target_rtn,
+        res = rollout(teacher.art, safety, np.tile(roe0, (k, 1)), problem.target_rtn,
                       -float(cvx.cost_mps) * scales, 0.0)
         out["seed"].append(np.full(k, int(seed)))
         out["target_rtn"].append(np.tile(s.target_rtn, (k, 1)))
@@ -110,6 +110,7 @@ def features(teacher, data: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     """The training batch of `loss_terms` from teacher sequences, normalised with the
     teacher's statistics (goal and state in the teacher's representation)."""
     from art_guidance.art.rollout import build_safety
+    from art_guidance.optim import terminal_roe
 
     art = teacher.art
     norm = art.normalizer
@@ -117,7 +118,7 @@ def features(teacher, data: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     m, t = data["reward"].shape
     rtn = art.config.representation == "rtn"
     target = data["target_rtn"]
-    goal = target if rtn else np.linalg.solve(horizon.psi[-1], target.T).T
+    goal = target if rtn else terminal_roe(horizon, target)
     state = np.einsum("nij,mnj->mni", horizon.psi, data["roe_m"]) if rtn else data["roe_m"]
     steps = np.arange(art.config.context - t, art.config.context)
     tt = np.broadcast_to(steps, (m, t))

@@ -40,14 +40,15 @@ from art_guidance.art.checkpoint_header import header_sha256
 from art_guidance.art.onnx_art import (
     ONNX_SUFFIX, RUNTIMES, exported_path, installed, load_exported,
 )
+from art_guidance.art.policies import fitted_context
 from art_guidance.art.rollout import RolloutResult, rollout, training_config
 from art_guidance.config import PlanningConfig, PosthocThresholds, mode_name
 from art_guidance.deadline import Deadline
 from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import CheckpointError, InputError, ModelError
-from art_guidance.optim import ConvexSolution
+from art_guidance.optim import ConvexSolution, Trajectory, TransferProblem
 from art_guidance.planning.posthoc import judged_trajectory
-from art_guidance.planning.types import PlanRequest, WarmStartProposal
+from art_guidance.planning.types import WarmStartProposal
 from art_guidance.safety import PassiveSafety
 
 # The shipped default per passive-safety mode (the mode of the model's training data), chosen
@@ -280,39 +281,50 @@ class ArtWarmStart:
                 raise ModelError(f"node spacing {spacing:.1f} s differs from the training "
                                  f"horizon's {self.node_spacing_s:.1f} s")
 
-    def propose(self, request: PlanRequest, safety: PassiveSafety, cvx: ConvexSolution,
+    def propose(self, problem: TransferProblem, cvx: ConvexSolution,
                 planning: PlanningConfig | None = None,
-                deadline: Deadline | None = None) -> WarmStartProposal:
-        """Roll the model out for `request` over `safety.horizon`.
+                deadline: Deadline | None = None, context: object = None
+                ) -> WarmStartProposal:
+        """Roll the model out from `problem.roe0_m` to its RTN target over its horizon.
 
         Args:
             planning: the planning options whose post hoc check ranks the candidates (its
                 region and `posthoc_subject`; None: the packaged defaults).
             deadline: the plan's deadline: the rollout stops at its first step after it
                 (None: none).
+            context: the steps flown before the horizon's first node
+                (`planning.types.RolloutContext`), fed to the model before them (the last
+                K - N of them where they do not all fit the context K), or None.
 
         Raises:
             ModelError: the horizon is outside the model's domain.
-            InputError: non-finite conditioning (e.g. a non-finite J_CVX).
+            InputError: non-finite conditioning (e.g. a non-finite J_CVX), or a problem
+                without an RTN target.
             DeadlineError: the deadline passed during the rollout.
         """
+        safety = problem.safety
         self.check_domain(safety)
+        if problem.target_rtn is None:
+            raise InputError("target_rtn", "the proposal's goal is the problem's RTN target: "
+                             "build the problem with TransferProblem.to_target")
         t0 = time.perf_counter()
         j_cvx = float(cvx.cost_mps)
         k = len(self.reward_scales)
+        history = fitted_context(context, self.art.config.context - safety.horizon.n_nodes)
         with self._lock, _threads(self.runtime, self.threads):
-            res = rollout(self.art, safety, np.tile(request.roe0_m, (k, 1)),
-                          request.target_rtn, -j_cvx * np.array(self.reward_scales), 0.0,
-                          deadline=None if deadline is None else deadline.at_s)
+            res = rollout(self.art, safety, np.tile(problem.roe0_m, (k, 1)),
+                          problem.target_rtn, -j_cvx * np.array(self.reward_scales), 0.0,
+                          deadline=None if deadline is None else deadline.at_s,
+                          history=history)
         planning = planning or PlanningConfig()
-        judged = judge_candidates(res, request, safety, planning.posthoc_subject)
+        judged = judge_candidates(res, problem, planning.posthoc_subject)
         b = best_candidate(judged.cost_mps, judged.c_t1, j_cvx, planning.posthoc)
-        warm = (None, None)
+        warm = None
         if planning.posthoc_subject == "warm_start":  # the one the check and SCVx* start from:
-            warm = (judged.dv_rtn_mps[b], judged.roe_m[b])  # projected once, while judging
+            warm = Trajectory(judged.dv_rtn_mps[b], judged.roe_m[b])  # projected once
         return WarmStartProposal(res.dv_rtn_mps[b], res.realised_reward_to_go_mps[b],
                                  res.realised_constraint_to_go[b].astype(float), self.sha256,
-                                 1e3 * (time.perf_counter() - t0), *warm)
+                                 1e3 * (time.perf_counter() - t0), warm)
 
 
 @dataclass(frozen=True)
@@ -334,45 +346,43 @@ class JudgedCandidates:
     roe_m: np.ndarray | None = None
 
 
-def judged_candidates(res: RolloutResult, request: PlanRequest, safety: PassiveSafety,
+def judged_candidates(res: RolloutResult, problem: TransferProblem,
                       subject: str) -> tuple[np.ndarray, np.ndarray]:
     """(K,) cost [m/s] and (K,) C(t_1) of each candidate as the post hoc check judges it
     (`judge_candidates`)."""
-    judged = judge_candidates(res, request, safety, subject)
+    judged = judge_candidates(res, problem, subject)
     return judged.cost_mps, judged.c_t1
 
 
-def judge_candidates(res: RolloutResult, request: PlanRequest, safety: PassiveSafety,
+def judge_candidates(res: RolloutResult, problem: TransferProblem,
                      subject: str) -> JudgedCandidates:
     """The candidates of a rollout as the post hoc check judges them
     (`planning.posthoc.judged_trajectory`): the rollout's own figures (realised in the
     rollout) or those of each terminal warm start (`judge_controls`)."""
     if subject == "rollout":
         return JudgedCandidates(res.cost_mps, res.realised_constraint_to_go[:, 0])
-    return judge_controls(safety, request.roe0_m, request.target_rtn, res.dv_rtn_mps, subject)
+    return judge_controls(problem, res.dv_rtn_mps, subject)
 
 
-def judged_controls(safety: PassiveSafety, roe0_m: np.ndarray, target_rtn: np.ndarray,
-                    dv_rtn_mps: np.ndarray, subject: str) -> tuple[np.ndarray, np.ndarray]:
+def judged_controls(problem: TransferProblem, dv_rtn_mps: np.ndarray,
+                    subject: str) -> tuple[np.ndarray, np.ndarray]:
     """(K,) cost [m/s] and (K,) C(t_1) of K candidate controls (`judge_controls`)."""
-    judged = judge_controls(safety, roe0_m, target_rtn, dv_rtn_mps, subject)
+    judged = judge_controls(problem, dv_rtn_mps, subject)
     return judged.cost_mps, judged.c_t1
 
 
-def judge_controls(safety: PassiveSafety, roe0_m: np.ndarray, target_rtn: np.ndarray,
-                   dv_rtn_mps: np.ndarray, subject: str) -> JudgedCandidates:
-    """K candidate controls (K, N, 3) [m/s] from `roe0_m` to `target_rtn` as the check judges
-    them under `subject`: the trajectory `planning.posthoc.judged_trajectory` gives (one
-    correction each), then one sign-only safety search over the arcs of all K
+def judge_controls(problem: TransferProblem, dv_rtn_mps: np.ndarray,
+                   subject: str) -> JudgedCandidates:
+    """K candidate controls (K, N, 3) [m/s] of `problem` as the check judges them under
+    `subject`: the trajectory `planning.posthoc.judged_trajectory` gives (one correction
+    each), then one sign-only safety search over the arcs of all K
     (`PassiveSafety.violations_batch`)."""
-    horizon = safety.horizon
-    roe_f = np.linalg.solve(horizon.psi[-1], target_rtn)
-    judged = [judged_trajectory(horizon, roe0_m, roe_f, dv, subject) for dv in dv_rtn_mps]
+    judged = [judged_trajectory(problem, dv, subject) for dv in dv_rtn_mps]
     dv_w = np.stack([dv for dv, _ in judged])  # (K, N, 3) [m/s]
     roe_w = np.stack([roe for _, roe in judged])  # (K, N, 6) [m]
     cost = np.linalg.norm(dv_w, axis=2).sum(axis=1)
     # the candidates' C(t_1) counts signs only: one sign-only search over all K N arcs
-    c_t1 = safety.violations_batch(roe_w, dv_w).sum(axis=1)
+    c_t1 = problem.safety.violations_batch(roe_w, dv_w).sum(axis=1)
     return JudgedCandidates(cost, c_t1.astype(float), dv_w, roe_w)
 
 

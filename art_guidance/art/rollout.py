@@ -7,11 +7,11 @@ At every planned node i (from `start_node` to the last node N - 1), for a batch 
 2. the violation indicator v_i = [margin < 0] of node i is decided for (x_i, u_i) with the
    project's safety model (chance-constrained with the covariance recovered from x_i and u_i,
    or deterministic, whichever `safety` is), by its sign-only search
-   (`PassiveSafety.node_violations`: the continuous minimum of `evaluate`, stopped once its
-   sign is known);
+   (`PassiveSafety.violated`: the continuous minimum of `evaluate`, stopped once its sign is
+   known);
 3. the performance parameters are updated, R(t_{i+1}) = R(t_i) + ||u_i||,
    C(t_{i+1}) = C(t_i) - v_i, and the state propagated in ROE with the planner's own
-   deputy-aware model (`Horizon.post_burn_step` and `Horizon.drift_step`, one step of
+   deputy-aware model (`Horizon.post_burn_at` and `Horizon.drift_step`, one step of
    `Horizon.propagate_nonlinear` for a batch:
    B at the deputy's pre-burn state, second-order along-track drift), the model the dataset's
    trajectories were planned with (the RTN representation feeds Psi_{i+1} x_{i+1}). Driven by a
@@ -35,11 +35,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from art_guidance.art.config import FEATURES, SLOTS, TOKENS_PER_STEP
+from art_guidance.art.policies import CachedPolicy, History, RecomputePolicy
 from art_guidance.checks import as_finite_array
 from art_guidance.config import GuidanceConfig
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import DeadlineError, InputError
+from art_guidance.optim.transfer import terminal_roe
 from art_guidance.safety import PassiveSafety
 
 # A burn-gate model coasts at a node where its gate logit is at most this (0: p(burn) <= 0.5).
@@ -111,77 +112,30 @@ def build_safety(art, chance_constrained: bool | None = None) -> PassiveSafety:
     return PassiveSafety(horizon, scenario, config.uncertainty if chance else None)
 
 
-_R_COL, _C_COL = SLOTS["reward"].start, SLOTS["constraint"].start
+def _history(art, history: object, t0: int, b: int) -> History:
+    """The flown steps of `history` as the policies' normalised, batch-tiled tokens at the
+    time indices t0 - h .. t0 - 1.
 
+    Raises:
+        InputError: malformed arrays, or more steps than fit before t0.
+    """
+    states = history.rtn if art.config.representation == "rtn" else history.roe_m
+    h = int(np.shape(states)[0]) if np.ndim(states) == 2 else -1
+    if not 1 <= h <= t0:
+        raise InputError("history", f"needs 1..{t0} flown steps of (h, 6) states "
+                         "(the context left before the first planned node)", np.shape(states))
+    states = as_finite_array("history states", states, (h, 6))
+    dv = as_finite_array("history dv_rtn_mps", history.dv_rtn_mps, (h, 3))
+    r = as_finite_array("history reward_mps", history.reward_mps, (h,))
+    c = as_finite_array("history constraint", history.constraint, (h,))
+    norm, times = art.normalizer, np.arange(t0 - h, t0)
 
-class _CachedPolicy:
-    """Feeds each step's new tokens through the KV-cached decoder (torch's `CachedDecoder` or
-    ONNX Runtime's `OnnxDecoder`: both take numpy): the control of the step before and the
-    goal, R, C and state tokens of this one, or the one packed token of this step (a model
-    with `tokens_per_step` = 1)."""
+    def tiled(name: str, values: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
+        z = np.asarray(norm.normalize(name, values, t), dtype=float)
+        return np.broadcast_to(z, (b, *z.shape)).copy()
 
-    def __init__(self, art, goal_n: np.ndarray, t0: int, n_steps: int) -> None:
-        self.dec = art.decoder
-        b = goal_n.shape[0]
-        self.dec.reset(b, n_steps, t0)
-        tps = art.config.tokens_per_step
-        self.packed = tps == 1
-        self.feats = np.zeros((b, n_steps * tps, FEATURES), self.dec.np_dtype)  # (B, tps T, 17)
-        self.feats[:, 0::tps, SLOTS["goal"]] = goal_n[:, None]
-
-    def control(self, j: int, reward_n: np.ndarray, constraint_n: np.ndarray,
-                state_n: np.ndarray, prev_control_n: np.ndarray | None) -> np.ndarray:
-        f = self.feats
-        if self.packed:
-            f[:, j, _R_COL] = reward_n
-            f[:, j, _C_COL] = constraint_n
-            f[:, j, SLOTS["state"]] = state_n
-            if j:
-                f[:, j, SLOTS["control"]] = prev_control_n
-            return self.dec.step_numpy(f[:, j:j + 1], j)  # (B, 3), (B, 4) with a burn gate
-        base = TOKENS_PER_STEP * j
-        f[:, base + 1, _R_COL] = reward_n
-        f[:, base + 2, _C_COL] = constraint_n
-        f[:, base + 3, SLOTS["state"]] = state_n
-        p0 = base
-        if j:
-            f[:, base - 1, SLOTS["control"]] = prev_control_n
-            p0 = base - 1
-        return self.dec.step_numpy(f[:, p0:base + 4], p0)  # (B, 3), (B, 4) with a burn gate
-
-
-class _RecomputePolicy:
-    """Feeds the whole context again at every step through the module's forward pass (torch
-    only)."""
-
-    def __init__(self, art, goal_n: np.ndarray, t0: int, n_steps: int) -> None:
-        import torch
-
-        self._inference_mode = torch.inference_mode
-        self.model = art.model
-        p = next(self.model.parameters())
-        b = goal_n.shape[0]
-        kw = {"dtype": p.dtype, "device": p.device}
-        self.goal = torch.as_tensor(goal_n, **kw)[:, None].expand(b, n_steps, 6)  # (B, T, 6)
-        self.reward = torch.zeros(b, n_steps, **kw)  # (B, T)
-        self.constraint = torch.zeros(b, n_steps, **kw)  # (B, T)
-        self.state = torch.zeros(b, n_steps, 6, **kw)  # (B, T, 6)
-        self.ctrl = torch.zeros(b, n_steps, 3, **kw)  # (B, T, 3)
-        self.time = (t0 + torch.arange(n_steps, device=p.device)).expand(b, n_steps)  # (B, T)
-
-    def control(self, j: int, reward_n: np.ndarray, constraint_n: np.ndarray,
-                state_n: np.ndarray, prev_control_n: np.ndarray | None) -> np.ndarray:
-        as_t = self.reward.new_tensor
-        self.reward[:, j] = as_t(reward_n)
-        self.constraint[:, j] = as_t(constraint_n)
-        self.state[:, j] = as_t(state_n)
-        if j:
-            self.ctrl[:, j - 1] = as_t(prev_control_n)
-        s = slice(0, j + 1)
-        with self._inference_mode():
-            u_pred, _ = self.model(self.goal[:, s], self.reward[:, s], self.constraint[:, s],
-                                   self.state[:, s], self.ctrl[:, s], self.time[:, s])
-        return u_pred[:, j].cpu().numpy()  # (B, 3), (B, 4) with a burn gate
+    return History(tiled("reward", r), tiled("constraint", c), tiled("state", states, times),
+                   tiled("control", dv, times))
 
 
 def _batch(field: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
@@ -196,7 +150,7 @@ def _batch(field: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
 def rollout(art, safety: PassiveSafety, roe_m: object, target_rtn: object,
             reward_mps: object, constraint: object = 0.0, start_node: int = 0,
             use_cache: bool = True, deadline: float | None = None,
-            speculate: bool = True) -> RolloutResult:
+            speculate: bool = True, history: object = None) -> RolloutResult:
     """Roll the model out over nodes start_node .. N - 1 of `safety.horizon` for a batch.
 
     Args:
@@ -215,6 +169,10 @@ def rollout(art, safety: PassiveSafety, roe_m: object, target_rtn: object,
         speculate: decode several steps ahead and decide their violations in one search
             (`_run_speculative`, the default with the cache); False: one step at a time
             (`_run`, its oracle: the same result bit for bit, tested).
+        history: the steps flown before `start_node` (the replan's context, `art.policies`),
+            or None: anything with (h, 6) `roe_m` and `rtn`, (h, 3) `dv_rtn_mps`, (h,)
+            `reward_mps` and `constraint`; they take the h time-step indices before the
+            first planned node's (h + the planned nodes <= K).
 
     Returns:
         RolloutResult over the T = N - start_node planned nodes.
@@ -228,15 +186,16 @@ def rollout(art, safety: PassiveSafety, roe_m: object, target_rtn: object,
                                      start_node, art.config.context)
     n_steps = horizon.n_nodes - start
     rtn_repr = art.config.representation == "rtn"
-    goal = target if rtn_repr else np.linalg.solve(horizon.psi[-1], target.T).T  # (B, 6)
+    goal = target if rtn_repr else terminal_roe(horizon, target)  # (B, 6)
     norm = art.normalizer
     t0 = art.config.context - n_steps  # time-step index of the first planned node
     gate = art.config.burn_gate
     if not use_cache and getattr(art, "runtime", "torch") != "torch":
         raise InputError("use_cache", "recomputing the whole context needs the torch model",
                          use_cache)
-    policy = (_CachedPolicy if use_cache else _RecomputePolicy)(
-        art, norm.normalize("goal", goal), t0, n_steps)
+    past = None if history is None else _history(art, history, t0, x.shape[0])
+    policy = (CachedPolicy if use_cache else RecomputePolicy)(
+        art, norm.normalize("goal", goal), t0, n_steps, past)
 
     def control(j: int, node: int, x: np.ndarray, r: np.ndarray, c: np.ndarray,
                 u_prev: np.ndarray | None) -> np.ndarray:
@@ -315,8 +274,8 @@ def _run(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.ndarray, sta
             raise DeadlineError(f"rollout stopped at step {j} of {n_steps}: the deadline "
                                 "passed")
         u = control(j, node, x, r, c, dv[:, j - 1] if j else None)  # (B, 3) [m/s]
-        z = horizon.post_burn_step(node, x, u)  # (B, 6) post-burn, deputy-aware
-        v = safety.step_violations(node, x, u, z)  # (B,) bool, = node_violations(node, x, u)
+        z = horizon.post_burn_at(node, x, u)  # (B, 6) post-burn, deputy-aware
+        v = safety.violated(node, x, u, z)  # (B,) bool
         dv[:, j], roe[:, j], rs[:, j], cs[:, j], viol[:, j] = u, x, r, c, v
         r = r + np.sqrt(np.einsum("bi,bi->b", u, u))  # R(t_{i+1}) = R(t_i) + ||u_i||
         c = c - v  # C(t_{i+1}) = C(t_i) - v_i
@@ -341,11 +300,11 @@ def _run_speculative(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.
     Only C feeds a step's violation back into the model, and violations come in runs: a
     window of steps is decoded and propagated with each candidate's C updated by its last
     decided v_i (the prediction), then the window's arcs are searched at once
-    (`PassiveSafety.steps_violations`, a few dozen numpy calls instead of a few hundred per
-    step). The steps up to and including the first where a prediction missed are kept; the
-    rollout goes on from the next, whose C is now known. The decoders write the tokens by
-    position, so decoding a step again overwrites what the miss left. A kept step had the
-    inputs `_run` would have given it, hence the same numbers.
+    (`PassiveSafety.violated` of any mix of nodes, a few dozen numpy calls instead of a few
+    hundred per step). The steps up to and including the first where a prediction missed are
+    kept; the rollout goes on from the next, whose C is now known. The decoders write the
+    tokens by position, so decoding a step again overwrites what the miss left. A kept step
+    had the inputs `_run` would have given it, hence the same numbers.
     """
     horizon = safety.horizon
     n_nodes = horizon.n_nodes
@@ -366,16 +325,16 @@ def _run_speculative(safety: PassiveSafety, x: np.ndarray, r: np.ndarray, c: np.
                                     "passed")
             node = start + k
             u = control(k, node, xk, rk, ck, dv[:, k - 1] if k else None)  # (B, 3) [m/s]
-            z = horizon.post_burn_step(node, xk, u)  # (B, 6) post-burn, deputy-aware
+            z = horizon.post_burn_at(node, xk, u)  # (B, 6) post-burn, deputy-aware
             dv[:, k], roe[:, k], rs[:, k], cs[:, k], z_all[:, k] = u, xk, rk, ck, z
             rk = rk + np.sqrt(np.einsum("bi,bi->b", u, u))
             ck = ck - v_last  # predicted: C(t_{k+1}) = C(t_k) - v_k with v_k = v_last
             if node < n_nodes - 1:
                 xk = horizon.drift_step(node, z)
         w = end - j
-        v = safety.steps_violations(np.repeat(nodes[j:end][None], b, 0).ravel(),
-                                    roe[:, j:end].reshape(-1, 6), dv[:, j:end].reshape(-1, 3),
-                                    z_all[:, j:end].reshape(-1, 6)).reshape(b, w)
+        v = safety.violated(np.repeat(nodes[j:end][None], b, 0).ravel(),
+                            roe[:, j:end].reshape(-1, 6), dv[:, j:end].reshape(-1, 3),
+                            z_all[:, j:end].reshape(-1, 6)).reshape(b, w)
         missed = np.flatnonzero((v != v_last[:, None]).any(axis=0))
         keep = w if missed.size == 0 else int(missed[0]) + 1  # steps j .. j + keep - 1 hold
         viol[:, j:j + keep] = v[:, :keep]

@@ -50,7 +50,8 @@ _PASSED = {"out": "--out", "workers": "--workers", "engine": "--engine",
            "ray_address": "--ray-address", "seeds": "--seeds",
            "missed_per_seed": "--missed-per-seed", "first_seed": "--first-seed",
            "model": "--model", "reference": "--reference", "min_c_cvx": "--min-c-cvx",
-           "horizons": "--horizons", "targets": "--targets", "trigger": "--trigger"}
+           "horizons": "--horizons", "targets": "--targets", "trigger": "--trigger",
+           "context": "--context"}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -91,4 +92,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--trigger", default=None, choices=("sigma", "every"),
                    help="mpc: replan on the node's deviation rule (and when half a window is "
                    "flown) or at every node")
+    p.add_argument("--context", default=None, choices=("off", "on", "both"),
+                   help="mpc: give the learned proposal the steps flown since the target was "
+                   "set (T-MPC's context): off, on, or both (each configuration both ways)")
     p.set_defaults(func=run)

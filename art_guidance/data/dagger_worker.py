@@ -17,7 +17,7 @@ from art_guidance.data.stages import (
     stage_fields, trajectory_fields,
 )
 from art_guidance.dynamics import Horizon
-from art_guidance.optim import ScpStatus
+from art_guidance.optim import ScpStatus, TransferProblem
 from art_guidance.safety import PassiveSafety
 
 DAGGER_STREAM = 0xDA66  # second SeedSequence word of the node draw
@@ -131,7 +131,7 @@ def expert_from(spec: GenerationSpec, horizon: Horizon, k: int, roe_k_m: np.ndar
     switch = max(0, spec.scenario.ae_to_koz_node - k)
     collision = PassiveSafety(sub, spec.scenario, None, t_safety_s=0.0, koz_switch_node=switch)
     passive = PassiveSafety(sub, spec.scenario, spec.uncertainty, koz_switch_node=switch)
-    return solve_stages(spec, collision, passive, roe_k_m, roe_f_m)
+    return solve_stages(spec, TransferProblem(passive, roe_k_m, roe_f_m), collision)
 
 
 def _row(spec: DaggerSpec, safety: PassiveSafety, index: int, roe_roll: np.ndarray,

@@ -11,6 +11,7 @@ and resumed any number of times, produce identical data (timings aside). Storage
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -24,7 +25,7 @@ from art_guidance import __version__
 from art_guidance.config import MODES, GuidanceConfig, ScenarioConfig, UncertaintyConfig
 from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.errors import GuidanceError, InputError
-from art_guidance.optim import ScpStatus, Scvx, solve_cvx
+from art_guidance.optim import ScpStatus, TransferProblem
 from art_guidance.optim.problem import SubproblemPool
 from art_guidance.safety import PassiveSafety
 from art_guidance.scenarios import SEED_RULE, SEED_STRIDE, sample_scenario, sample_seed
@@ -177,10 +178,10 @@ class Stage:
         return self.status.feasible
 
 
-def _run_cvx(horizon: Horizon, roe0: np.ndarray, roe_f: np.ndarray) -> Stage:
+def _run_cvx(problem: TransferProblem) -> Stage:
     t0 = time.perf_counter()
     try:
-        sol = solve_cvx(horizon, roe0, roe_f)
+        sol = problem.cvx()
     except GuidanceError:
         return Stage(ScpStatus.SOLVER_ERROR, None, None, math.nan, 1,
                      1e3 * (time.perf_counter() - t0))
@@ -189,13 +190,12 @@ def _run_cvx(horizon: Horizon, roe0: np.ndarray, roe_f: np.ndarray) -> Stage:
                  sol.cost_mps, 1, sol.solve_time_ms)
 
 
-def _run_scp(spec: GenerationSpec, safety: PassiveSafety, roe0: np.ndarray, roe_f: np.ndarray,
-             warm: np.ndarray, pool: SubproblemPool | None) -> Stage:
+def _run_scp(spec: GenerationSpec, problem: TransferProblem, warm: np.ndarray,
+             pool: SubproblemPool | None) -> Stage:
     t0 = time.perf_counter()
     try:
-        res = Scvx(safety, roe0, roe_f, spec.config.scp,
-                   samples_per_node=spec.config.planning.samples_per_node,
-                   pool=pool).solve(warm)
+        res = problem.scvx(spec.config.scp, spec.config.planning.samples_per_node,
+                           pool=pool).solve(warm)
     except GuidanceError:
         return Stage(ScpStatus.SOLVER_ERROR, None, None, math.nan, 0,
                      1e3 * (time.perf_counter() - t0))
@@ -203,21 +203,19 @@ def _run_scp(spec: GenerationSpec, safety: PassiveSafety, roe0: np.ndarray, roe_
                  res.solve_time_ms)
 
 
-def solve_stages(spec: GenerationSpec, collision: PassiveSafety, passive: PassiveSafety,
-                 roe0: np.ndarray, roe_f: np.ndarray, pool: SubproblemPool | None = None
+def solve_stages(spec: GenerationSpec, problem: TransferProblem, collision: PassiveSafety,
+                 pool: SubproblemPool | None = None
                  ) -> tuple[tuple[Stage, Stage, Stage], int]:
-    """The three stages of the pipeline on one horizon (that of `passive`).
+    """The three stages of the pipeline on the horizon of `problem`.
 
     Stage 1 solves the convex TPBVP (CVX); stage 2 the collision-avoidance SCP `collision`
     (deterministic, T_safety = 0) warm-started by CVX (zeros if CVX failed); stage 3 the
-    passive-safety SCP `passive` warm-started by stage 2's returned trajectory.
+    passive-safety SCP of `problem` warm-started by stage 2's returned trajectory.
 
     Args:
         spec: SCP and planning settings.
-        collision: stage-2 model (its horizon is the one planned over, N nodes).
-        passive: stage-3 model on the same horizon.
-        roe0: (6,) pre-burn a-scaled ROE at the first node [m].
-        roe_f: (6,) terminal post-burn a-scaled ROE [m].
+        problem: the transfer with the stage-3 passive-safety model (N nodes).
+        collision: stage-2 model on the same horizon.
         pool: the caller's SCVx* subproblems (None: each stage sets up its own).
 
     Returns:
@@ -225,12 +223,11 @@ def solve_stages(spec: GenerationSpec, collision: PassiveSafety, passive: Passiv
         feasible, else 2 if stage 2 is, else KEPT_INFEASIBLE (CVX is never kept: it ignores
         safety).
     """
-    horizon = passive.horizon
-    cvx = _run_cvx(horizon, roe0, roe_f)
-    warm = cvx.dv_rtn_mps if cvx.dv_rtn_mps is not None else np.zeros((horizon.n_nodes, 3))
-    ca = _run_scp(spec, collision, roe0, roe_f, warm, pool)
-    ps = _run_scp(spec, passive, roe0, roe_f,
-                  ca.dv_rtn_mps if ca.dv_rtn_mps is not None else warm, pool)
+    cvx = _run_cvx(problem)
+    warm = cvx.dv_rtn_mps if cvx.dv_rtn_mps is not None \
+        else np.zeros((problem.horizon.n_nodes, 3))
+    ca = _run_scp(spec, dataclasses.replace(problem, safety=collision), warm, pool)
+    ps = _run_scp(spec, problem, ca.dv_rtn_mps if ca.dv_rtn_mps is not None else warm, pool)
     kept = 3 if ps.feasible else 2 if ca.feasible else KEPT_INFEASIBLE
     return (cvx, ca, ps), kept
 
@@ -256,9 +253,10 @@ def solve_sample(spec: GenerationSpec, index: int) -> dict[str, np.ndarray]:
     m = _models(spec)
     n = m.horizon.n_nodes
     sample = sample_scenario(spec.scenario, sample_seed(spec.base_seed, index))
-    roe0 = roe_from_rtn_linear(m.chief, sample.rtn0)
-    roe_f = np.linalg.solve(m.horizon.psi[-1], sample.target_rtn)
-    stages, kept = solve_stages(spec, m.collision, m.passive, roe0, roe_f, m.pool)
+    problem = TransferProblem.to_target(m.passive, roe_from_rtn_linear(m.chief, sample.rtn0),
+                                        sample.target_rtn)
+    roe0, roe_f = problem.roe0_m, problem.roe_f_m
+    stages, kept = solve_stages(spec, problem, m.collision, m.pool)
     cvx = stages[0]
     rec = {
         "index": np.int64(index), "seed": np.int64(sample.seed),

@@ -36,7 +36,9 @@ class Horizon:
 
     `propagate` is the linear model (B at zero separation, the convex problem's); the
     ``*_nonlinear`` methods are the deputy-aware model SCVx* plans with (B at the deputy's own
-    state, second-order along-track drift) and its Jacobians (`linearize_nonlinear`).
+    state, second-order along-track drift) and its Jacobians (`linearize_nonlinear`), its
+    post-burn state `post_burn_at` (one array door; `post_burn_nonlinear` and
+    `final_post_burn_nonlinear` adapt it to a trajectory and to its last node).
 
     Attributes:
         epochs_s: (N,) node epochs from the chief epoch of `chief_oe0` [s].
@@ -82,10 +84,6 @@ class Horizon:
             out[k + 1] = self.stm[k] @ (out[k] + self.b[k] @ u[k])
         return out
 
-    def final_post_burn(self, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
-        """Post-burn ROE at the last node: x_N + B_N u_N, (6,)."""
-        return roe_m[-1] + self.b[-1] @ dv_rtn_mps[-1]
-
     # -------------------------------------------------------------- deputy-aware model
     # `propagate` is the linear model of the convex problem (B at zero separation, first-order
     # relative drift). SCVx* plans with the model below, evaluated along its reference: every
@@ -95,24 +93,34 @@ class Horizon:
         a, inc = float(self.chief_oe[0, 0]), float(self.chief_oe[0, 2])
         return mean_arg_latitude(self.chief_oe), mean_motion(a), a, inc
 
+    def post_burn_at(self, nodes: int | np.ndarray, roe_m: np.ndarray,
+                     dv_rtn_mps: np.ndarray) -> np.ndarray:
+        """Post-burn ROE ``z = x + B_d(x) u`` [m], the shape of `roe_m`: the array door of the
+        deputy's post-burn state (the adapters below, the safety model, the ART rollout).
+
+        Args:
+            nodes: the node of every state: an int, or ints broadcast against the leading axes
+                of `roe_m` (``np.arange(N)`` for (N, 6) or (K, N, 6) trajectories).
+            roe_m: (..., 6) pre-burn a-scaled ROE [m].
+            dv_rtn_mps: (..., 3) impulsive delta-v in RTN [m/s].
+
+        Not validated: finite float arrays of matching shapes are the caller's (the rollout
+        advances with it at every step; `post_burn_nonlinear` validates a trajectory).
+        """
+        lat, n, a, inc = self._deputy_constants()
+        return post_burn_batch(lat[nodes], n, a, inc, roe_m, dv_rtn_mps)
+
+    # adapters of `post_burn_at`
     def post_burn_nonlinear(self, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
-        """Post-burn ROE ``z_k = x_k + B_d(x_k) u_k`` at every node, (N, 6) [m]."""
+        """`post_burn_at` of a validated trajectory: (N, 6) [m] from (N, 6) [m], (N, 3) [m/s]."""
         x = as_finite_array("roe_m", roe_m, (self.n_nodes, 6))
         u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (self.n_nodes, 3))
-        lat, n, a, inc = self._deputy_constants()
-        return post_burn_batch(lat, n, a, inc, x, u)
-
-    def post_burn_nonlinear_at(self, node: int, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
-        """Post-burn ROE of B candidate (state (B, 6) [m], burn (B, 3) [m/s]) pairs at a node."""
-        x = as_finite_array("roe_m", roe_m, (None, 6))
-        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (x.shape[0], 3))
-        return self.post_burn_step(node, x, u)
+        return self.post_burn_at(np.arange(self.n_nodes), x, u)
 
     def final_post_burn_nonlinear(self, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
-        """Post-burn ROE at the last node with the deputy-aware B, (6,) [m]."""
-        lat, n, a, inc = self._deputy_constants()
-        return post_burn_batch(lat[-1], n, a, inc, np.asarray(roe_m, float)[-1],
-                               np.asarray(dv_rtn_mps, float)[-1])
+        """`post_burn_at` of a trajectory's last node (N, 6) [m], (N, 3) [m/s]: (6,) [m]."""
+        return self.post_burn_at(self.n_nodes - 1, np.asarray(roe_m, float)[-1],
+                                 np.asarray(dv_rtn_mps, float)[-1])
 
     def propagate_nonlinear(self, roe0_m: object, dv_rtn_mps: object) -> np.ndarray:
         """Roll out ``x_{k+1} = Phi_k z_k + c_k(z_k)``, ``z_k = x_k + B_d(x_k) u_k``: (N, 6) [m].
@@ -153,16 +161,11 @@ class Horizon:
             out.append(x)
         return np.array(out)
 
-    def post_burn_step(self, node: int, roe_m: np.ndarray, dv_rtn_mps: np.ndarray) -> np.ndarray:
-        """Post-burn ROE ``z = x + B_d(x) u`` of a batch at `node`, (B, 6) [m]: the first half
-        of one step of `propagate_nonlinear` for a batch, the form the ART rollout advances
-        with (not validated: the caller's arrays are finite by construction)."""
-        lat, n, a, inc = self._deputy_constants()
-        return post_burn_batch(lat[int(node)], n, a, inc, roe_m, dv_rtn_mps)
-
     def drift_step(self, node: int, z_m: np.ndarray) -> np.ndarray:
-        """Pre-burn ROE at `node + 1` (B, 6) [m] from post-burn ROE `z_m` at `node`: the second
-        half of that step (STM and second-order along-track drift; not validated)."""
+        """Pre-burn ROE at `node + 1` (B, 6) [m] from post-burn ROE `z_m` at `node`
+        (`post_burn_at`): the second half of one step of `propagate_nonlinear` for a batch, the
+        form the ART rollout advances with (STM and second-order along-track drift; not
+        validated)."""
         k = int(node)
         x1 = z_m @ self.stm[k].T  # (B, 6)
         a = self._deputy_constants()[2]

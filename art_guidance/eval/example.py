@@ -17,6 +17,7 @@ from art_guidance.config import GuidanceConfig
 from art_guidance.data.storage import encode_shard
 from art_guidance.eval.warmstart import ROW_FIELDS, WarmStartRun, solve_both
 from art_guidance.files import write_atomic
+from art_guidance.optim import TransferProblem
 from art_guidance.safety import PassiveSafety
 
 TRAJECTORIES = ("cvx", "art", "ps_cvx", "ps_art")
@@ -52,13 +53,13 @@ def drift_arcs(safety: PassiveSafety, roe_m: np.ndarray,
     return pos, pos_cov
 
 
-def recompute(request: object, safety: PassiveSafety, provider: object,
-              config: GuidanceConfig, stored: dict | None = None) -> dict[str, np.ndarray]:
+def recompute(problem: TransferProblem, provider: object, config: GuidanceConfig,
+              stored: dict | None = None) -> dict[str, np.ndarray]:
     """Solve one scenario again and collect what the example figures plot.
 
     Args:
-        request: the scenario's plan request.
-        safety: its passive-safety model (the model's mode).
+        problem: the scenario's transfer problem (`eval.inputs.problem_of`; its
+            passive-safety model of the model's mode).
         provider: the ART warm-start provider.
         config: the evaluation's settings.
         stored: the stored row ({field: value}) to check the recomputation against.
@@ -72,7 +73,8 @@ def recompute(request: object, safety: PassiveSafety, provider: object,
     """
     from art_guidance.art.rollout import build_safety
 
-    run = solve_both(request, safety, provider, config)
+    safety = problem.safety
+    run = solve_both(problem, provider, config)
     mean = safety if safety.uncertainty is None else build_safety(provider.art, False)
     out: dict[str, np.ndarray] = {}
     for name, (roe, dv) in _plans(run).items():
@@ -90,7 +92,7 @@ def recompute(request: object, safety: PassiveSafety, provider: object,
     same = stored is None or all(
         np.isclose(getattr(row, f), stored[f], rtol=1e-9, atol=1e-12, equal_nan=True)
         for f in ROW_FIELDS if f not in TIMING)
-    out.update(semi_axes_m=safety.semi_axes_m, target_rtn=np.asarray(request.target_rtn),
+    out.update(semi_axes_m=safety.semi_axes_m, target_rtn=np.asarray(problem.target_rtn),
                q_sigma=np.float64(safety.q_sigma), chance=np.bool_(safety.uncertainty is not None),
                e_r=np.float64(row.e_r), e_c=np.float64(row.e_c),
                accepted=np.bool_(row.accepted), j_cvx=np.float64(row.j_cvx),

@@ -145,3 +145,12 @@ def request_of(roe0_m: np.ndarray, target_rtn: np.ndarray, safety: object) -> ob
 
     return PlanRequest(safety.horizon.chief_oe[0], roe0_m, target_rtn,
                        chance_constrained=safety.uncertainty is not None)
+
+
+def problem_of(roe0_m: np.ndarray, target_rtn: np.ndarray, safety: object) -> object:
+    """The transfer problem from `roe0_m` (6,) [m] to `target_rtn` (6,) [m, m/s] on `safety`
+    (`optim.TransferProblem`), its inputs validated as a plan request (`request_of`)."""
+    from art_guidance.optim import TransferProblem
+
+    request = request_of(roe0_m, target_rtn, safety)
+    return TransferProblem.to_target(safety, request.roe0_m, request.target_rtn)

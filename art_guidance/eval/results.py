@@ -15,7 +15,7 @@ from art_guidance.data.storage import SUMMARY, load_dataset, read_manifest
 from art_guidance.errors import DatasetError
 from art_guidance.eval import example as ex_io
 from art_guidance.eval.warmstart import columns, gains, standard_error, summarize
-from art_guidance.eval.inputs import FORMAT, KIND, ModelInfo, load_model, request_of
+from art_guidance.eval.inputs import FORMAT, KIND, ModelInfo, load_model, problem_of
 
 
 EXAMPLES = "examples"
@@ -221,8 +221,8 @@ def _example(out: Path, head: dict, cols: dict, m: dict, recompute: bool) -> dic
         provider, safety = load_model(info)
         pos = int(np.flatnonzero(cols["index"] == i)[0])
         config = GuidanceConfig.from_json(head["evaluation"]["config"])
-        request = request_of(cols["roe0_m"][pos], cols["target_rtn"][pos], safety)
-        ex = ex_io.recompute(request, safety, provider, config,
+        problem = problem_of(cols["roe0_m"][pos], cols["target_rtn"][pos], safety)
+        ex = ex_io.recompute(problem, provider, config,
                              {f: cols[f][pos] for f in cols})
         ex_io.save(path, ex, i)
         ex = ex_io.load(path)

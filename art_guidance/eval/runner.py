@@ -42,7 +42,7 @@ from art_guidance.errors import InputError
 from art_guidance.eval.warmstart import columns, compare
 from art_guidance.eval.inputs import (
     FORMAT, KIND, DatasetInfo, ModelInfo, dataset_info, heldout, load_model, model_info,
-    request_of,
+    problem_of,
 )
 from art_guidance.eval.results import build_summary, log_run, render, write_summary
 from art_guidance.jobs import check_run_options, run_missing
@@ -102,8 +102,8 @@ def evaluate_chunk(spec: EvaluationSpec, indices: Sequence[int]) -> dict[str, np
     for i in idx:
         provider, safety = load_model(spec.models[spec.model[i]], spec.single_rollout)
         t0 = time.perf_counter()
-        request = request_of(spec.roe0_m[i], spec.target_rtn[i], safety)
-        rows.append(compare(request, safety, provider, spec.config, pool))
+        problem = problem_of(spec.roe0_m[i], spec.target_rtn[i], safety)
+        rows.append(compare(problem, provider, spec.config, pool))
         ms.append(1e3 * (time.perf_counter() - t0))
     return {"index": idx, "model": spec.model[idx], "dataset": spec.dataset[idx],
             "sample": spec.sample[idx], "roe0_m": spec.roe0_m[idx],

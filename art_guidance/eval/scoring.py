@@ -19,6 +19,7 @@ from art_guidance.art.rollout import replay, rollout
 from art_guidance.checks import as_finite_array
 from art_guidance.config import PosthocThresholds
 from art_guidance.errors import InputError
+from art_guidance.optim import TransferProblem
 from art_guidance.safety import PassiveSafety
 
 
@@ -125,8 +126,8 @@ def score_rollouts(art: TrainedArt, safety: PassiveSafety, roe0_m: object,
             pick = [0] * b
         else:  # as the provider ranks them (`ArtWarmStart.propose`)
             judged = [(cost_all[i], c_all[i]) if subject == "rollout" else judged_controls(
-                safety, x0[sl][i], target[sl][i], res.dv_rtn_mps[i * k:(i + 1) * k], subject)
-                for i in range(b)]
+                TransferProblem.to_target(safety, x0[sl][i], target[sl][i]),
+                res.dv_rtn_mps[i * k:(i + 1) * k], subject) for i in range(b)]
             pick = [best_candidate(*judged[i], j_cvx[sl][i], region) for i in range(b)]
         c_art[sl] = c_all[np.arange(b), pick]
         cost[sl] = cost_all[np.arange(b), pick]

@@ -30,14 +30,11 @@ import numpy as np
 
 from art_guidance.config import GuidanceConfig
 from art_guidance.errors import GuidanceError
-from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
+from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, TransferProblem
 from art_guidance.optim.problem import SubproblemPool
 from art_guidance.planning.pipeline import keep_first_plan, second_run
 from art_guidance.planning.posthoc import check_proposal, posthoc_check
-from art_guidance.planning.types import (
-    PlanRequest, PosthocDecision, WarmStartProposal, WarmStartSource,
-)
-from art_guidance.safety import PassiveSafety
+from art_guidance.planning.types import PosthocDecision, WarmStartProposal, WarmStartSource
 
 BINS = (0, 10, 20, 30, 40)  # the paper's cumulative C_CVX(t_1) >= value bins
 GAP_TOL_MPS = 1e-6  # J_SCP,CVX - J_CVX below this: no improvement ratio for the scenario [m/s]
@@ -140,13 +137,13 @@ class WarmStartRun:
             e_r_rollout=float(q.e_r), e_c_rollout=float(q.e_c), accepted_rollout=q.accepted)
 
 
-def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
-               config: GuidanceConfig, pool: SubproblemPool | None = None) -> WarmStartRun:
-    """Both warm starts and both SCVx* runs for one request on `safety.horizon`.
+def solve_both(problem: TransferProblem, provider: object, config: GuidanceConfig,
+               pool: SubproblemPool | None = None) -> WarmStartRun:
+    """Both warm starts and both SCVx* runs for one transfer problem.
 
     Args:
-        request: initial state and target (its chief elements must be the horizon's).
-        safety: the passive-safety model (deterministic or chance-constrained).
+        problem: initial state, RTN target and passive-safety model (deterministic or
+            chance-constrained), e.g. `eval.inputs.problem_of`.
         provider: a `WarmStartProvider` (e.g. `art.provider.ArtWarmStart`).
         config: SCP, post hoc and planning settings.
         pool: the caller's SCVx* subproblems, reused over requests on one horizon (None: set
@@ -155,21 +152,18 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
     Raises:
         GuidanceError: CVX or the rollout failed (a SCVx* failure is a SOLVER_ERROR result).
     """
-    horizon = safety.horizon
-    roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
+    safety = problem.safety
     t0 = time.perf_counter()
-    cvx = solve_cvx(horizon, request.roe0_m, roe_f)
+    cvx = problem.cvx()
     t1 = time.perf_counter()
-    prop = provider.propose(request, safety, cvx, planning=config.planning)  # ranked as flown
-    art_dv = np.asarray(prop.dv_rtn_mps, float)
-    art_roe = horizon.propagate_nonlinear(request.roe0_m, art_dv)
-    ph = check_proposal(art_dv, request.roe0_m, roe_f, cvx.cost_mps, safety, config.planning)
+    prop = provider.propose(problem, cvx, planning=config.planning)  # ranked as flown
+    art_dv, art_roe = problem.propagate(prop.dv_rtn_mps)
+    ph = check_proposal(problem, art_dv, cvx.cost_mps, config.planning)
     t2 = time.perf_counter()
     raw = ph if config.planning.posthoc_subject == "rollout" else \
         posthoc_check(art_dv, art_roe, cvx.cost_mps, safety, config.planning.posthoc)
     c_cvx = int(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0])
-    scvx = Scvx(safety, request.roe0_m, roe_f, config.scp,
-                samples_per_node=config.planning.samples_per_node, pool=pool)
+    scvx = problem.scvx(config.scp, config.planning.samples_per_node, pool=pool)
     from_cvx = _solve(scvx, cvx.dv_rtn_mps)
     from_art = _solve(scvx, art_dv)
     source = WarmStartSource.ART if ph.accepted else WarmStartSource.CVX
@@ -183,10 +177,10 @@ def solve_both(request: PlanRequest, safety: PassiveSafety, provider: object,
                         1e3 * (t1 - t0), 1e3 * (t2 - t1), raw)
 
 
-def compare(request: PlanRequest, safety: PassiveSafety, provider: object,
-            config: GuidanceConfig, pool: SubproblemPool | None = None) -> WarmStartRow:
-    """Both warm starts for one request on `safety.horizon` (see `solve_both`)."""
-    return solve_both(request, safety, provider, config, pool).row()
+def compare(problem: TransferProblem, provider: object, config: GuidanceConfig,
+            pool: SubproblemPool | None = None) -> WarmStartRow:
+    """Both warm starts for one transfer problem (see `solve_both`)."""
+    return solve_both(problem, provider, config, pool).row()
 
 
 def _solve(scvx: Scvx, warm_dv: np.ndarray) -> ScpResult:

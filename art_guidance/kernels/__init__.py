@@ -7,7 +7,9 @@ numba's on-disk cache, before the first plan; a failure is reported and the nump
 
 The cache lives in `NUMBA_CACHE_DIR` where that is set; else beside the modules where the
 package folder is writable; else in `~/.cache/art_guidance/numba`; else nowhere (compiled in
-memory at every start, `cache_note` says so). This package imports only numpy and numba.
+memory at every start, `cache_note` says so). numba checks a cached kernel against its own
+file only: after an edit of `drift_bounds`, whose kernels `drift`'s call, clear the cache (or
+change `drift` too). This package imports only numpy and numba.
 """
 from __future__ import annotations
 

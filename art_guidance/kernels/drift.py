@@ -1,11 +1,11 @@
 """Compiled form of `safety.drift.DriftArcs.violated`: the sign-only certified search of the
 passive-safety margin on drift arcs, one arc at a time.
 
-The numpy oracle (`safety/drift.py` and `safety/drift_bounds.py`, whose docstrings hold the
-mathematics) runs the search vectorised over every interval of every arc of a batch: ~650
-numpy calls of 1-5 us per rollout step over arrays of 8 x ~40. Here the same steps run in one
-compiled call per batch, arc by arc, with scalar arithmetic: the drift samples, the staged
-lower bounds (Lipschitz, the Hermite interpolants of d^2 and |v|^2, the chord bound), the
+The numpy oracle (`safety/drift.py`, `drift_bounds.py` and `drift_search.py`, whose
+docstrings hold the mathematics) runs the search vectorised over every interval of every arc of
+a batch: ~650 numpy calls of 1-5 us per rollout step over arrays of 8 x ~40. Here the same steps
+run in one compiled call per batch, arc by arc, with scalar arithmetic: the drift samples, the
+staged lower bounds (Lipschitz, the Hermite interpolants of d^2 and |v|^2, the chord bound), the
 safeguarded cubic-Hermite refinement of bracketed minima, and the splitting of uncertified
 intervals. Only the decision (minimum margin below zero or not) is returned.
 
@@ -15,7 +15,8 @@ per level is per arc (MAX_OPEN of its own) where the oracle caps the batch at MA
 number of arcs (so an arc's result there could depend on its batch-mates; only degenerate arcs,
 e.g. through the ellipsoid's centre, reach either cap).
 
-Imports only numpy and numba.
+The staged lower bound of one interval is `drift_bounds.lower_bound`. Imports only numpy, numba
+and the package's own kernels.
 """
 from __future__ import annotations
 
@@ -24,8 +25,11 @@ import math
 import numpy as np
 from numba import njit
 
+from art_guidance.kernels.drift_bounds import (  # noqa: F401 (N_SUB: the oracle's, tested)
+    DF, DM, DW, F, M, N_SUB, TAU, W, lower_bound,
+)
+
 N_TERMS = 18
-N_SUB = 32
 CERT_TOL = 1e-4
 CERT_TOL_REL = 1e-3
 SPLIT = 4
@@ -33,8 +37,6 @@ MAX_LEVELS = 8
 MAX_OPEN = 32
 REFINE_ITERS = 4
 D_FLOOR = 1e-12
-# an evaluated point: tau, m, dm, f, df, big_w, dbig_w
-TAU, M, DM, F, DF, W, DW = range(7)
 WS_SIZE = 84  # work array of `_point`
 
 _JIT = dict(cache=True, nogil=True)
@@ -123,111 +125,8 @@ def _point_at(tau, b0, b1, mt, dmt, coef, x_cov, q, chance, out, ws):
 
 
 @njit(**_JIT)
-def _cubic(f0, f1, g0, g1, h):
-    """(c2, c3, crit0, crit1) of the cubic Hermite interpolant on [0, h] (`_Cubic`)."""
-    hh = h if h > 0.0 else 1.0
-    slope = (f1 - f0) / hh
-    c2 = (3.0 * slope - 2.0 * g0 - g1) / hh
-    c3 = (g0 + g1 - 2.0 * slope) / (hh * hh)
-    disc = max(c2 * c2 - 3.0 * c3 * g0, 0.0)
-    qq = -(c2 + (1.0 if c2 >= 0.0 else -1.0) * math.sqrt(disc))
-    crit0 = qq / (3.0 * c3) if c3 != 0.0 else math.nan
-    crit1 = g0 / qq if qq != 0.0 else math.nan
-    if not math.isfinite(crit0):
-        crit0 = 0.0
-    if not math.isfinite(crit1):
-        crit1 = 0.0
-    return c2, c3, min(max(crit0, 0.0), h), min(max(crit1, 0.0), h)
-
-
-@njit(**_JIT)
-def _cubic_at(f0, g0, c2, c3, s):
-    return f0 + s * (g0 + s * (c2 + s * c3))
-
-
-@njit(**_JIT)
-def _cubic_min(f0, f1, g0, c2, c3, k0, k1):
-    return min(min(f0, f1), min(_cubic_at(f0, g0, c2, c3, k0), _cubic_at(f0, g0, c2, c3, k1)))
-
-
-@njit(**_JIT)
-def _cubic_max(f0, f1, g0, c2, c3, k0, k1):
-    return max(max(f0, f1), max(_cubic_at(f0, g0, c2, c3, k0), _cubic_at(f0, g0, c2, c3, k1)))
-
-
-@njit(**_JIT)
-def _hermite_error(a0, a1, a2, a3, a4, h):
-    return 2.0 * (a0 * a4 + 4.0 * a1 * a3 + 3.0 * a2 * a2) * h ** 4 / 384.0
-
-
-@njit(**_JIT)
-def _sigma_up(w_up, d_lo, k0):
-    if d_lo > 0.0:
-        return min(math.sqrt(max(w_up, 0.0)) / d_lo, k0)
-    return k0
-
-
-@njit(**_JIT)
-def _lower_bound(lo, hi, ys, ks, q, chance, target, sign_only):
-    """`drift_bounds.lower_bound(..., target, sign_only)` for one interval."""
-    h = hi[TAU] - lo[TAU]
-    k0 = ks[0] if chance else 0.0
-    lb = max(0.5 * (math.sqrt(lo[F]) + math.sqrt(hi[F]) - ys[1] * h), 0.0) - 1.0 - q * k0
-    if not lb < target:
-        return lb
-    y0 = min(math.sqrt(max(lo[F], hi[F])) + 0.5 * h * ys[1], ys[0])
-    e_f = _hermite_error(y0, ys[1], ys[2], ys[3], ys[4], h)
-    c2, c3, k_0, k_1 = _cubic(lo[F], hi[F], lo[DF], hi[DF], h)
-    d_lo = math.sqrt(max(_cubic_min(lo[F], hi[F], lo[DF], c2, c3, k_0, k_1) - e_f, 0.0))
-    if not chance:
-        return max(lb, d_lo - 1.0)
-    lb = max(lb, d_lo - 1.0 - q * ks[0])  # never above stage 2's: the same result
-    if sign_only and not lb < max(target, 0.0):
-        return lb
-    # stage 2: sigma from the interpolant of W = |v|^2
-    yl = (y0, ys[1], ys[2], ys[3], ys[4])
-    vs0 = ks[0] * yl[0]
-    vs1 = ks[0] * yl[1] + ks[1] * yl[0]
-    vs2 = ks[0] * yl[2] + 2.0 * ks[1] * yl[1] + ks[2] * yl[0]
-    vs3 = ks[0] * yl[3] + 3.0 * ks[1] * yl[2] + 3.0 * ks[2] * yl[1] + ks[3] * yl[0]
-    vs4 = (ks[0] * yl[4] + 4.0 * ks[1] * yl[3] + 6.0 * ks[2] * yl[2] + 4.0 * ks[3] * yl[1]
-           + ks[4] * yl[0])
-    v0 = min(math.sqrt(max(lo[W], hi[W])) + 0.5 * h * vs1, vs0)
-    e_w = _hermite_error(v0, vs1, vs2, vs3, vs4, h)
-    w2, w3, j_0, j_1 = _cubic(lo[W], hi[W], lo[DW], hi[DW], h)
-    w_up = _cubic_max(lo[W], hi[W], lo[DW], w2, w3, j_0, j_1) + e_w
-    lb = max(lb, d_lo - 1.0 - q * _sigma_up(w_up, d_lo, ks[0]))
-    if not lb < target:
-        return lb
-    # stage 3: the chord bound on g = d - q sigma
-    g_min = math.inf
-    for j in range(N_SUB + 1):
-        s = h * j / N_SUB
-        f_pt = max(_cubic_at(lo[F], lo[DF], c2, c3, s) - e_f, 0.0)
-        w_pt = _cubic_at(lo[W], lo[DW], w2, w3, s) + e_w
-        g = math.sqrt(f_pt) - q * _sigma_up(w_pt, math.sqrt(f_pt), ks[0])
-        g_min = min(g_min, g)
-    f_hi = _cubic_max(lo[F], hi[F], lo[DF], c2, c3, k_0, k_1) + e_f
-    w_lo = max(_cubic_min(lo[W], hi[W], lo[DW], w2, w3, j_0, j_1) - e_w, 0.0)
-    if not (d_lo > 0.0 and f_hi > 0.0):
-        return lb
-    sig_lo = math.sqrt(w_lo / f_hi)
-    if not sig_lo > 0.0:
-        return lb
-    e1 = ys[1] / d_lo
-    e2 = 2.0 * ys[2] / d_lo + 5.0 * e1 * e1
-    u1 = ks[1] + ks[0] * e1
-    u2 = ks[2] + 2.0 * ks[1] * e1 + ks[0] * e2
-    curv = ys[2] + q * (u2 + u1 * u1 / sig_lo)
-    chord = g_min - 1.0 - curv * (h / N_SUB) ** 2 / 8.0
-    if math.isfinite(chord):
-        lb = max(lb, chord)
-    return lb
-
-
-@njit(**_JIT)
 def _target(best, sign_only):
-    """`drift._target` (the full search) or `drift._sign_target` (the sign-only one)."""
+    """`drift_search._target` (the full search) or `_sign_target` (the sign-only one)."""
     full = best - CERT_TOL - CERT_TOL_REL * abs(best)
     if not sign_only:
         return full
@@ -239,7 +138,7 @@ def _target(best, sign_only):
 @njit(**_JIT)
 def _refine(lo0, hi0, coef, maps, x_cov, q, chance, u0, udot, wdot, ws):
     """(offset [s], margin) of the best point found by safeguarded cubic-Hermite bracketing of
-    m' = 0 on one bracket (`DriftArcs._refine`)."""
+    m' = 0 on one bracket (`safety.drift_search.refine`)."""
     lo = lo0.copy()
     hi = hi0.copy()
     best_tau = lo[TAU] if lo[M] <= hi[M] else hi[TAU]
@@ -311,7 +210,7 @@ def _arc_search(coef, maps, x_cov, q, chance, y_sup, k_sup, u0, udot, wdot, tau_
         lb = np.empty(n_i)
         target = _target(best, sign_only)
         for i in range(n_i):
-            lb[i] = _lower_bound(lo[i], hi[i], y_sup, k_sup, q, chance, target, sign_only)
+            lb[i] = lower_bound(lo[i], hi[i], y_sup, k_sup, q, chance, target, sign_only)
         any_bracket = False
         for i in range(n_i):
             if lb[i] < target and lo[i, DM] < 0.0 and hi[i, DM] > 0.0 and not refined[i]:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -24,6 +25,19 @@ class ScpStatus(enum.Enum):
 
 
 FEASIBLE_STATUSES = frozenset({ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS})
+
+
+class Trajectory(NamedTuple):
+    """Controls and their states over the N nodes of a horizon: the terminal warm start a
+    proposal carries to the post hoc check and to SCVx* (`scp.terminal_warm_start`).
+
+    Attributes:
+        dv_rtn_mps: (N, 3) impulsive delta-v in RTN [m/s].
+        roe_m: (N, 6) pre-burn a-scaled ROE [m] (propagated from the controls).
+    """
+
+    dv_rtn_mps: np.ndarray
+    roe_m: np.ndarray
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,8 +45,10 @@ from art_guidance.dynamics import DeputyLinearization, Horizon
 from art_guidance.deadline import Deadline
 from art_guidance.optim.cvx import control_cost, terminal_maps
 from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
-from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus
-from art_guidance.safety import PassiveSafety
+from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus, Trajectory
+
+if TYPE_CHECKING:
+    from art_guidance.optim.transfer import TransferProblem
 
 
 @dataclass
@@ -92,7 +95,7 @@ def _node_weights(dv_rtn_mps: np.ndarray) -> np.ndarray:
 
 def terminal_warm_start(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
                         dv_rtn_mps: np.ndarray, lin: DeputyLinearization | None = None
-                        ) -> tuple[np.ndarray, np.ndarray]:
+                        ) -> Trajectory:
     """Controls corrected onto the terminal condition of the deputy-aware model, and their
     states (N, 6) [m]: what SCVx* starts from, and what the post hoc check judges by default.
 
@@ -107,7 +110,7 @@ def terminal_warm_start(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarra
 
 def to_terminal(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
                 dv_rtn_mps: np.ndarray, lin: DeputyLinearization | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
+                ) -> Trajectory:
     """Gauss-Newton of `terminal_warm_start` alone (controls already near the condition)."""
     dv = np.array(dv_rtn_mps, float)
     roe = horizon.propagate_nonlinear(roe0_m, dv)
@@ -127,7 +130,7 @@ def to_terminal(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
         if new > 1e-2 * size:
             lin = None
         size = new
-    return dv, roe
+    return Trajectory(dv, roe)
 
 
 @dataclass
@@ -149,22 +152,23 @@ class ScvxState:
 
 
 class Scvx:
-    """SCVx* bound to one problem instance (horizon, boundary conditions, safety).
+    """SCVx* bound to one problem instance (`optim.transfer.TransferProblem`: horizon,
+    boundary conditions, safety), built by `TransferProblem.scvx`.
 
-    What a run depends on: the safety model (its horizon gives the dynamics), the boundary
-    conditions, the SCVx* parameters and one `ScpSubproblem` (set up once per horizon and shape,
-    updated and solved every iteration), taken from the caller's `SubproblemPool` or set up for
-    this instance alone. A run's loop state is one `ScvxState`.
+    What a run depends on: the problem's safety model (its horizon gives the dynamics) and
+    boundary conditions, the SCVx* parameters and one `ScpSubproblem` (set up once per horizon
+    and shape, updated and solved every iteration), taken from the caller's `SubproblemPool`
+    or set up for this instance alone. A run's loop state is one `ScvxState`.
     """
 
-    def __init__(self, safety: PassiveSafety, roe0_m: np.ndarray, roe_f_m: np.ndarray,
-                 config: ScpConfig | None = None, norm: str = "l2",
+    def __init__(self, problem: "TransferProblem", config: ScpConfig | None = None,
+                 norm: str = "l2",
                  solver: str = "clarabel", samples_per_node: int = 1,
                  subproblem: SubproblemOptions | None = None,
                  pool: SubproblemPool | None = None) -> None:
         """Args:
-            safety: the passive-safety model (its horizon is the plan's).
-            roe0_m, roe_f_m: (6,) initial pre-burn and terminal post-burn ROE [m].
+            problem: the passive-safety model (its horizon is the plan's) and the (6,)
+                initial pre-burn and terminal post-burn ROE [m].
             config: SCVx* parameters (default: the packaged scp.yaml).
             norm: "l2" or "l1" control cost.
             solver: "clarabel" or "osqp" (l1 only).
@@ -174,10 +178,11 @@ class Scvx:
             pool: the caller's subproblems, reused across runs over one horizon (None: this
                 instance sets up its own).
         """
-        self.safety = safety
+        self.problem = problem
+        self.safety = safety = problem.safety
         self.horizon = safety.horizon
-        self.roe0_m = np.asarray(roe0_m, float)
-        self.roe_f_m = np.asarray(roe_f_m, float)
+        self.roe0_m = np.asarray(problem.roe0_m, float)
+        self.roe_f_m = np.asarray(problem.roe_f_m, float)
         self.cfg = config or ScpConfig()
         self.norm = norm
         # rows per node: t* and samples_per_node - 1 other minima / samples, plus the two
@@ -214,7 +219,7 @@ class Scvx:
     # ------------------------------------------------------------------ the run
     def solve(self, dv_warm_rtn_mps: np.ndarray, multipliers: dict | None = None,
               deadline: Deadline | None = None,
-              projected: tuple[np.ndarray, np.ndarray] | None = None) -> ScpResult:
+              projected: Trajectory | None = None) -> ScpResult:
         """Run SCVx* from a warm-start control sequence (N, 3) [m/s].
 
         Args:
@@ -222,9 +227,9 @@ class Scvx:
             multipliers: optional {"mu", "w", "trust_radius"} from an earlier solve.
             deadline: when to stop (None: never); on expiry the best feasible iterate is
                 returned with status TIMEOUT.
-            projected: the warm start's `terminal_warm_start` ((N, 3) controls [m/s], (N, 6)
-                states [m]) when the caller has it already (the post hoc check made it), used
-                as the first reference instead of computing it again; None: computed here.
+            projected: the warm start's `terminal_warm_start` when the caller has it already
+                (the post hoc check made it), used as the first reference instead of computing
+                it again; None: computed here.
         """
         t_start = time.perf_counter()
         st = self._start(dv_warm_rtn_mps, multipliers, projected)
@@ -237,7 +242,7 @@ class Scvx:
         return self._result(st, t_start)
 
     def _start(self, dv_warm_rtn_mps: np.ndarray, multipliers: dict | None,
-               projected: tuple[np.ndarray, np.ndarray] | None) -> ScvxState:
+               projected: Trajectory | None) -> ScvxState:
         """The first reference (the warm start on the terminal condition), its
         linearisations, the multipliers; the subproblem set to this problem."""
         cfg, n = self.cfg, self.horizon.n_nodes

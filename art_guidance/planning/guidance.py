@@ -181,8 +181,9 @@ class GuidanceCore:
 
     def _job_for(self, nav: NavState, payload: Any, trigger: str) -> Job:
         window = self.policy.window(nav, self.target.n_orbits)
-        return Job(nav, request_for(nav, self.target, window, self.policy.settings), trigger,
-                   payload, self._target_payload)
+        request = request_for(nav, self.target, window, self.policy.settings,
+                              self.policy.context_at(nav))
+        return Job(nav, request, trigger, payload, self._target_payload)
 
     def _submit(self, job: Job) -> None:
         """Called with the lock held: replace any queued job, wake the worker."""

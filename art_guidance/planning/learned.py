@@ -18,7 +18,7 @@ from art_guidance.checks import as_finite_array
 from art_guidance.config import PlanningConfig
 from art_guidance.deadline import Deadline
 from art_guidance.errors import InputError
-from art_guidance.optim import ConvexSolution, terminal_warm_start
+from art_guidance.optim import ConvexSolution, Trajectory, TransferProblem
 from art_guidance.optim.scp import TERMINAL_TOL_M
 from art_guidance.planning.posthoc import check_proposal
 from art_guidance.planning.transfer import Transfer
@@ -44,8 +44,8 @@ class Learned:
         posthoc: the post hoc decision (None: the check was not run).
         proposal: the provider's proposal as it came (None: none was made).
         dv: (N, 3) the validated proposed controls [m/s] (None: no valid proposal).
-        warm_start: their terminal warm start ((N, 3) controls [m/s], (N, 6) states [m]) if
-            it was made (by the provider or the check): SCVx* from ART starts there.
+        warm_start: their terminal warm start if it was made (by the provider or the check):
+            SCVx* from ART starts there.
     """
 
     source: WarmStartSource
@@ -53,7 +53,7 @@ class Learned:
     posthoc: PosthocDecision | None = None
     proposal: WarmStartProposal | None = None
     dv: np.ndarray | None = None
-    warm_start: tuple[np.ndarray, np.ndarray] | None = None
+    warm_start: Trajectory | None = None
 
 
 def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
@@ -71,7 +71,7 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
         cvx_unsafe: the caller found the CVX plan not passively safe already (it is not
             evaluated again).
     """
-    request, safety = transfer.request, transfer.safety
+    request, problem = transfer.request, transfer.problem
     if request.warm_start == WarmStart.CVX.value:
         return Learned(CVX, "CVX warm start requested")
     if provider is None:
@@ -81,28 +81,31 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
         return Learned(CVX, f"CVX ended {cvx.status.name}: no reference for the post hoc "
                        "check, CVX warm start")
     if request.warm_start == WarmStart.AUTO.value and not cvx_unsafe \
-            and planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, safety):
+            and planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, problem.safety):
         return Learned(CVX, CVX_SAFE_REASON)
     t0 = time.perf_counter()
     if deadline is not None and deadline.passed():
         return Learned(CVX, f"{DEADLINE_REASON} before ART: CVX warm start")
     try:
-        proposal = provider.propose(request, safety, cvx, planning=planning, deadline=deadline)
+        # the flown steps, where the request carries them (a provider without a context
+        # argument is asked as before)
+        past = {} if request.context is None else {"context": request.context}
+        proposal = provider.propose(problem, cvx, planning=planning, deadline=deadline,
+                                    **past)
     except Exception as exc:  # a model never takes the plan down
         return Learned(CVX, f"ART not run ({error_text(exc)}): CVX warm start")
     if not isinstance(proposal, WarmStartProposal):
         proposal = WarmStartProposal(proposal, rollout_ms=1e3 * (time.perf_counter() - t0))
     try:
         dv = as_finite_array("ART warm start", proposal.dv_rtn_mps,
-                             (transfer.horizon.n_nodes, 3))
+                             (problem.horizon.n_nodes, 3))
     except InputError as exc:  # a broken model output is rejected, never flown
         return Learned(CVX, f"ART output rejected ({error_text(exc)}): CVX warm start",
                        PosthocDecision(float("nan"), float("nan"), False), proposal)
-    warm = carried_warm_start(transfer, proposal)
+    warm = carried_warm_start(problem, proposal)
     if warm is None and planning.posthoc_subject == "warm_start":  # the check judges it
-        warm = terminal_warm_start(transfer.horizon, request.roe0_m, transfer.roe_f_m, dv)
-    posthoc = check_proposal(dv, request.roe0_m, transfer.roe_f_m, cvx.cost_mps, safety,
-                             planning, warm)
+        warm = problem.terminal_warm_start(dv)
+    posthoc = check_proposal(problem, dv, cvx.cost_mps, planning, warm)
     if posthoc.accepted:
         return Learned(ART, f"ART accepted by the post hoc check ({posthoc.text()})",
                        posthoc, proposal, dv, warm)
@@ -113,24 +116,25 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
                    "warm start", posthoc, proposal, dv, warm)
 
 
-def carried_warm_start(transfer: Transfer, proposal: WarmStartProposal
-                       ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The terminal warm start a proposal carries ((N, 3) controls [m/s], (N, 6) states [m]),
-    if it is one: finite, of the transfer's shape, its states those of its controls under the
-    deputy-aware model, meeting the terminal condition (TERMINAL_TOL_M); else None (the caller
-    computes it). One propagation, against the Gauss-Newton of `terminal_warm_start`."""
-    if proposal.warm_start_dv_rtn_mps is None or proposal.warm_start_roe_m is None:
+def carried_warm_start(problem: TransferProblem, proposal: WarmStartProposal
+                       ) -> Trajectory | None:
+    """The terminal warm start a proposal carries, if it is one: finite, of the problem's
+    shape, its states those of its controls under the deputy-aware model, meeting the terminal
+    condition (TERMINAL_TOL_M); else None (the caller computes it). One propagation, against
+    the Gauss-Newton of `TransferProblem.terminal_warm_start`."""
+    warm = proposal.warm_start
+    if warm is None or warm.dv_rtn_mps is None or warm.roe_m is None:
         return None
-    horizon, n = transfer.horizon, transfer.horizon.n_nodes
+    horizon, n = problem.horizon, problem.horizon.n_nodes
     try:
-        dv = as_finite_array("terminal warm start", proposal.warm_start_dv_rtn_mps, (n, 3))
-        roe = as_finite_array("terminal warm start states", proposal.warm_start_roe_m, (n, 6))
+        dv = as_finite_array("terminal warm start", warm.dv_rtn_mps, (n, 3))
+        roe = as_finite_array("terminal warm start states", warm.roe_m, (n, 6))
     except InputError:
         return None
-    if not np.array_equal(horizon.propagate_nonlinear(transfer.request.roe0_m, dv), roe):
+    if not np.array_equal(horizon.propagate_nonlinear(problem.roe0_m, dv), roe):
         return None
-    miss = horizon.final_post_burn_nonlinear(roe, dv) - transfer.roe_f_m
-    return (dv, roe) if float(np.abs(miss).max()) <= TERMINAL_TOL_M else None
+    miss = horizon.final_post_burn_nonlinear(roe, dv) - problem.roe_f_m
+    return Trajectory(dv, roe) if float(np.abs(miss).max()) <= TERMINAL_TOL_M else None
 
 
 def timed_learned_warm_start(*args: object, **kwargs: object) -> tuple[Learned, float]:

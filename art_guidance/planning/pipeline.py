@@ -24,7 +24,7 @@ from art_guidance import kernels
 from art_guidance.config import GuidanceConfig
 from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, InputError
-from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, solve_cvx
+from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx
 from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions, SubproblemPool
 from art_guidance.planning.learned import (
     Learned, cvx_is_safe, error_text, timed_learned_warm_start,
@@ -157,9 +157,9 @@ class GuidancePipeline:
         if deadline is None and self.deadline_s is not None:
             deadline = Deadline(t0 + self.deadline_s)
         transfer = self.transfer(request)
-        horizon, safety, roe_f = transfer.horizon, transfer.safety, transfer.roe_f_m
+        horizon, safety = transfer.horizon, transfer.safety
         t_setup = time.perf_counter()
-        cvx = solve_cvx(horizon, request.roe0_m, roe_f)
+        cvx = transfer.problem.cvx()
         t_cvx = time.perf_counter()
         cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
             else np.zeros((horizon.n_nodes, 3))

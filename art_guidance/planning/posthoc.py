@@ -5,10 +5,10 @@ evaluation apply: `posthoc_check` on the trajectory `judged_trajectory` selects 
 planning configuration's `posthoc_subject`:
 
 - "warm_start" (default): the rollout's controls corrected onto the terminal condition with
-  the smallest burn-weighted change (`optim.terminal_warm_start`), which is exactly where
-  SCVx* starts from. The rollouts miss the target (by a median 1.7 km for the shipped model),
-  so the rollout's own cost and C(t_1) say little about the warm start SCVx* receives: the
-  correction adds cost and moves drift arcs into the keep-out region.
+  the smallest burn-weighted change (`optim.TransferProblem.terminal_warm_start`), which is
+  exactly where SCVx* starts from. The rollouts miss the target (by a median 1.7 km for the
+  shipped model), so the rollout's own cost and C(t_1) say little about the warm start SCVx*
+  receives: the correction adds cost and moves drift arcs into the keep-out region.
 - "rollout": the rollout as the model produced it (the paper's check).
 """
 from __future__ import annotations
@@ -16,8 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from art_guidance.config import PlanningConfig, PosthocThresholds
-from art_guidance.dynamics import Horizon
-from art_guidance.optim import terminal_warm_start
+from art_guidance.optim import Trajectory, TransferProblem
 from art_guidance.planning.types import PosthocDecision
 from art_guidance.safety import PassiveSafety
 
@@ -44,29 +43,26 @@ def posthoc_check(dv_rtn_mps: np.ndarray, roe_m: np.ndarray, cvx_cost_mps: float
     return PosthocDecision(float(e_r), e_c, accepted)
 
 
-def judged_trajectory(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
-                      dv_rtn_mps: np.ndarray, subject: str) -> tuple[np.ndarray, np.ndarray]:
-    """The controls (N, 3) [m/s] and states (N, 6) [m] the check judges for a rollout's
-    controls `dv_rtn_mps`: the terminal warm start ("warm_start") or the rollout ("rollout"),
-    both propagated with the deputy-aware model."""
+def judged_trajectory(problem: TransferProblem, dv_rtn_mps: np.ndarray,
+                      subject: str) -> Trajectory:
+    """The trajectory the check judges for a rollout's controls `dv_rtn_mps` (N, 3) [m/s]:
+    the terminal warm start ("warm_start") or the rollout ("rollout"), both propagated with
+    the deputy-aware model."""
     if subject == "rollout":
-        dv = np.asarray(dv_rtn_mps, float)
-        return dv, horizon.propagate_nonlinear(roe0_m, dv)
-    return terminal_warm_start(horizon, roe0_m, roe_f_m, dv_rtn_mps)
+        return problem.propagate(dv_rtn_mps)
+    return problem.terminal_warm_start(dv_rtn_mps)
 
 
-def check_proposal(dv_rtn_mps: np.ndarray, roe0_m: np.ndarray, roe_f_m: np.ndarray,
-                   cvx_cost_mps: float, safety: PassiveSafety, planning: PlanningConfig,
-                   warm_start: tuple[np.ndarray, np.ndarray] | None = None
+def check_proposal(problem: TransferProblem, dv_rtn_mps: np.ndarray, cvx_cost_mps: float,
+                   planning: PlanningConfig, warm_start: Trajectory | None = None
                    ) -> PosthocDecision:
-    """The post hoc decision on a rollout's controls under `planning` (its region and its
-    `posthoc_subject`), from `roe0_m` to the post-burn terminal ROE `roe_f_m` [m].
+    """The post hoc decision on a rollout's controls for `problem` under `planning` (its
+    region and its `posthoc_subject`).
 
-    `warm_start`: the controls' terminal warm start ((N, 3) [m/s], (N, 6) [m]) when the caller
-    has it; judged under "warm_start" instead of computing it again (`judged_trajectory`)."""
+    `warm_start`: the controls' terminal warm start when the caller has it; judged under
+    "warm_start" instead of computing it again (`judged_trajectory`)."""
     if warm_start is not None and planning.posthoc_subject == "warm_start":
         dv, roe = warm_start
     else:
-        dv, roe = judged_trajectory(safety.horizon, roe0_m, roe_f_m, dv_rtn_mps,
-                                    planning.posthoc_subject)
-    return posthoc_check(dv, roe, cvx_cost_mps, safety, planning.posthoc)
+        dv, roe = judged_trajectory(problem, dv_rtn_mps, planning.posthoc_subject)
+    return posthoc_check(dv, roe, cvx_cost_mps, problem.safety, planning.posthoc)

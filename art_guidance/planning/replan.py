@@ -20,7 +20,8 @@ from art_guidance.dynamics import (
 )
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.planning.types import (
-    TERMINAL_TARGETS, NavState, PlanRequest, PlanResult, Target,
+    REFERENCE_TARGETS, TERMINAL_TARGETS, NavState, PlanRequest, PlanResult, RolloutContext,
+    Target,
 )
 
 STAMP_CHECKS = ("wallclock", "order", "off")
@@ -60,6 +61,9 @@ class ReplanSettings:
             its window's nodes are left (`planning.window`).
         terminal_target: where a window shorter than the remainder ends: "art" (the learned
             proposal's state there; CVX's where it is rejected or missing) or "cvx".
+        art_context: give the learned proposal the steps flown since the target was set as
+            its context (`context_at`), T-MPC's closed loop; False: each replan's rollout
+            starts afresh from the fix.
         ae_to_koz_node: node of the approach-ellipsoid -> keep-out-zone switch of a new plan.
         horizon_nodes: nodes of a fresh plan's horizon (the scenario's: a window may not be
             longer).
@@ -74,6 +78,7 @@ class ReplanSettings:
     min_remaining_nodes: int = _NODE["min_remaining_nodes"]
     replan_window_nodes: int = _NODE["replan_window_nodes"]
     terminal_target: str = _NODE["terminal_target"]
+    art_context: bool = _NODE["art_context"]
     ae_to_koz_node: int = ScenarioConfig().ae_to_koz_node
     horizon_nodes: int = ScenarioConfig().n_nodes
 
@@ -105,7 +110,7 @@ def check_window(window_nodes: int, terminal_target: str, horizon_nodes: int) ->
         raise ConfigError(f"replan_window_nodes must be 0 (the whole remainder) or in [2, "
                           f"{int(horizon_nodes) - 1}] (the horizon's nodes after the first), "
                           f"got {h!r}")
-    if terminal_target not in TERMINAL_TARGETS:
+    if terminal_target not in TERMINAL_TARGETS + REFERENCE_TARGETS:
         raise ConfigError(f"terminal_target must be one of {TERMINAL_TARGETS}, got "
                           f"{terminal_target!r}")
 
@@ -232,6 +237,24 @@ class ReplanPolicy:
         switch = max(0, math.ceil((active.switch_ns - nav.stamp_ns) * 1e-9 / active.dt_s))
         return ReplanWindow(max(n_nodes, 3), max(remaining_s, 2 * active.dt_s) / period, switch)
 
+    def context_at(self, nav: NavState) -> RolloutContext | None:
+        """The steps flown before `nav` since the target was set (`art_context`; None: off,
+        or nothing flown): the context of the plan in force followed by its own states and
+        burns at its nodes before the fix's. A plan that was not usable never entered it."""
+        active = self.active
+        if not self.settings.art_context or active is None:
+            return None
+        res = active.result
+        m = int(round((nav.stamp_ns - active.t0_ns) * 1e-9 / active.dt_s))
+        m = min(max(m, 0), len(res.epochs_s))
+        base = None if res.request is None else res.request.context
+        if m == 0:
+            return base
+        flown = (res.roe_m[:m], res.rtn[:m], res.dv_rtn_mps[:m])
+        if base is None:
+            return RolloutContext(*flown, -float(res.cvx.cost_mps))
+        return base.extended(*flown)
+
     def on_result(self, plan_id: str, t0_ns: int, result: PlanResult) -> Action:
         """Put a usable plan in force; an unusable one leaves the plan in force as it is."""
         if not result.scp.feasible:
@@ -253,16 +276,17 @@ class ReplanPolicy:
 
 
 def request_for(nav: NavState, target: Target, window: ReplanWindow,
-                settings: ReplanSettings | None = None) -> PlanRequest:
+                settings: ReplanSettings | None = None,
+                context: RolloutContext | None = None) -> PlanRequest:
     """The planning request for a fix, a target and a replan window (optimised over the
-    `settings`' window, if any)."""
+    `settings`' window, if any; the learned proposal given the flown `context`, if any)."""
     s = settings or ReplanSettings()
     return PlanRequest(nav.chief_oe, nav.roe_m, target.target_rtn,
                        chance_constrained=target.chance_constrained,
                        warm_start=target.warm_start, n_nodes=window.n_nodes,
                        n_orbits=window.n_orbits, koz_switch_node=window.koz_switch_node,
                        window_nodes=int(s.replan_window_nodes),
-                       terminal_target=s.terminal_target)
+                       terminal_target=s.terminal_target, context=context)
 
 
 def check_target(target: Target) -> None:

@@ -1,11 +1,11 @@
-"""One transfer problem for every stage of a plan: the request, its horizon, its passive-safety
-model and its terminal condition.
+"""One transfer problem for every stage of a plan: the request and its
+`optim.TransferProblem` (horizon, passive-safety model, boundary conditions).
 
-CVX, the learned proposal, the post hoc check and SCVx* all solve the `Transfer` that
-`Transfers.get` builds for a request; the horizon and the passive-safety model are cached (their
-set-up costs milliseconds and a replan over the same chief and window needs the same ones), so
-the pipeline and the proposal worker process, each with its own `Transfers`, build the same
-problem from the same request.
+CVX, the learned proposal, the post hoc check and SCVx* all solve the problem of the
+`Transfer` that `Transfers.get` builds for a request; the horizon and the passive-safety
+model are cached (their set-up costs milliseconds and a replan over the same chief and window
+needs the same ones), so the pipeline and the proposal worker process, each with its own
+`Transfers`, build the same problem from the same request.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import numpy as np
 
 from art_guidance.config import GuidanceConfig, ScenarioConfig, UncertaintyConfig
 from art_guidance.dynamics import Horizon, time_grid_s
-from art_guidance.optim import Scvx
+from art_guidance.optim import Scvx, TransferProblem
 from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
 from art_guidance.planning.types import PlanRequest
 from art_guidance.safety import PassiveSafety
@@ -29,25 +29,36 @@ class Transfer:
 
     Attributes:
         request: what is planned.
-        horizon: its time grid, dynamics and frames.
-        safety: its passive-safety model (deterministic or chance-constrained).
-        roe_f_m: (6,) terminal post-burn a-scaled ROE [m] (the request's RTN target mapped
-            through the horizon's last Psi).
+        problem: its transfer problem: the passive-safety model (deterministic or
+            chance-constrained) on the request's horizon, from the request's state to its
+            RTN target mapped through the horizon's last Psi.
     """
 
     request: PlanRequest
-    horizon: Horizon
-    safety: PassiveSafety
-    roe_f_m: np.ndarray
+    problem: TransferProblem
+
+    @property
+    def horizon(self) -> Horizon:
+        """The time grid, dynamics and frames."""
+        return self.problem.horizon
+
+    @property
+    def safety(self) -> PassiveSafety:
+        """The passive-safety model."""
+        return self.problem.safety
+
+    @property
+    def roe_f_m(self) -> np.ndarray:
+        """(6,) terminal post-burn a-scaled ROE [m]."""
+        return self.problem.roe_f_m
 
     def scvx(self, config: GuidanceConfig, subproblem: SubproblemOptions,
              pool: SubproblemPool | None = None) -> Scvx:
         """SCVx* on this transfer with the options of `config` (its SCP settings and samples
         per node) and `subproblem`: the planner's, built alike by the pipeline and by its
         proposal worker (`pool`: the caller's subproblems)."""
-        return Scvx(self.safety, self.request.roe0_m, self.roe_f_m, config.scp,
-                    samples_per_node=config.planning.samples_per_node, subproblem=subproblem,
-                    pool=pool)
+        return self.problem.scvx(config.scp, config.planning.samples_per_node, subproblem,
+                                 pool)
 
 
 class Transfers:
@@ -61,9 +72,9 @@ class Transfers:
 
     def get(self, request: PlanRequest) -> Transfer:
         """The transfer problem of `request` (its horizon and safety model cached)."""
-        horizon, safety = self._models(request)
-        roe_f = np.linalg.solve(horizon.psi[-1], request.target_rtn)
-        return Transfer(request, horizon, safety, roe_f)
+        _, safety = self._models(request)
+        return Transfer(request, TransferProblem.to_target(safety, request.roe0_m,
+                                                           request.target_rtn))
 
     def _models(self, request: PlanRequest) -> tuple[Horizon, PassiveSafety]:
         n_nodes = int(request.n_nodes or self.scenario.n_nodes)

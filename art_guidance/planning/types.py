@@ -15,8 +15,7 @@ from art_guidance.config import PlanningConfig
 from art_guidance.deadline import Deadline
 from art_guidance.dynamics import check_chief, check_deputy_inclination, mean_motion
 from art_guidance.errors import InputError
-from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus
-from art_guidance.safety import PassiveSafety
+from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Trajectory, TransferProblem
 
 
 class WarmStart(str, enum.Enum):
@@ -54,6 +53,84 @@ class WarmStartSource(enum.Enum):
 
 N_ORBITS_RANGE = (0.01, 20.0)  # a plan's horizon [orbits], inclusive
 TERMINAL_TARGETS = ("art", "cvx")  # where a replan window ends (`planning.window`)
+# benchmark references of a window's end (`bench mpc`), not node parameters: the full-horizon
+# SCVx* plan's state (the oracle: costs the full replan it saves) and ART's whatever the check
+REFERENCE_TARGETS = ("scvx", "art_any")
+
+
+@dataclass(frozen=True)
+class RolloutContext:
+    """The steps flown before a replan's first node, as the learned proposal's context (after
+    T-MPC): the plans in force's own states and burns at the nodes flown since the target was
+    set, with R decreased by each burn from the first plan's R(t_1) = -J_CVX and C = 0 (the
+    constraint-to-go clipped at zero, as T-MPC's closed loop keeps it).
+
+    Attributes:
+        roe_m: (h, 6) pre-burn a-scaled ROE at each flown node [m].
+        rtn: (h, 6) the same states in RTN [m, m/s].
+        dv_rtn_mps: (h, 3) the burn applied there [m/s].
+        reward0_mps: R at the first flown node [m/s].
+    """
+
+    roe_m: np.ndarray
+    rtn: np.ndarray
+    dv_rtn_mps: np.ndarray
+    reward0_mps: float
+
+    def __post_init__(self) -> None:
+        roe = as_finite_array("context roe_m", self.roe_m, (None, 6))
+        h = roe.shape[0]
+        object.__setattr__(self, "roe_m", roe)
+        object.__setattr__(self, "rtn", as_finite_array("context rtn", self.rtn, (h, 6)))
+        object.__setattr__(self, "dv_rtn_mps",
+                           as_finite_array("context dv_rtn_mps", self.dv_rtn_mps, (h, 3)))
+        r0 = float(self.reward0_mps)
+        if not np.isfinite(r0):
+            raise InputError("context reward0_mps", "must be finite", self.reward0_mps)
+        object.__setattr__(self, "reward0_mps", r0)
+
+    @property
+    def n_steps(self) -> int:
+        """h, the flown nodes."""
+        return int(self.roe_m.shape[0])
+
+    @property
+    def reward_mps(self) -> np.ndarray:
+        """(h,) R(t_i) = R(t_1) + sum_{j < i} ||u_j|| [m/s]."""
+        norms = np.linalg.norm(self.dv_rtn_mps, axis=1)
+        return self.reward0_mps + np.concatenate([[0.0], np.cumsum(norms)[:-1]])
+
+    @property
+    def constraint(self) -> np.ndarray:
+        """(h,) C(t_i) = 0."""
+        return np.zeros(self.n_steps)
+
+    def last(self, steps: int) -> "RolloutContext":
+        """The last `steps` flown nodes (R carried over to the first of them)."""
+        k = self.n_steps - int(steps)
+        return RolloutContext(self.roe_m[k:], self.rtn[k:], self.dv_rtn_mps[k:],
+                              float(self.reward_mps[k]) if k < self.n_steps else
+                              self.reward0_mps)
+
+    def extended(self, roe_m: np.ndarray, rtn: np.ndarray,
+                 dv_rtn_mps: np.ndarray) -> "RolloutContext":
+        """This context followed by more flown nodes."""
+        return RolloutContext(np.concatenate([self.roe_m, roe_m]),
+                              np.concatenate([self.rtn, rtn]),
+                              np.concatenate([self.dv_rtn_mps, dv_rtn_mps]), self.reward0_mps)
+
+    def to_json(self) -> dict:
+        """JSON-ready fields."""
+        return {"roe_m": self.roe_m.tolist(), "rtn": self.rtn.tolist(),
+                "dv_rtn_mps": self.dv_rtn_mps.tolist(), "reward0_mps": self.reward0_mps}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "RolloutContext":
+        """Inverse of `to_json` (validated again)."""
+        return cls(np.asarray(data["roe_m"], float).reshape(-1, 6),
+                   np.asarray(data["rtn"], float).reshape(-1, 6),
+                   np.asarray(data["dv_rtn_mps"], float).reshape(-1, 3),
+                   data["reward0_mps"])
 
 
 @dataclass(frozen=True)
@@ -72,6 +149,7 @@ class PlanRequest:
         window_nodes: H > 0 optimises only nodes 0..H when the horizon is longer, to
             `terminal_target`'s state at node H (`planning.window`); 0 the whole horizon.
         terminal_target: "art" or "cvx" (`planning.window`).
+        context: the steps flown before node 0, given to the learned proposal (None: none).
     """
 
     chief_oe: np.ndarray
@@ -84,6 +162,7 @@ class PlanRequest:
     koz_switch_node: int | None = None
     window_nodes: int = 0
     terminal_target: str = "art"
+    context: RolloutContext | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "chief_oe", check_chief(self.chief_oe))
@@ -109,9 +188,12 @@ class PlanRequest:
         if isinstance(h, bool) or not isinstance(h, (int, np.integer)) \
                 or not (h == 0 or 2 <= h <= 1000):
             raise InputError("window_nodes", "must be 0 (the whole horizon) or in [2, 1000]", h)
-        if self.terminal_target not in TERMINAL_TARGETS:
-            raise InputError("terminal_target", f"must be one of {TERMINAL_TARGETS}",
-                             self.terminal_target)
+        if self.context is not None and not isinstance(self.context, RolloutContext):
+            raise InputError("context", "must be a RolloutContext or None",
+                             type(self.context).__name__)
+        if self.terminal_target not in TERMINAL_TARGETS + REFERENCE_TARGETS:
+            raise InputError("terminal_target", f"must be one of {TERMINAL_TARGETS} (or a "
+                             f"benchmark's reference {REFERENCE_TARGETS})", self.terminal_target)
 
     def to_json(self) -> dict:
         """Everything needed to solve this request again (see `from_json`)."""
@@ -121,7 +203,8 @@ class PlanRequest:
                 "warm_start": self.warm_start, "n_nodes": self.n_nodes,
                 "n_orbits": self.n_orbits, "koz_switch_node": self.koz_switch_node,
                 "window_nodes": int(self.window_nodes),
-                "terminal_target": self.terminal_target}
+                "terminal_target": self.terminal_target,
+                "context": None if self.context is None else self.context.to_json()}
 
     @classmethod
     def from_json(cls, data: dict) -> "PlanRequest":
@@ -131,8 +214,10 @@ class PlanRequest:
                        np.asarray(data["target_rtn"]), bool(data["chance_constrained"]),
                        data["warm_start"], data.get("n_nodes"), data.get("n_orbits"),
                        data.get("koz_switch_node"), data.get("window_nodes", 0),
-                       data.get("terminal_target", "art"))
-        except (KeyError, TypeError) as exc:
+                       data.get("terminal_target", "art"),
+                       None if data.get("context") is None
+                       else RolloutContext.from_json(data["context"]))
+        except (KeyError, TypeError, ValueError) as exc:
             raise InputError("request_json", f"malformed: {exc!r}") from exc
 
 
@@ -163,13 +248,12 @@ class WarmStartProposal:
         constraint_to_go: (N,) realised C(t_i) = number of violating nodes j >= i.
         model_sha256: checksum of the model that produced it ("" if unknown).
         rollout_ms: wall time of the rollout [ms].
-        warm_start_dv_rtn_mps, warm_start_roe_m: (N, 3) [m/s] and (N, 6) [m]: the controls
-            corrected onto the terminal condition (`optim.terminal_warm_start`) and their
-            states, when the provider computed them judging its candidates (None: it did
-            not). The pipeline uses them for the post hoc check and as SCVx*'s first
-            reference once it has checked that they are finite, that the states are those of
-            the controls and that they meet the terminal condition; otherwise it computes
-            them.
+        warm_start: the controls corrected onto the terminal condition and their states
+            (`optim.TransferProblem.terminal_warm_start`), when the provider computed them
+            judging its candidates (None: it did not). The pipeline uses them for the post hoc
+            check and as SCVx*'s first reference once it has checked that they are finite,
+            that the states are those of the controls and that they meet the terminal
+            condition; otherwise it computes them.
     """
 
     dv_rtn_mps: np.ndarray
@@ -177,8 +261,7 @@ class WarmStartProposal:
     constraint_to_go: np.ndarray | None = None
     model_sha256: str = ""
     rollout_ms: float = 0.0
-    warm_start_dv_rtn_mps: np.ndarray | None = None
-    warm_start_roe_m: np.ndarray | None = None
+    warm_start: Trajectory | None = None
 
 
 @dataclass(frozen=True)
@@ -250,16 +333,16 @@ class PlanResult:
 
 
 class WarmStartProvider(Protocol):
-    """Proposes a learned warm start for a request.
+    """Proposes a learned warm start for a transfer problem (its RTN target the goal).
 
     `propose` returns a `WarmStartProposal` (or bare (N, 3) controls [m/s]); it raises a
-    `GuidanceError` saying why when the request is outside what it can propose for (e.g. a
-    horizon longer than the model's context). `planning` says how the pipeline will check the
-    proposal (a provider with several candidates ranks them by it; None: the packaged
-    defaults); `deadline` is the plan's (None: none), after which a provider should stop
-    (raising `DeadlineError`). The pipeline never trusts the output: it
-    validates it, rolls it out through its own dynamics and applies the post hoc check; any
-    exception is caught and the plan falls back to CVX.
+    `GuidanceError` saying why when the problem is outside what it can propose for (e.g. a
+    horizon longer than the model's context, or a problem without an RTN target). `planning`
+    says how the pipeline will check the proposal (a provider with several candidates ranks
+    them by it; None: the packaged defaults); `deadline` is the plan's (None: none), after
+    which a provider should stop (raising `DeadlineError`). The pipeline never trusts the
+    output: it validates it, rolls it out through its own dynamics and applies the post hoc
+    check; any exception is caught and the plan falls back to CVX.
 
     Attributes:
         sha256: checksum of the model ("" if none), recorded with every run.
@@ -267,7 +350,7 @@ class WarmStartProvider(Protocol):
 
     sha256: str
 
-    def propose(self, request: PlanRequest, safety: PassiveSafety, cvx: ConvexSolution,
+    def propose(self, problem: TransferProblem, cvx: ConvexSolution,
                 planning: PlanningConfig | None = None,
                 deadline: Deadline | None = None) -> "WarmStartProposal | np.ndarray":
         ...

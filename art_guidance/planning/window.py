@@ -29,10 +29,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from art_guidance.deadline import Deadline
-from art_guidance.optim import solve_cvx
 from art_guidance.planning.learned import learned_warm_start
-from art_guidance.planning.types import (  # noqa: F401  (TERMINAL_TARGETS re-exported)
-    TERMINAL_TARGETS, PlanRequest, PlanResult, WarmStart, WarmStartSource,
+from art_guidance.planning.types import (  # noqa: F401  (targets re-exported)
+    REFERENCE_TARGETS, TERMINAL_TARGETS, PlanRequest, PlanResult, WarmStart, WarmStartSource,
 )
 
 if TYPE_CHECKING:
@@ -47,7 +46,8 @@ class PlanWindow:
         window_nodes: H, the window asked for (nodes after the first).
         end_node: index of the window's last node in the plan (the last node when the
             waypoint is inside the window).
-        target_source: "waypoint" (the remainder fits in the window), "art" or "cvx".
+        target_source: "waypoint" (the remainder fits in the window), "art" or "cvx" (or a
+            benchmark's reference: "scvx", or "art" for "art_any").
         reason: why this target, in words.
         context_nodes: nodes of flown history the learned proposal was given (0: none).
     """
@@ -71,7 +71,13 @@ def needs_window(request: PlanRequest, n_nodes: int) -> bool:
 def waypoint_window(request: PlanRequest, n_nodes: int) -> PlanWindow:
     """The window of a request whose remainder of `n_nodes` fits in it: planned whole."""
     return PlanWindow(int(request.window_nodes), n_nodes - 1, "waypoint",
-                      "the waypoint is inside the window: the whole remainder is planned")
+                      "the waypoint is inside the window: the whole remainder is planned",
+                      context_steps(request))
+
+
+def context_steps(request: PlanRequest) -> int:
+    """The flown steps a request gives the learned proposal (0: none)."""
+    return 0 if request.context is None else request.context.n_steps
 
 
 def plan_window(pipeline: "GuidancePipeline", request: PlanRequest,
@@ -81,7 +87,7 @@ def plan_window(pipeline: "GuidancePipeline", request: PlanRequest,
     t0 = time.perf_counter()
     transfer = pipeline.transfer(request)
     horizon, n, h = transfer.horizon, transfer.horizon.n_nodes, int(request.window_nodes)
-    cvx = solve_cvx(horizon, request.roe0_m, transfer.roe_f_m)
+    cvx = transfer.problem.cvx()
     t_cvx = time.perf_counter()
     ref_dv, ref_roe, source, reason, learned = _reference(pipeline, transfer, cvx, deadline)
     t_art = time.perf_counter()
@@ -93,7 +99,7 @@ def plan_window(pipeline: "GuidancePipeline", request: PlanRequest,
     timings = {"setup": 0.0, "cvx": 1e3 * (t_cvx - t0), "art": 1e3 * (t_art - t_cvx),
                "scp": 1e3 * (t_end - t_art), "total": 1e3 * (t_end - t0),
                "window": float(result.timings_ms.get("total", 0.0))}
-    window = PlanWindow(h, h, source, reason)
+    window = PlanWindow(h, h, source, reason, context_steps(request))
     text = (f"window of {h} of {n - 1} nodes to a {source.upper()} target ({reason}); "
             f"{result.warm_start_reason}")
     return dataclasses.replace(
@@ -113,6 +119,15 @@ def _reference(pipeline: "GuidancePipeline", transfer, cvx, deadline: Deadline |
         return (*cvx_ref, "cvx", "terminal_target cvx", None)
     if not cvx.status.feasible:
         return (*cvx_ref, "cvx", f"CVX ended {cvx.status.name}", None)
+    if request.terminal_target == "scvx":  # the oracle: the full-horizon plan
+        full = pipeline.plan(dataclasses.replace(request, window_nodes=0,
+                                                 warm_start=WarmStart.CVX.value), deadline)
+        if full.scp.feasible:
+            return full.dv_rtn_mps, full.roe_m, "scvx", "the full-horizon SCVx* plan", None
+        return (*cvx_ref, "cvx", f"the full-horizon plan ended {full.status.name}", None)
+    if request.terminal_target == "art_any":  # ART whatever the check says
+        transfer = dataclasses.replace(transfer, request=dataclasses.replace(
+            request, warm_start=WarmStart.ART.value))
     learned = learned_warm_start(pipeline.provider, transfer, cvx, pipeline.config.planning,
                                  deadline)
     if learned.source is WarmStartSource.ART and learned.warm_start is not None:

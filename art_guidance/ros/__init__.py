@@ -1,2 +1,3 @@
-"""The ROS 2 shell: the only subpackage that imports rclpy (in `guidance_node`, `sim_node` and
-`adapters`; `env` only prepares environments and imports no ROS module)."""
+"""The ROS 2 shell: the only subpackage that imports rclpy (in the guidance node's modules,
+`guidance_node`, `node_base` and `managed_node`, in `sim_node` and `adapters`; `env` only
+prepares environments and imports no ROS module)."""

@@ -138,6 +138,10 @@ SPECS: dict[str, ParamSpec] = {
     "terminal_target": ParamSpec("where a window ends: art (the learned proposal's state, "
                                  "CVX's where it is rejected or missing) or cvx (the convex "
                                  "solution's state)", "str", TERMINAL_TARGETS, dynamic=True),
+    "art_context": ParamSpec("give the learned proposal the steps flown since the target "
+                             "was set (states, burns, R) as its context, T-MPC's closed loop; "
+                             "false: each replan's rollout starts afresh from the fix", "bool",
+                             dynamic=True),
     "nav_qos_reliability": ParamSpec("reliability of the nav subscription: best_effort matches "
                                      "both best-effort (sensor data) and reliable publishers",
                                      "str", NAV_QOS),
@@ -163,7 +167,8 @@ PLANNING_PARAMETERS = ("samples_per_node", "numerics")
 # the replan policy's parameters (`planning.replan.ReplanSettings`)
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
-                     "min_remaining_nodes", "replan_window_nodes", "terminal_target")
+                     "min_remaining_nodes", "replan_window_nodes", "terminal_target",
+                     "art_context")
 
 
 @dataclass(frozen=True)
@@ -190,6 +195,7 @@ class NodeParameters:
     min_remaining_nodes: int
     replan_window_nodes: int
     terminal_target: str
+    art_context: bool
     nav_qos_reliability: str
     visualization: bool
     record: bool

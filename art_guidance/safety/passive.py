@@ -3,7 +3,7 @@
 Paper Sec. "Safety Constraints with State Uncertainty" (after Guffanti & D'Amico, JGCD 2023).
 A contingency at node ``t_i`` leaves the servicer drifting from its post-burn state
 ``z_i = x_i + B_d(x_i) u_i`` (a-scaled ROE [m]; B_d: the burn acts at the deputy's own state,
-`dynamics.Horizon.post_burn_nonlinear`) for ``T_safety``. Its RTN position at
+`dynamics.Horizon.post_burn_at`) for ``T_safety``. Its RTN position at
 ``t_i + tau`` is ``p_i(tau) = M_i(tau) z_i`` with ``M_i(tau) = D Psi(t_i + tau) Phi(t_i + tau,
 t_i)``, (3, 6). The servicer must stay outside the active ellipsoid ``P_i = Diag(1/r^2)``
 (approach ellipsoid before node ``ae_to_koz_node``, keep-out zone from it on), i.e. the
@@ -22,11 +22,12 @@ P p / d`` the gradient with respect to the ROE at ``t_i + tau``, ``g = Phi^T h``
 Continuous t*. ``t*_i = t_i + tau*`` minimises ``m_i`` over the whole arc: `drift.DriftArcs`
 writes the drift in closed form and returns the certified minimum (every sample interval is
 either refined or carries a lower bound above it; see that module for why a fast fly-by between
-samples cannot hide). Every public method here uses that one evaluation: the margins of
-`evaluate` and `node_margins` (and hence C(t_i), the dataset's constraint-to-go, the post hoc
-E_C and the plan's `constraint_margin_m`), the sign of the transformer's C updates
-(`node_violations`: the same search, stopped once the sign is decided) and the linearisation
-points of SCVx*.
+samples cannot hide). Every public method here uses that one evaluation, through two array
+doors over (state, burn) pairs at any nodes: `minimum`, the margins and t* (and hence, through
+its trajectory adapter `evaluate`, C(t_i), the dataset's constraint-to-go, the post hoc E_C and
+the plan's `constraint_margin_m`; and the linearisation points of SCVx*), and `violated`, the
+sign alone (the transformer's C updates and the ranking of its candidates: the same search,
+stopped once the sign is decided).
 
 Linearisation (paper eqs. a_ps, b_ps, beta, divided by b_ps so that it is well scaled): at the
 reference, ``a_i = g_i(tau*) = a_ps / b_ps`` and the convex constraint is
@@ -158,12 +159,67 @@ class PassiveSafety:
         drift samples (built on first use)."""
         return self._drift_maps[1]
 
-    # ------------------------------------------------------------------ public API
+    # ------------------------------------------------------------------ array doors
+    def minimum(self, nodes: object, roe_m: object, dv_rtn_mps: object,
+                sign_only: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Certified minimum of the margin on the drift arcs of (state, burn) pairs.
+
+        Each arc is its own (the covariance of its own state and burn, chance-constrained, or
+        none); only the cap on intervals split per level of degenerate arcs (`drift.MAX_OPEN`
+        per arc on average) is shared by the pairs of one call.
+
+        Args:
+            nodes: the node of every pair: an int, or ints broadcast against the leading axes
+                of `roe_m` (``np.arange(N)`` for (N, 6) or (K, N, 6) trajectories).
+            roe_m: (..., 6) pre-burn a-scaled ROE [m].
+            dv_rtn_mps: (..., 3) impulsive delta-v in RTN [m/s].
+            sign_only: decide only the sign of every minimum (`violated`'s oracle): the
+                margins then carry only their sign, the same as the full search's except for
+                minima within the certification tolerance of zero, and t* no more than that.
+
+        Returns:
+            margin [-] (>= 0 is safe) and t* - t_i [s], each of the leading shape of `roe_m`.
+
+        Raises:
+            InputError: on a bad node index, NaN/inf or shapes that do not match.
+        """
+        node, x, u, lead = self._pairs(nodes, roe_m, dv_rtn_mps)
+        items = self._items_at(node, x, u, self.horizon.post_burn_at(node, x, u))
+        res = self.arcs.minimum(items, sign_only=sign_only)
+        return res.margin.reshape(lead), res.tau_s.reshape(lead)
+
+    def violated(self, nodes: object, roe_m: object, dv_rtn_mps: object,
+                 z_m: np.ndarray | None = None) -> np.ndarray:
+        """Whether the certified minimum margin of each pair's drift arc is below zero: bool,
+        of the leading shape of `roe_m`.
+
+        Decided by the rollout's search (`DriftArcs.violated_at`: the arcs a drift sample
+        already shows inside are decided by the samples, no minimum or candidate instants are
+        kept; compiled where the compiled numerics are in use), the decision of
+        ``minimum(..., sign_only=True)[0] < 0`` (its oracle, tested): what the transformer's C
+        update and ranking candidates by their C(t_1) need.
+
+        Args:
+            nodes, roe_m, dv_rtn_mps: as `minimum`.
+            z_m: the post-burn states (..., 6) [m] where the caller has them
+                (`Horizon.post_burn_at`, the rollout's loop): the arrays are then taken as
+                they are, not validated (finite by construction there).
+        """
+        if z_m is None:
+            node, x, u, lead = self._pairs(nodes, roe_m, dv_rtn_mps)
+            z_m = self.horizon.post_burn_at(node, x, u)
+        else:
+            lead = roe_m.shape[:-1]
+            node = int(nodes) if np.ndim(nodes) == 0 else np.broadcast_to(nodes, lead).ravel()
+            x, u = roe_m.reshape(-1, 6), dv_rtn_mps.reshape(-1, 3)
+        return self._violated_at(node, x, u, z_m.reshape(-1, 6)).reshape(lead)
+
+    # ------------------------------------------------------------------ trajectories, SCVx*
     def post_burn(self, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
         """Post-burn ROE ``z_i = x_i + B_d(x_i) u_i`` [m], (N, 6), where the free drift starts.
 
-        B_d is the control matrix at the deputy's pre-burn state (`Horizon.post_burn_nonlinear`,
-        the post-burn state of the plans SCVx* makes); every margin here starts from it.
+        B_d is the control matrix at the deputy's pre-burn state (`Horizon.post_burn_at`, the
+        post-burn state of the plans SCVx* makes); every margin here starts from it.
 
         Args:
             roe_m: (N, 6) pre-burn a-scaled ROE [m].
@@ -273,17 +329,12 @@ class PassiveSafety:
         delta = np.clip(np.where(np.isfinite(delta), delta, h_half), ROW_DELTA_MIN_S, h_half)
         return np.clip(t_star_s[:, None] + delta[:, None] * np.array([-1.0, 1.0]), 0.0, t_end)
 
+    # ------------------------------------------------------------------ adapters
+    # shapes of the doors the callers have; the rest are test oracles (test/helpers/oracles.py)
     def evaluate(self, roe_m: object, dv_rtn_mps: object) -> SafetyEvaluation:
-        """Evaluate the nonlinear passive-safety chance constraint along a trajectory.
-
-        Args:
-            roe_m: (N, 6) pre-burn a-scaled ROE [m].
-            dv_rtn_mps: (N, 3) impulsive delta-v in RTN [m/s].
-
-        Returns:
-            SafetyEvaluation (continuous-minimum margins, binary violation metric,
-            constraint-to-go).
-        """
+        """`minimum` of one trajectory, (N, 6) [m] and (N, 3) [m/s], with the binary violation
+        metric and the constraint-to-go (cached with its arcs: `linearize` of the same iterate
+        reuses them)."""
         res = self._arc(roe_m, dv_rtn_mps)[1]
         margin = res.margin
         violation = (margin < 0.0).astype(int)
@@ -291,120 +342,31 @@ class PassiveSafety:
         return SafetyEvaluation(margin=margin, margin_m=margin * self._min_axis_m,
                                 violation=violation, constraint_to_go=ctg, t_star_s=res.tau_s)
 
-    def evaluate_batch(self, roe_m: object, dv_rtn_mps: object,
-                       sign_only: bool = False) -> SafetyEvaluation:
-        """`evaluate` of K trajectories at once: one search over all K N drift arcs.
-
-        The arcs are independent, so every field equals `evaluate` of each trajectory (its
-        K = 1 oracle, tested); only the cap on intervals split per level of degenerate arcs
-        (`drift.MAX_OPEN` per arc on average) is shared by the batch.
-
-        Args:
-            roe_m: (K, N, 6) pre-burn a-scaled ROE [m].
-            dv_rtn_mps: (K, N, 3) impulsive delta-v in RTN [m/s].
-            sign_only: decide only the sign of every minimum (`node_violations`' search):
-                `violation` and `constraint_to_go` are then those of `evaluate` except for
-                minima within the certification tolerance of zero, and the margins and t*
-                carry no more than that sign.
-
-        Returns:
-            SafetyEvaluation whose fields are (K, N).
-        """
-        n = self.n_nodes
-        node, x, u, z, k = self._batch_arcs(roe_m, dv_rtn_mps)
-        res = self.arcs.minimum(self._items_at(node, x, u, z), sign_only=sign_only)
-        margin = res.margin.reshape(k, n)
-        violation = (margin < 0.0).astype(int)
-        ctg = np.cumsum(violation[:, ::-1], axis=1)[:, ::-1].copy()
-        return SafetyEvaluation(margin=margin, margin_m=margin * self._min_axis_m,
-                                violation=violation, constraint_to_go=ctg,
-                                t_star_s=res.tau_s.reshape(k, n))
-
     def violations_batch(self, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
-        """(K, N) bool: the violation indicator of every arc of K trajectories, decided as
-        `evaluate_batch(..., sign_only=True).violation` decides it (its oracle, tested) by the
-        rollout's search (`DriftArcs.violated`: the arcs a drift sample already shows inside
-        are decided by the samples, no minimum or candidate instants are kept): what ranking
-        candidates by their C(t_1) needs.
-
-        Args:
-            roe_m: (K, N, 6) pre-burn a-scaled ROE [m].
-            dv_rtn_mps: (K, N, 3) impulsive delta-v in RTN [m/s].
-        """
-        node, x, u, z, k = self._batch_arcs(roe_m, dv_rtn_mps)
-        return self._violated_at(node, x, u, z).reshape(k, self.n_nodes)
-
-    def _batch_arcs(self, roe_m: object, dv_rtn_mps: object) -> tuple:
-        """K validated trajectories as K N arcs: (node (KN,), pre-burn states (KN, 6) [m],
-        burns (KN, 3) [m/s], post-burn states (KN, 6) [m], K)."""
+        """`violated` of K trajectories, (K, N, 6) [m] and (K, N, 3) [m/s]: (K, N) bool."""
         n = self.n_nodes
         x = as_finite_array("roe_m", roe_m, (None, n, 6))
-        k = x.shape[0]
-        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (k, n, 3))
-        z = np.stack([self.horizon.post_burn_nonlinear(x[j], u[j]) for j in range(k)])
-        return (np.tile(np.arange(n), k), x.reshape(k * n, 6), u.reshape(k * n, 3),
-                z.reshape(k * n, 6), k)
-
-    def node_margins(self, i: int, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
-        """Margins of B candidate (state, burn) pairs at one node, as `evaluate(...).margin[i]`.
-
-        For the transformer rollout: the same continuous-minimum evaluation, with the
-        covariance of each candidate's own state and burn (chance-constrained) or none.
-
-        Args:
-            i: node index, 0 <= i < N.
-            roe_m: (B, 6) pre-burn a-scaled ROE at node i [m].
-            dv_rtn_mps: (B, 3) impulsive delta-v in RTN at node i [m/s].
-
-        Returns:
-            (B,) normalised margins [-]; >= 0 is safe.
-
-        Raises:
-            InputError: on a bad node index, NaN/inf or shapes that do not match.
-        """
-        return self.arcs.minimum(self._node_items(i, roe_m, dv_rtn_mps)).margin
-
-    def node_violations(self, i: int, roe_m: object, dv_rtn_mps: object) -> np.ndarray:
-        """Violation indicators of B candidate (state, burn) pairs at one node.
-
-        ``node_margins(i, ...) < 0`` decided by the sign-only search (`DriftArcs.minimum`),
-        which stops at the first point found inside the ellipsoid and does not certify the
-        minimum of a safe arc beyond >= 0: the transformer's C update needs only this, and
-        it is the rollout's dominant cost near the ellipsoid. The decision equals
-        `node_margins`' except for minima within the certification tolerance of zero
-        (|margin| < CERT_TOL + CERT_TOL_REL |margin|).
-
-        Args and raises: as `node_margins`.
-
-        Returns:
-            (B,) bool, True where the passive-safety constraint is violated.
-        """
-        items = self._node_items(i, roe_m, dv_rtn_mps)
-        return self.arcs.minimum(items, sign_only=True).margin < 0.0
-
-    def step_violations(self, i: int, roe_m: np.ndarray, dv_rtn_mps: np.ndarray,
-                        z_m: np.ndarray) -> np.ndarray:
-        """`node_violations` for the rollout's loop, which has the post-burn states already
-        (`Horizon.post_burn_step`, `z_m` (B, 6) [m]); the arrays are not validated (finite by
-        construction there)."""
-        return self._violated_at(int(i), roe_m, dv_rtn_mps, z_m)
-
-    def steps_violations(self, nodes: np.ndarray, roe_m: np.ndarray, dv_rtn_mps: np.ndarray,
-                         z_m: np.ndarray) -> np.ndarray:
-        """`step_violations` of M (state, burn) pairs at nodes `nodes` (M,) of any mix, in one
-        search (the speculative rollout checks several steps of a batch at once; each arc's
-        decision is its own: the same as one node at a time, tested)."""
-        return self._violated_at(np.asarray(nodes), roe_m, dv_rtn_mps, z_m)
+        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (x.shape[0], n, 3))
+        return self.violated(np.arange(n), x, u)
 
     # ------------------------------------------------------------------ internals
-    def _node_items(self, i: int, roe_m: object, dv_rtn_mps: object) -> ArcItems:
-        """Validated drift arcs of B (state, burn) pairs at node i (see `node_margins`)."""
-        if isinstance(i, bool) or int(i) != i or not 0 <= int(i) < self.n_nodes:
-            raise InputError("i", f"must be a node index in [0, {self.n_nodes})", i)
-        i = int(i)
-        x = as_finite_array("roe_m", roe_m, (None, 6))
-        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, (x.shape[0], 3))
-        return self._items_at(i, x, u, self.horizon.post_burn_nonlinear_at(i, x, u))
+    def _pairs(self, nodes: object, roe_m: object, dv_rtn_mps: object) -> tuple:
+        """Validated pairs as flat arcs: (node: an int or (M,) ints, pre-burn states (M, 6) [m],
+        burns (M, 3) [m/s], the leading shape of `roe_m`)."""
+        x = as_finite_array("roe_m", roe_m, (None,) * (np.ndim(roe_m) - 1) + (6,))
+        lead = x.shape[:-1]
+        u = as_finite_array("dv_rtn_mps", dv_rtn_mps, lead + (3,))
+        node = np.asarray(nodes)
+        try:
+            ok = node.dtype.kind in "iuf" and bool(np.all(node == np.trunc(node)))
+            node = np.broadcast_to(node, lead) if node.ndim else node
+        except ValueError:  # not broadcast against the pairs
+            ok = False
+        if not ok or np.any((node < 0) | (node >= self.n_nodes)):
+            raise InputError("nodes", f"must be node indices in [0, {self.n_nodes}) broadcast "
+                             f"against the pairs {lead}", nodes)
+        node = int(node) if node.ndim == 0 else node.astype(np.int64).ravel()
+        return node, x.reshape(-1, 6), u.reshape(-1, 3), lead
 
     def _items_at(self, i: int | np.ndarray, x: np.ndarray, u: np.ndarray, z: np.ndarray
                   ) -> ArcItems:
@@ -437,18 +399,15 @@ class PassiveSafety:
         return x, u
 
     def _arc(self, roe_m: object, dv_rtn_mps: object) -> tuple[ArcItems, ArcMinimum]:
-        """Certified arc minima of a trajectory (the last one is cached: SCVx* evaluates and
-        then linearises the same iterate)."""
+        """Certified arc minima of a trajectory, `minimum`'s (the last one is cached: SCVx*
+        evaluates and then linearises the same iterate)."""
         x, u = self._check(roe_m, dv_rtn_mps)
         key = (x.tobytes(), u.tobytes())
         cached = self._cache
         if cached is not None and cached[0] == key:
             return cached[1], cached[2]
-        z = self.horizon.post_burn_nonlinear(x, u)  # (N, 6)
-        x_cov = None
-        if self.uncertainty is not None:
-            x_cov = state_covariance_history(x, u, self.horizon, self.uncertainty)
-        items = self.arcs.items(np.arange(self.n_nodes), z, x_cov, self.q_sigma)
+        nodes = np.arange(self.n_nodes)
+        items = self._items_at(nodes, x, u, self.horizon.post_burn_at(nodes, x, u))
         res = self.arcs.minimum(items)
         self._cache = (key, items, res)
         return items, res

@@ -26,6 +26,7 @@ its tables `sim.contingency_summary`, the figures `sim.contingency_figures`.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import sys
@@ -37,13 +38,15 @@ import numpy as np
 
 from art_guidance.config import GuidanceConfig
 from art_guidance.data.storage import DatasetWriter
-from art_guidance.errors import InputError
+from art_guidance.errors import ConfigError, InputError
 from art_guidance.files import write_json_atomic
 from art_guidance.jobs import check_run_options, run_missing
+from art_guidance.planning.replan import ReplanSettings
 # the names below are also imported from here
 from art_guidance.sim.contingency_figures import render
 from art_guidance.sim.contingency_spec import (  # noqa: F401
-    CONFIGS, FORMAT, KIND, NODES_MAX, ContingencySpec, header, read_rows, spec_of,
+    CONFIGS, FORMAT, KIND, NODES_MAX, ContingencySpec, config_fields, header, read_rows,
+    spec_of,
 )
 from art_guidance.sim.contingency_summary import (  # noqa: F401
     CONFIDENCE, DESIGN_RATE, TABLE_BEGIN, TABLE_END, markdown_table, summarize_directory,
@@ -74,14 +77,18 @@ def fly(spec: ContingencySpec, config: int, seed: int, fault: Fault | None = Non
         ) -> tuple[object, dict]:
     """One closed-loop flight in-process; the finished `ClosedLoop` and its summary."""
     from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
-    from art_guidance.sim.inprocess import InProcessGuidance
+    from art_guidance.sim.inprocess import InProcessGuidance, default_settings
 
-    chance, warm = spec.configs[config]
+    chance, warm, window = config_fields(spec.configs[config])
     params = dict(PARAMETERS, rtn0=None, png_path="", summary_path="", seed=int(seed),
                   waypoint=spec.waypoint, chance_constrained=chance, warm_start=warm,
                   errors=spec.errors, fault="" if fault is None else fault.kind,
                   fault_node=0 if fault is None else fault.node)
-    loop = ClosedLoop(InProcessGuidance(_pipeline(chance, warm), SIM_EPOCH0_NS), params, _LOG,
+    pipeline = _pipeline(chance, warm)
+    settings = dataclasses.replace(default_settings(pipeline.scenario),
+                                   replan_window_nodes=window,
+                                   terminal_target=spec.terminal_target)
+    loop = ClosedLoop(InProcessGuidance(pipeline, SIM_EPOCH0_NS, settings), params, _LOG,
                       settle_s=0.0)
     summary, _ = loop.finish(loop.run(), 0.0)
     return loop, summary
@@ -175,9 +182,14 @@ def run(out: str | Path, spec: ContingencySpec | None = None, *, workers: int = 
     check_run_options({"--workers": workers, "--seeds": spec.n_seeds}, engine)
     if spec.missed_per_seed < 0:
         raise InputError("--missed-per-seed", "must be >= 0", spec.missed_per_seed)
-    for chance, warm in spec.configs:
+    for config in spec.configs:
+        chance, warm, window = config_fields(config)
         if warm not in ("auto", "cvx", "art"):
             raise InputError("configs", "warm start must be auto, art or cvx", warm)
+        try:
+            ReplanSettings(replan_window_nodes=window, terminal_target=spec.terminal_target)
+        except ConfigError as exc:
+            raise InputError("configs", str(exc), config) from exc
     single_thread()
     out = Path(out)
     head = header(spec, GuidanceConfig.load())

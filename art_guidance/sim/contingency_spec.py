@@ -31,13 +31,15 @@ class ContingencySpec:
     """What a Monte Carlo flies (picklable; sent once to every worker).
 
     Attributes:
-        configs: (chance_constrained, warm_start) per configuration.
+        configs: (chance_constrained, warm_start) per configuration, or (chance_constrained,
+            warm_start, replan_window_nodes) for a windowed replan (`planning.window`).
         n_seeds: seeds per configuration: base_seed .. base_seed + n_seeds - 1.
         base_seed: the first seed.
         missed_per_seed: missed-burn flights per (configuration, seed).
         min_missed_dv_mps: smallest commanded burn a missed fault is drawn on [m/s].
         waypoint: the terminal waypoint.
         errors: navigation and actuation errors on.
+        terminal_target: where the windows of windowed configurations end (art | cvx).
     """
 
     configs: tuple[tuple[bool, str], ...] = CONFIGS
@@ -47,6 +49,7 @@ class ContingencySpec:
     min_missed_dv_mps: float = 0.01
     waypoint: str = "plus_vbar"
     errors: bool = True
+    terminal_target: str = "art"
 
     @property
     def n_flights(self) -> int:
@@ -58,9 +61,17 @@ class ContingencySpec:
         return index // self.n_seeds, self.base_seed + index % self.n_seeds
 
     def label(self, config: int) -> str:
-        """"chance/auto", "deterministic/cvx", ..."""
-        chance, warm = self.configs[config]
-        return f"{'chance' if chance else 'deterministic'}/{warm}"
+        """"chance/auto", "deterministic/cvx", "chance/auto/H20_art" ..."""
+        chance, warm, window = config_fields(self.configs[config])
+        mode = f"{'chance' if chance else 'deterministic'}/{warm}"
+        return mode if not window else f"{mode}/H{window}_{self.terminal_target}"
+
+
+def config_fields(config: tuple) -> tuple[bool, str, int]:
+    """(chance_constrained, warm_start, replan_window_nodes) of a configuration (window 0 =
+    the whole remainder, for a configuration of two fields)."""
+    chance, warm, *rest = config
+    return bool(chance), str(warm), int(rest[0]) if rest else 0
 
 
 def header(spec: ContingencySpec, config: GuidanceConfig) -> dict:

@@ -37,7 +37,6 @@ def runtimes_agree(torch_provider, onnx_provider, requests: list[PlanRequest],
     controls within `dv_tol_mps` [m/s] on every request whose CVX problem is feasible; returns
     how many were compared."""
     from art_guidance.config import GuidanceConfig
-    from art_guidance.optim import solve_cvx
     from art_guidance.planning import GuidancePipeline
     from art_guidance.planning.learned import learned_warm_start
 
@@ -46,7 +45,7 @@ def runtimes_agree(torch_provider, onnx_provider, requests: list[PlanRequest],
     compared = 0
     for request in requests:
         transfer = pipeline.transfer(request)
-        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
+        cvx = transfer.problem.cvx()
         if not cvx.status.feasible:
             continue
         a = learned_warm_start(torch_provider, transfer, cvx, config.planning, cvx_unsafe=True)

@@ -21,7 +21,7 @@ from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import CheckpointError
-from art_guidance.optim import ScpStatus, terminal_warm_start
+from art_guidance.optim import ScpStatus, Trajectory
 from art_guidance.planning import (
     GuidancePipeline, PlanRequest, PosthocThresholds, WarmStartProposal, WarmStartSource,
 )
@@ -47,7 +47,7 @@ class Scaled:
     def __init__(self, factor: float) -> None:
         self.factor = factor
 
-    def propose(self, request, safety, cvx, planning=None, deadline=None):
+    def propose(self, problem, cvx, planning=None, deadline=None):
         return WarmStartProposal(cvx.dv_rtn_mps * self.factor)
 
 
@@ -131,11 +131,10 @@ def test_default_check_judges_the_terminal_warm_start(factor):
     of the corrected controls, not those of the scaled ones."""
     req = _request(4)
     result = GuidancePipeline(provider=Scaled(factor)).plan(req)
-    safety = GuidancePipeline().safety_model(req)
-    h = safety.horizon
-    roe_f = np.linalg.solve(h.psi[-1], req.target_rtn)
-    dv, roe = terminal_warm_start(h, req.roe0_m, roe_f, result.cvx.dv_rtn_mps * factor)
-    assert np.abs(h.final_post_burn_nonlinear(roe, dv) - roe_f).max() < 1e-4
+    problem = GuidancePipeline().transfer(req).problem
+    safety, h = problem.safety, problem.horizon
+    dv, roe = problem.terminal_warm_start(result.cvx.dv_rtn_mps * factor)
+    assert np.abs(h.final_post_burn_nonlinear(roe, dv) - problem.roe_f_m).max() < 1e-4
     cost = np.linalg.norm(dv, axis=1).sum()
     assert result.posthoc.e_r == pytest.approx(cost / result.cvx.cost_mps - 1.0, rel=1e-9)
     assert result.posthoc.e_c == safety.evaluate(roe, dv).constraint_to_go[0]
@@ -152,7 +151,8 @@ def test_provider_ranks_candidates_as_the_check_judges_them(provider):
     req = _request(6, chance=True, warm_start="art")
     pipe = GuidancePipeline(provider=provider)
     result = pipe.plan(req)
-    safety = pipe.safety_model(req)
+    problem = pipe.transfer(req).problem
+    safety = problem.safety
     j = result.cvx.cost_mps
     threads = torch.get_num_threads()
     torch.set_num_threads(provider.threads)  # as the provider rolls out (bit-identical)
@@ -162,7 +162,7 @@ def test_provider_ranks_candidates_as_the_check_judges_them(provider):
                       -j * np.array(provider.reward_scales), 0.0)
     finally:
         torch.set_num_threads(threads)
-    cost, c_t1 = judged_candidates(res, req, safety, "warm_start")
+    cost, c_t1 = judged_candidates(res, problem, "warm_start")
     b = best_candidate(cost, c_t1, j, PAPER)
     np.testing.assert_array_equal(result.proposal.dv_rtn_mps, res.dv_rtn_mps[b])
     assert result.posthoc.e_c == c_t1[b]
@@ -189,11 +189,11 @@ def test_failing_provider_never_takes_the_plan_down():
     class Raises:
         sha256 = ""
 
-        def propose(self, request, safety, cvx, planning=None, deadline=None):
+        def propose(self, problem, cvx, planning=None, deadline=None):
             raise RuntimeError("boom")
 
     class WrongShape(Raises):
-        def propose(self, request, safety, cvx, planning=None, deadline=None):
+        def propose(self, problem, cvx, planning=None, deadline=None):
             return np.zeros((3, 3))
 
     result = GuidancePipeline(provider=Raises()).plan(_request(4, warm_start="art"))
@@ -241,11 +241,11 @@ class Slow(Scaled):
     """Scaled, after a pause longer than the test's deadline (a provider that ignores the
     deadline: the pipeline cannot stop it, only what comes after)."""
 
-    def propose(self, request, safety, cvx, planning=None, deadline=None):
+    def propose(self, problem, cvx, planning=None, deadline=None):
         import time
 
         time.sleep(0.3)
-        return super().propose(request, safety, cvx, planning)
+        return super().propose(problem, cvx, planning)
 
 
 def test_a_deadline_that_passes_in_the_proposal_ends_the_plan(provider):
@@ -331,24 +331,23 @@ def test_sweep_proposes_the_best_of_its_candidates(model_path):
     from art_guidance.art.provider import best_candidate
     from art_guidance.art.rollout import rollout
     from art_guidance.config import PosthocThresholds
-    from art_guidance.optim import solve_cvx
 
     scales = (0.8, 1.0, 1.2)
     sweep = ArtWarmStart.load(model_path, reward_scales=scales)
     single = ArtWarmStart.load(model_path, reward_scales=(1.0,))
     req = _request(5, chance=True)
     pipeline = GuidancePipeline(provider=sweep)
-    transfer = pipeline.transfer(req)
-    horizon, safety = transfer.horizon, transfer.safety
-    cvx = solve_cvx(horizon, req.roe0_m, np.linalg.solve(horizon.psi[-1], req.target_rtn))
+    problem = pipeline.transfer(req).problem
+    safety = problem.safety
+    cvx = problem.cvx()
     res = rollout(sweep.art, safety, np.tile(req.roe0_m, (3, 1)), req.target_rtn,
                   -cvx.cost_mps * np.array(scales), 0.0)
     b = best_candidate(res.cost_mps, res.realised_constraint_to_go[:, 0], cvx.cost_mps,
                        PosthocThresholds())
-    prop = sweep.propose(req, safety, cvx)
+    prop = sweep.propose(problem, cvx)
     # float32 decoding on other thread counts: equal to 1e-6 m/s
     assert np.allclose(prop.dv_rtn_mps, res.dv_rtn_mps[b], rtol=0, atol=1e-6)
-    one = single.propose(req, safety, cvx)
+    one = single.propose(problem, cvx)
     alone = rollout(single.art, safety, req.roe0_m, req.target_rtn, -cvx.cost_mps, 0.0)
     assert np.allclose(one.dv_rtn_mps, alone.dv_rtn_mps[0], rtol=0, atol=1e-6)
     with pytest.raises(Exception, match="reward_scales"):
@@ -359,16 +358,15 @@ def test_the_rollouts_suite_scores_what_the_sweep_proposes(model_path):
     """`evaluate --suite rollouts --sweep` scores the candidate the provider proposes (ranked
     by the check's subject, the terminal warm start by default), by its rollout's own cost."""
     from art_guidance.eval.scoring import score_rollouts
-    from art_guidance.optim import solve_cvx
 
     scales = (0.8, 1.0, 1.2)
     sweep = ArtWarmStart.load(model_path, reward_scales=scales)
     for seed in (5, 6, 7):
         req = _request(seed, chance=True)
-        transfer = GuidancePipeline(provider=sweep).transfer(req)
-        horizon, safety = transfer.horizon, transfer.safety
-        cvx = solve_cvx(horizon, req.roe0_m, np.linalg.solve(horizon.psi[-1], req.target_rtn))
-        prop = sweep.propose(req, safety, cvx)
+        problem = GuidancePipeline(provider=sweep).transfer(req).problem
+        safety = problem.safety
+        cvx = problem.cvx()
+        prop = sweep.propose(problem, cvx)
         scores = score_rollouts(sweep.art, safety, req.roe0_m[None], req.target_rtn[None],
                                 [cvx.cost_mps], [0], reward_scales=scales,
                                 subject=GuidanceConfig().planning.posthoc_subject)
@@ -379,22 +377,21 @@ def test_the_rollouts_suite_scores_what_the_sweep_proposes(model_path):
 
 class Carrying:
     """The provider with what it carries replaced: `warm` None strips the terminal warm start
-    (the pipeline computes it), a pair replaces it; counts the projections of the proposed
-    controls made outside `propose`."""
+    (the pipeline computes it), a `Trajectory` replaces it; counts the projections of the
+    proposed controls made outside `propose`."""
 
     def __init__(self, inner, warm="keep") -> None:
         self.inner, self.sha256, self.warm = inner, inner.sha256, warm
         self.proposed, self.inside = None, False
 
-    def propose(self, request, safety, cvx, planning=None, deadline=None):
+    def propose(self, problem, cvx, planning=None, deadline=None):
         self.inside = True
         try:
-            prop = self.inner.propose(request, safety, cvx, planning, deadline)
+            prop = self.inner.propose(problem, cvx, planning, deadline)
         finally:
             self.inside = False
         if self.warm != "keep":
-            dv, roe = self.warm if self.warm is not None else (None, None)
-            prop = dataclasses.replace(prop, warm_start_dv_rtn_mps=dv, warm_start_roe_m=roe)
+            prop = dataclasses.replace(prop, warm_start=self.warm)
         self.proposed = prop.dv_rtn_mps
         return prop
 
@@ -405,8 +402,7 @@ def test_the_proposals_terminal_warm_start_is_made_once(provider, monkeypatch):
     again, and the plans are bit for bit those made when the pipeline computes it itself
     (stripped) or when the carried one is not one (zeros: refused, computed)."""
     import art_guidance.optim.scp as scp_module
-    import art_guidance.planning.learned as learned_module
-    import art_guidance.planning.posthoc as posthoc_module
+    import art_guidance.optim.transfer as transfer_module
 
     wrapped = [Carrying(provider)]
     outside = []
@@ -421,14 +417,14 @@ def test_the_proposals_terminal_warm_start_is_made_once(provider, monkeypatch):
             return original(horizon, roe0_m, roe_f_m, dv_rtn_mps, *args, **kwargs)
         return project
 
-    for module in (scp_module, learned_module, posthoc_module):
+    for module in (scp_module, transfer_module):
         monkeypatch.setattr(module, "terminal_warm_start",
                             counting(module.terminal_warm_start))
     for seed in (3, 11):
         request = _request(seed, chance=True, warm_start="art")
         plans = {}
         for name, warm in (("carried", "keep"), ("stripped", None),
-                           ("zeros", (np.zeros((100, 3)), np.zeros((100, 6))))):
+                           ("zeros", Trajectory(np.zeros((100, 3)), np.zeros((100, 6))))):
             wrapped[0] = Carrying(provider, warm)
             outside.clear()
             plans[name] = GuidancePipeline(provider=wrapped[0]).plan(request)
@@ -455,5 +451,5 @@ def test_each_candidate_is_projected_once_per_plan(provider, monkeypatch):
 
     monkeypatch.setattr(provider_module, "judged_trajectory", counted)
     result = GuidancePipeline(provider=provider).plan(_request(3, chance=True, warm_start="art"))
-    assert result.proposal is not None and result.proposal.warm_start_dv_rtn_mps is not None
+    assert result.proposal is not None and result.proposal.warm_start is not None
     assert len(calls) == len(provider.reward_scales)

@@ -67,7 +67,6 @@ def test_the_hard_family_is_the_seeds_whose_cvx_warm_start_violates_most():
     from pathlib import Path
 
     from art_guidance.dynamics import roe_from_rtn_linear
-    from art_guidance.optim import solve_cvx
     from art_guidance.planning import PlanRequest
     from art_guidance.scenarios import sample_scenario
 
@@ -85,6 +84,6 @@ def test_the_hard_family_is_the_seeds_whose_cvx_warm_start_violates_most():
         req = PlanRequest(chief, roe_from_rtn_linear(chief, sample_scenario(sc, seed).rtn0),
                           target, chance_constrained=True)
         tr = pipeline.transfer(req)
-        cvx = solve_cvx(tr.horizon, req.roe0_m, tr.roe_f_m)
+        cvx = tr.problem.cvx()
         assert not cvx.status.feasible or \
             tr.safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0] < 40

@@ -51,7 +51,9 @@ def test_node_parameter_table_is_the_params_file():
     assert "samples_per_node" not in params  # one default: planning.yaml's
     from art_guidance.planning.replan import ReplanSettings
 
-    names = {f.name for f in dataclasses.fields(ReplanSettings)} - {"ae_to_koz_node"}
+    # the switch node and the horizon's length are the scenario's, not parameters
+    scenario_fields = {"ae_to_koz_node", "horizon_nodes"}
+    names = {f.name for f in dataclasses.fields(ReplanSettings)} - scenario_fields
     settings = ReplanSettings(**{k: params[k] for k in names})
     assert settings == ReplanSettings(ae_to_koz_node=settings.ae_to_koz_node)
 

@@ -12,7 +12,7 @@ from art_guidance.art.onnx_export import export
 from art_guidance.art.provider import TEACHERS, ArtWarmStart, models_dir
 from art_guidance.art.rollout import GATE_LOGIT_THRESHOLD, build_safety
 from art_guidance.errors import InputError
-from art_guidance.optim import solve_cvx
+from art_guidance.optim import TransferProblem
 from art_guidance.planning import PlanRequest
 
 SEEDS = [9_000_000, 9_000_001]
@@ -56,12 +56,11 @@ def test_a_distilled_student_loads_proposes_and_exports(tmp_path, teacher):
     assert student.art.config.width == 64 and student.art.config.n_layers == 2
     assert student.art.meta["dataset"]["mode"] == "chance"  # the teacher's horizon and mode
     safety = build_safety(student.art)
-    horizon = safety.horizon
-    chief = horizon.chief_oe[0]
+    chief = safety.horizon.chief_oe[0]
     roe0 = np.array([0.0, -600.0, 0.0, 300.0, 0.0, 300.0])
     request = PlanRequest(chief, roe0, np.array([0.0, -100.0, 0.0, 0.0, 0.0, 0.0]))
-    cvx = solve_cvx(horizon, roe0, np.linalg.solve(horizon.psi[-1], request.target_rtn))
-    proposal = student.propose(request, safety, cvx)
+    problem = TransferProblem.to_target(safety, roe0, request.target_rtn)
+    proposal = student.propose(problem, problem.cvx())
     assert np.all(np.isfinite(proposal.dv_rtn_mps))
     export(student.art, tmp_path / "student.onnx")
     exported = load_exported(tmp_path / "student.onnx", student.sha256)

@@ -18,8 +18,9 @@ from art_guidance.dynamics import (
     stm_j2_terms,
 )
 from art_guidance.errors import InputError
-from art_guidance.optim import Scvx, solve_cvx
+from art_guidance.optim import TransferProblem
 from art_guidance.safety import PassiveSafety
+from helpers.oracles import sign_only_violations
 
 SC = ScenarioConfig()
 UNC = UncertaintyConfig()
@@ -45,10 +46,9 @@ def plans(horizon: Horizon, models: dict) -> list:
     for seed in (3, 11):
         s = sample_scenario(SC, seed)
         x0 = np.linalg.solve(horizon.psi[0], s.rtn0)
-        xf = np.linalg.solve(horizon.psi[-1], s.target_rtn)
-        cvx = solve_cvx(horizon, x0, xf)
-        res = Scvx(models["cc"], x0, xf, ScpConfig.from_yaml(), samples_per_node=3).solve(
-            cvx.dv_rtn_mps)
+        problem = TransferProblem.to_target(models["cc"], x0, s.target_rtn)
+        cvx = problem.cvx()
+        res = problem.scvx(ScpConfig.from_yaml(), samples_per_node=3).solve(cvx.dv_rtn_mps)
         out += [(cvx.roe_m, cvx.dv_rtn_mps), (res.roe_m, res.dv_rtn_mps)]
     return out
 
@@ -206,14 +206,14 @@ def test_a_fast_flyby_between_samples_is_found(horizon: Horizon, models: dict) -
 
 # ---------------------------------------------------------------------------- node API
 @pytest.mark.parametrize("kind", ["det", "cc"])
-def test_node_margins_equal_evaluate(models: dict, approach: tuple, plans: list,
-                                     kind: str) -> None:
-    """node_margins(i, x_i, u_i) is evaluate(...).margin[i], for single states and batches."""
+def test_minimum_at_a_node_equals_evaluate(models: dict, approach: tuple, plans: list,
+                                           kind: str) -> None:
+    """minimum(i, x_i, u_i) is evaluate(...).margin[i], for single states and batches."""
     ps = models[kind]
     for roe_m, dv in (approach, plans[1]):
         ev = ps.evaluate(roe_m, dv)
         for i in range(0, N, 3):
-            got = ps.node_margins(i, roe_m[i:i + 1], dv[i:i + 1])
+            got = ps.minimum(i, roe_m[i:i + 1], dv[i:i + 1])[0]
             np.testing.assert_allclose(got, ev.margin[i:i + 1], rtol=0, atol=1e-12)
     # a batch of different candidates at one node: each equals a full evaluation with it
     rng = np.random.default_rng(3)
@@ -221,7 +221,7 @@ def test_node_margins_equal_evaluate(models: dict, approach: tuple, plans: list,
     i = 60
     xs = roe_m[i] + rng.normal(0.0, 50.0, (6, 6))
     us = dv[i] + rng.normal(0.0, 0.05, (6, 3))
-    batch = ps.node_margins(i, xs, us)
+    batch = ps.minimum(i, xs, us)[0]
     for b in range(6):
         x_full, u_full = roe_m.copy(), dv.copy()
         x_full[i], u_full[i] = xs[b], us[b]
@@ -229,9 +229,9 @@ def test_node_margins_equal_evaluate(models: dict, approach: tuple, plans: list,
 
 
 @pytest.mark.parametrize("kind", ["det", "cc"])
-def test_node_violations_decide_the_sign_of_node_margins(models: dict, approach: tuple,
-                                                         plans: list, kind: str) -> None:
-    """The sign-only search gives node_margins(...) < 0 for every candidate whose margin is
+def test_the_sign_only_minimum_decides_the_sign_of_minimum(models: dict, approach: tuple,
+                                                           plans: list, kind: str) -> None:
+    """The sign-only search gives minimum(...) < 0 for every candidate whose margin is
     outside the certification tolerance of zero: 3 trajectories x 100 nodes and 400 random
     candidates around a converged plan's active nodes (fly-bys, near misses, clear arcs)."""
     ps = models[kind]
@@ -246,8 +246,8 @@ def test_node_violations_decide_the_sign_of_node_margins(models: dict, approach:
     for nodes, xs, us in cases:
         for i in np.unique(nodes):
             sel = nodes == i
-            margin = ps.node_margins(i, xs[sel], us[sel])
-            violated = ps.node_violations(i, xs[sel], us[sel])
+            margin = ps.minimum(i, xs[sel], us[sel])[0]
+            violated = sign_only_violations(ps, i, xs[sel], us[sel])
             assert violated.dtype == bool and violated.shape == margin.shape
             clear = np.abs(margin) > 2.0 * (CERT_TOL + CERT_TOL_REL * np.abs(margin))
             np.testing.assert_array_equal(violated[clear], margin[clear] < 0.0)
@@ -255,12 +255,12 @@ def test_node_violations_decide_the_sign_of_node_margins(models: dict, approach:
                 checked[v] += int(np.sum(clear & (violated == v)))
     assert checked[True] > 50 and checked[False] > 50, checked  # both outcomes exercised
     with pytest.raises(InputError):
-        ps.node_violations(N, np.ones((1, 6)), np.zeros((1, 3)))
+        sign_only_violations(ps, N, np.ones((1, 6)), np.zeros((1, 3)))
 
 
 @pytest.mark.parametrize("kind", ["det", "cc"])
 def test_violated_is_the_sign_only_minimum(models: dict, plans: list, kind: str) -> None:
-    """The rollout's fast C update (`DriftArcs.violated`, through `step_violations`) makes the
+    """The rollout's fast C update (`DriftArcs.violated`, through `violated`) makes the
     decision of its oracle, the sign-only certified minimum, on every arc: candidates around a
     converged plan at nodes with fly-bys, near misses and clear arcs, and whole plans."""
     ps = models[kind]
@@ -270,11 +270,12 @@ def test_violated_is_the_sign_only_minimum(models: dict, plans: list, kind: str)
     for i in (0, 20, 55, 60, 78, 99):
         xs = roe_m[i] + rng.normal(0.0, 30.0, (64, 6))
         us = dv[i] + rng.normal(0.0, 0.1, (64, 3))
-        z = ps.horizon.post_burn_step(i, xs, us)
-        fast = ps.step_violations(i, xs, us, z)
+        z = ps.horizon.post_burn_at(i, xs, us)
+        fast = ps.violated(i, xs, us, z)
         oracle = ps.arcs.minimum(ps._items_at(i, xs, us, z), sign_only=True).margin < 0.0
         np.testing.assert_array_equal(fast, oracle)
-        np.testing.assert_array_equal(fast, ps.node_violations(i, xs, us))
+        np.testing.assert_array_equal(fast, sign_only_violations(ps, i, xs, us))
+        np.testing.assert_array_equal(fast, ps.violated(i, xs, us))  # validated, z its own
         for v in (True, False):
             decided[v] += int(np.sum(fast == v))
     assert decided[True] > 20 and decided[False] > 20, decided
@@ -286,43 +287,48 @@ def test_violated_is_the_sign_only_minimum(models: dict, plans: list, kind: str)
 
 
 @pytest.mark.parametrize("kind", ["det", "cc"])
-def test_evaluate_batch_equals_evaluate(models: dict, approach: tuple, plans: list,
-                                        kind: str) -> None:
-    """`evaluate_batch` of K trajectories is `evaluate` of each (its K = 1 oracle), and its
-    sign-only count of violations is the certified one outside the tolerance of zero;
-    `violations_batch` (what the candidates are ranked by) decides every arc as the sign-only
-    `evaluate_batch` does."""
+def test_minimum_of_trajectories_equals_evaluate(models: dict, approach: tuple, plans: list,
+                                                 kind: str) -> None:
+    """`minimum` of K trajectories (K, N, 6) is `evaluate` of each (its K = 1 oracle), and its
+    sign-only violations are the certified ones outside the tolerance of zero; `violated` and
+    its adapter `violations_batch` (what the candidates are ranked by) decide every arc as the
+    sign-only `minimum` does."""
     ps = models[kind]
     trajs = [approach, *plans]
     roe = np.stack([t[0] for t in trajs])
     dv = np.stack([t[1] for t in trajs])
-    batch = ps.evaluate_batch(roe, dv)
-    signs = ps.evaluate_batch(roe, dv, sign_only=True)
-    assert batch.margin.shape == (len(trajs), N)
+    nodes = np.arange(N)
+    margin, t_star = ps.minimum(nodes, roe, dv)
+    signs = sign_only_violations(ps, nodes, roe, dv)
+    assert margin.shape == t_star.shape == signs.shape == (len(trajs), N)
     for k, (roe_m, dv_k) in enumerate(trajs):
         one = ps.evaluate(roe_m, dv_k)
-        for field in ("margin", "margin_m", "violation", "constraint_to_go", "t_star_s"):
-            np.testing.assert_allclose(getattr(batch, field)[k], getattr(one, field),
-                                       rtol=0, atol=1e-12, err_msg=field)
+        np.testing.assert_allclose(margin[k], one.margin, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(t_star[k], one.t_star_s, rtol=0, atol=1e-12)
         clear = np.abs(one.margin) > 2.0 * (CERT_TOL + CERT_TOL_REL * np.abs(one.margin))
-        np.testing.assert_array_equal(signs.violation[k][clear], one.violation[clear])
+        np.testing.assert_array_equal(signs[k][clear], one.violation[clear].astype(bool))
     # the rollout's sign-only search over the same arcs: the same decisions, every arc
-    np.testing.assert_array_equal(ps.violations_batch(roe, dv), signs.violation.astype(bool))
+    np.testing.assert_array_equal(ps.violated(nodes, roe, dv), signs)
+    np.testing.assert_array_equal(ps.violations_batch(roe, dv), signs)
     with pytest.raises(InputError):
-        ps.evaluate_batch(roe[:, :-1], dv)
+        ps.minimum(nodes, roe[:, :-1], dv)
+    with pytest.raises(InputError):
+        ps.violated(nodes, roe[:, :-1], dv[:, :-1])
     with pytest.raises(InputError):
         ps.violations_batch(roe[:, :-1], dv)
 
 
-def test_node_margins_bad_inputs(models: dict) -> None:
+def test_minimum_bad_inputs(models: dict) -> None:
     ps = models["cc"]
-    for node in (-1, N, 2.5, True):
+    for node in (-1, N, 2.5, True, np.array([3, N])):
         with pytest.raises(InputError):
-            ps.node_margins(node, np.ones((1, 6)), np.zeros((1, 3)))
+            ps.minimum(node, np.ones((2, 6)), np.zeros((2, 3)))
     with pytest.raises(InputError):
-        ps.node_margins(3, np.ones((2, 6)), np.zeros((3, 3)))
+        ps.minimum(3, np.ones((2, 6)), np.zeros((3, 3)))
     with pytest.raises(InputError):
-        ps.node_margins(3, np.full((1, 6), np.nan), np.zeros((1, 3)))
+        ps.minimum(3, np.full((1, 6), np.nan), np.zeros((1, 3)))
+    with pytest.raises(InputError):  # nodes that are not broadcast against the pairs
+        ps.minimum(np.arange(3), np.ones((2, 6)), np.zeros((2, 3)))
 
 
 def test_degenerate_arc_through_the_centre_is_bounded(models: dict) -> None:

@@ -354,7 +354,6 @@ def test_horizon_propagate_shape_and_consistency(chief: np.ndarray,
     assert coast[-1] == pytest.approx(whole, rel=1e-10, abs=1e-6)
     burns_only = horizon.propagate(np.zeros(6), u)
     assert out == pytest.approx(coast + burns_only, rel=1e-10, abs=1e-6)
-    assert horizon.final_post_burn(out, u) == pytest.approx(out[-1] + horizon.b[-1] @ u[-1])
     rtn = horizon.to_rtn(out)
     assert rtn.shape == (100, 6)
     assert rtn[42] == pytest.approx(horizon.psi[42] @ out[42], rel=1e-14)
@@ -398,7 +397,7 @@ def test_propagate_nonlinear_is_its_definition(horizon: dyn.Horizon) -> None:
         np.testing.assert_allclose(out[k + 1], x, rtol=0.0, atol=1e-8)
     np.testing.assert_allclose(horizon.post_burn_nonlinear(out, dv)[-1],
                                horizon.final_post_burn_nonlinear(out, dv), atol=1e-9)
-    np.testing.assert_allclose(horizon.post_burn_nonlinear_at(5, out[5:6], dv[5:6])[0],
+    np.testing.assert_allclose(horizon.post_burn_at(5, out[5:6], dv[5:6])[0],
                                horizon.post_burn_nonlinear(out, dv)[5], atol=1e-9)
     # without burns and at zero separation it is the linear model
     zero = np.zeros((horizon.n_nodes, 3))
@@ -413,6 +412,24 @@ def test_propagate_nonlinear_is_its_definition(horizon: dyn.Horizon) -> None:
     t_orbit = dyn.orbital_period_s(horizon.chief_oe[0, 0])
     assert dyn.along_track_curvature_m(horizon.chief_oe[0, 0], -1e4, t_orbit) == pytest.approx(
         175.0, rel=0.01)
+
+
+def test_post_burn_at_is_one_door_for_every_shape(horizon: dyn.Horizon) -> None:
+    """`post_burn_at` of K trajectories, of single nodes and of any mix of nodes, and its
+    adapters (a trajectory, its last node): the same numbers, bit for bit."""
+    x0, dv = _deputy_case(horizon)
+    n = horizon.n_nodes
+    roe = np.stack([horizon.propagate_nonlinear(x0 * s, dv * s) for s in (1.0, 0.5, -0.3)])
+    u = np.stack([dv, 0.5 * dv, -0.3 * dv])
+    each = np.stack([horizon.post_burn_nonlinear(r, v) for r, v in zip(roe, u)])
+    np.testing.assert_array_equal(horizon.post_burn_at(np.arange(n), roe, u), each)
+    for k in (0, 41, n - 1):
+        np.testing.assert_array_equal(horizon.post_burn_at(k, roe[:, k], u[:, k]), each[:, k])
+    b, k = np.divmod(np.random.default_rng(2).permutation(3 * n)[:50], n)
+    np.testing.assert_array_equal(horizon.post_burn_at(k, roe[b, k], u[b, k]), each[b, k])
+    np.testing.assert_array_equal(horizon.final_post_burn_nonlinear(roe[1], u[1]), each[1, -1])
+    with pytest.raises(InputError):
+        horizon.post_burn_nonlinear(roe, u)
 
 
 def test_deputy_linearization_matches_finite_differences(horizon: dyn.Horizon) -> None:

@@ -1,10 +1,11 @@
-"""The package's modules import each other without a circle.
+"""The package's modules import each other without a circle, and none is over MAX_LINES long.
 
 The graph is read from the source (`ast`), every `import` and `from ... import` in a module,
-at its top or inside a function (a deferred import closes a circle as surely, only later). An
-edge goes from a module to the module it names (`from a.b import c` names `a.b.c` when that is
-a module, else `a.b`); the implicit import of a module's parent packages is no edge (a package
-that re-exports its modules is not a circle).
+at its top or inside a function (a deferred import closes a circle as surely, only later), but
+not under ``if TYPE_CHECKING:`` (annotations only, never run). An edge goes from a module to
+the module it names (`from a.b import c` names `a.b.c` when that is a module, else `a.b`); the
+implicit import of a module's parent packages is no edge (a package that re-exports its modules
+is not a circle).
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import art_guidance
 
 PACKAGE = Path(art_guidance.__file__).resolve().parent
 ROOT = PACKAGE.name
+MAX_LINES = 450  # the longest a module of the package may be
 
 
 def module_names() -> dict[str, Path]:
@@ -32,7 +34,7 @@ def imported(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
     """The package's modules that module `name` (file `path`) imports."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     out = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in _run_nodes(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             targets = [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -46,6 +48,25 @@ def imported(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
             continue
         out.update(t for t in targets if t in modules and t != name)
     return out
+
+
+def _type_checking(node: ast.AST) -> bool:
+    """Whether `node` is ``if TYPE_CHECKING:`` (or ``if typing.TYPE_CHECKING:``)."""
+    test = getattr(node, "test", None) if isinstance(node, ast.If) else None
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _run_nodes(tree: ast.AST):
+    """Every node of `tree` (as `ast.walk`) but the bodies of ``if TYPE_CHECKING:``."""
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        yield node
+        if _type_checking(node):
+            todo.extend(node.orelse)
+        else:
+            todo.extend(ast.iter_child_nodes(node))
 
 
 def import_graph() -> dict[str, set[str]]:
@@ -95,6 +116,12 @@ def test_the_graph_sees_the_known_imports():
     assert "art_guidance.optim.scp" in graph["art_guidance.optim"]
 
 
+def test_imports_for_annotations_only_are_no_edges():
+    graph = import_graph()
+    assert "art_guidance.safety.drift" not in graph["art_guidance.safety.drift_search"]
+    assert "art_guidance.safety.drift_search" in graph["art_guidance.safety.drift"]
+
+
 def test_a_circle_is_found():
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
     assert circles(graph) == [["a", "b", "c"]]
@@ -102,3 +129,9 @@ def test_a_circle_is_found():
 
 def test_no_module_of_the_package_imports_itself_through_others():
     assert circles(import_graph()) == []
+
+
+def test_no_module_of_the_package_is_over_max_lines():
+    long = {name: n for name, path in module_names().items()
+            if (n := len(path.read_text().splitlines())) > MAX_LINES}
+    assert long == {}

@@ -32,7 +32,7 @@ from art_guidance.art.provider import ArtWarmStart, default_model_path
 from art_guidance.config import GuidanceConfig, PlanningConfig, ScenarioConfig
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import ConfigError, InputError
-from art_guidance.optim.cvx import solve_cvx
+from art_guidance.optim import Trajectory
 from art_guidance.planning import GuidancePipeline
 from art_guidance.safety.drift import CERT_TOL, CERT_TOL_REL
 
@@ -67,7 +67,7 @@ def test_the_certified_search_decides_every_arc_as_its_oracle(chance):
                                 chance_constrained=chance)
         transfer = pipeline.transfer(request)
         safety, horizon = transfer.safety, transfer.horizon
-        cvx = solve_cvx(horizon, request.roe0_m, transfer.roe_f_m)
+        cvx = transfer.problem.cvx()
         for scale in (0.0, 30.0, 100.0):  # the plan, and perturbed states and burns
             x = cvx.roe_m + rng.normal(0.0, 1.0, cvx.roe_m.shape) * scale
             noise = rng.normal(0.0, 1.0, (horizon.n_nodes, 1))
@@ -91,7 +91,7 @@ def test_the_certified_minimum_is_its_oracle_to_rounding(chance):
                                 chance_constrained=chance)
         transfer = pipeline.transfer(request)
         safety, horizon = transfer.safety, transfer.horizon
-        cvx = solve_cvx(horizon, request.roe0_m, transfer.roe_f_m)
+        cvx = transfer.problem.cvx()
         for scale in (0.0, 50.0):
             x = cvx.roe_m + rng.normal(0.0, 1.0, cvx.roe_m.shape) * scale
             u = cvx.dv_rtn_mps
@@ -121,7 +121,7 @@ def test_scvx_takes_the_same_path_to_rounding():
     pipeline = GuidancePipeline()
     for request in heldout_requests(3):
         transfer = pipeline.transfer(request)
-        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
+        cvx = transfer.problem.cvx()
         a, b = _both(lambda: transfer.scvx(pipeline.config, pipeline.subproblem)
                      .solve(cvx.dv_rtn_mps))
         assert (a.status, a.iterations) == (b.status, b.iterations)
@@ -152,13 +152,15 @@ def test_proposals_are_bit_for_bit_those_of_the_numpy_path():
     proposed = 0
     for request in heldout_requests(N_SCENARIOS):
         transfer = pipeline.transfer(request)
-        cvx = solve_cvx(transfer.horizon, request.roe0_m, transfer.roe_f_m)
+        cvx = transfer.problem.cvx()
         if not cvx.status.feasible:
             continue
-        a, b = _both(lambda: provider.propose(request, transfer.safety, cvx, planning))
-        for name in ("dv_rtn_mps", "constraint_to_go", "reward_to_go_mps",
-                     "warm_start_dv_rtn_mps", "warm_start_roe_m"):
+        a, b = _both(lambda: provider.propose(transfer.problem, cvx, planning))
+        for name in ("dv_rtn_mps", "constraint_to_go", "reward_to_go_mps"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        for name in Trajectory._fields:
+            np.testing.assert_array_equal(getattr(a.warm_start, name),
+                                          getattr(b.warm_start, name), err_msg=name)
         proposed += 1
     assert proposed >= N_SCENARIOS // 2
 

@@ -9,9 +9,10 @@ from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import GuidanceError, InputError
-from art_guidance.optim import ScpStatus, Scvx, control_cost, solve_cvx
+from art_guidance.optim import ScpStatus, TransferProblem, control_cost, solve_cvx, terminal_roe
 from art_guidance.optim.cvx import L1_REG_S_PER_M
 from cvxpy_reference import cvxpy_tpbvp
+from helpers.oracles import final_post_burn_linear
 from art_guidance.safety import PassiveSafety
 
 SEEDS = (0, 1, 2, 3)
@@ -32,8 +33,7 @@ def setup():
 
 def _boundary(scenario, horizon, seed):
     s = sample_scenario(scenario, seed)
-    return (np.linalg.solve(horizon.psi[0], s.rtn0),
-            np.linalg.solve(horizon.psi[-1], s.target_rtn))
+    return np.linalg.solve(horizon.psi[0], s.rtn0), terminal_roe(horizon, s.target_rtn)
 
 
 @pytest.mark.parametrize("seed", SEEDS)
@@ -47,7 +47,7 @@ def test_cvx_matches_cvxpy(setup, seed, norm):
     reg = 0.5 * L1_REG_S_PER_M * float(np.sum(sol.dv_rtn_mps**2)) if norm == "l1" else 0.0
     assert sol.cost_mps + reg == pytest.approx(ref_cost, rel=1e-6)
     # the plan meets the terminal condition (post-burn) to 1 mm
-    assert np.abs(horizon.final_post_burn(sol.roe_m, sol.dv_rtn_mps) - xf).max() < 1e-3
+    assert np.abs(final_post_burn_linear(horizon, sol.roe_m, sol.dv_rtn_mps) - xf).max() < 1e-3
     reg = 0.5 * L1_REG_S_PER_M * float(np.sum(ref_dv**2)) if norm == "l1" else 0.0
     assert control_cost(ref_dv, norm) + reg == pytest.approx(ref_cost, rel=1e-6)
 
@@ -62,7 +62,7 @@ def test_osqp_and_clarabel_agree_on_l1(setup, seed):
     # OSQP (first order, eps 1e-6: each |u| may exceed its bound by ~eps) versus an interior
     # point: fuel to 1e-3 relative, terminal state to 1 cm
     assert b.cost_mps == pytest.approx(a.cost_mps, rel=1e-3)
-    assert np.abs(horizon.final_post_burn(b.roe_m, b.dv_rtn_mps) - xf).max() < 1e-2
+    assert np.abs(final_post_burn_linear(horizon, b.roe_m, b.dv_rtn_mps) - xf).max() < 1e-2
 
 
 def test_osqp_rejects_second_order_cone(setup):
@@ -77,9 +77,10 @@ def test_osqp_rejects_second_order_cone(setup):
 def test_scp_satisfies_nonlinear_passive_safety(setup, mode, seed):
     scenario, horizon, safety = setup
     x0, xf = _boundary(scenario, horizon, seed)
-    cvx = solve_cvx(horizon, x0, xf)
+    problem = TransferProblem(safety[mode], x0, xf)
+    cvx = problem.cvx()
     cfg = ScpConfig()
-    res = Scvx(safety[mode], x0, xf, cfg, samples_per_node=3).solve(cvx.dv_rtn_mps)
+    res = problem.scvx(cfg, samples_per_node=3).solve(cvx.dv_rtn_mps)
     assert res.status in (ScpStatus.CONVERGED, ScpStatus.MAX_ITERATIONS), res.status
     ev = safety[mode].evaluate(res.roe_m, res.dv_rtn_mps)
     # nonlinear margin (min over the continuous drift arc, q-sigma included for "cc"): the
@@ -105,9 +106,9 @@ def test_scp_satisfies_nonlinear_passive_safety(setup, mode, seed):
 @pytest.mark.parametrize("seed", (0, 2))
 def test_converged_plan_as_warm_start_converges_in_two(setup, seed):
     scenario, horizon, safety = setup
-    x0, xf = _boundary(scenario, horizon, seed)
-    cvx = solve_cvx(horizon, x0, xf)
-    scvx = Scvx(safety["cc"], x0, xf, samples_per_node=3)
+    problem = TransferProblem(safety["cc"], *_boundary(scenario, horizon, seed))
+    cvx = problem.cvx()
+    scvx = problem.scvx(samples_per_node=3)
     first = scvx.solve(cvx.dv_rtn_mps)
     assert first.status is ScpStatus.CONVERGED
     again = scvx.solve(first.dv_rtn_mps, multipliers=first.multipliers)
@@ -118,9 +119,9 @@ def test_converged_plan_as_warm_start_converges_in_two(setup, seed):
 
 def test_deadline_returns_timeout(setup):
     scenario, horizon, safety = setup
-    x0, xf = _boundary(scenario, horizon, 2)
-    cvx = solve_cvx(horizon, x0, xf)
-    res = Scvx(safety["cc"], x0, xf).solve(cvx.dv_rtn_mps, deadline=Deadline.after(0.0))
+    problem = TransferProblem(safety["cc"], *_boundary(scenario, horizon, 2))
+    cvx = problem.cvx()
+    res = problem.scvx().solve(cvx.dv_rtn_mps, deadline=Deadline.after(0.0))
     assert res.status is ScpStatus.TIMEOUT
     assert res.iterations == 0
     assert np.all(np.isfinite(res.dv_rtn_mps))

@@ -24,7 +24,7 @@ import pytest
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import Horizon, time_grid_s
-from art_guidance.optim import Scvx, solve_cvx
+from art_guidance.optim import TransferProblem
 from art_guidance.safety import PassiveSafety
 from helpers import orbit_truth as truth
 
@@ -49,9 +49,9 @@ def runs() -> dict:
         for seed in SEEDS:
             s = sample_scenario(sc, seed)
             x0 = np.linalg.solve(horizon.psi[0], s.rtn0)
-            xf = np.linalg.solve(horizon.psi[-1], s.target_rtn)
-            cvx = solve_cvx(horizon, x0, xf)
-            res = Scvx(ps, x0, xf, cfg, samples_per_node=3).solve(cvx.dv_rtn_mps)
+            problem = TransferProblem.to_target(ps, x0, s.target_rtn)
+            cvx = problem.cvx()
+            res = problem.scvx(cfg, samples_per_node=3).solve(cvx.dv_rtn_mps)
             plans.append({"mode": mode, "seed": seed, "res": res})
     det = models["det"]
     z = np.stack([det.post_burn(p["res"].roe_m, p["res"].dv_rtn_mps) for p in plans])

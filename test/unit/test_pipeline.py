@@ -27,7 +27,7 @@ class ScaledCvx:
         self.factor = factor
         self.calls = 0
 
-    def propose(self, request, safety, cvx, planning=None, deadline=None):
+    def propose(self, problem, cvx, planning=None, deadline=None):
         self.calls += 1
         return cvx.dv_rtn_mps * self.factor
 
@@ -100,8 +100,8 @@ def test_broken_provider_output_falls_back_to_cvx(request_0):
     scenario, req = request_0
 
     class Broken:
-        def propose(self, request, safety, cvx, planning=None, deadline=None):
-            return np.full((safety.n_nodes, 3), np.nan)
+        def propose(self, problem, cvx, planning=None, deadline=None):
+            return np.full((problem.safety.n_nodes, 3), np.nan)
 
     for warm_start in ("auto", "art"):
         forced = PlanRequest(req.chief_oe, req.roe0_m, req.target_rtn, False, warm_start)

@@ -8,7 +8,7 @@ import pytest
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import Horizon, time_grid_s
-from art_guidance.optim import Scvx, solve_cvx
+from art_guidance.optim import TransferProblem
 from art_guidance.optim import problem
 from art_guidance.safety import PassiveSafety
 
@@ -25,8 +25,8 @@ def setup():
     for seed in SEEDS:
         s = sample_scenario(scenario, seed)
         x0 = np.linalg.solve(horizon.psi[0], s.rtn0)
-        xf = np.linalg.solve(horizon.psi[-1], s.target_rtn)
-        problems.append((x0, xf, solve_cvx(horizon, x0, xf).dv_rtn_mps))
+        transfer = TransferProblem.to_target(safety, x0, s.target_rtn)
+        problems.append((x0, transfer.roe_f_m, transfer.cvx().dv_rtn_mps))
     return safety, problems
 
 
@@ -43,10 +43,10 @@ def test_reused_subproblem_gives_bit_identical_plans(setup):
     last bit."""
     safety, problems = setup
     cfg = ScpConfig.from_yaml()
-    alone = [Scvx(safety, x0, xf, cfg, samples_per_node=3).solve(warm)
+    alone = [TransferProblem(safety, x0, xf).scvx(cfg, samples_per_node=3).solve(warm)
              for x0, xf, warm in problems]
     pool = problem.SubproblemPool()
-    solvers = [Scvx(safety, x0, xf, cfg, samples_per_node=3, pool=pool)
+    solvers = [TransferProblem(safety, x0, xf).scvx(cfg, samples_per_node=3, pool=pool)
                for x0, xf, _ in problems]
     assert solvers[0].sub is solvers[1].sub and len(pool) == 1  # one subproblem, built once
     shared = [s.solve(w) for s, (_, _, w) in zip(solvers[::-1], problems[::-1])][::-1]
@@ -68,7 +68,7 @@ def test_pool_is_per_caller_and_per_horizon(setup):
     other = Horizon.build(safety.horizon.chief_oe[0], safety.horizon.epochs_s)
     assert pool.get(other, x0, xf, samples_per_node=5) is not sub
     assert problem.SubproblemPool().get(safety.horizon, x0, xf, samples_per_node=5) is not sub
-    a, b = (Scvx(safety, x0, xf, samples_per_node=3) for _ in range(2))
+    a, b = (TransferProblem(safety, x0, xf).scvx(samples_per_node=3) for _ in range(2))
     assert a.sub is not b.sub
 
 

@@ -49,14 +49,14 @@ def test_the_batched_search_decides_each_arc_as_one_node_at_a_time():
     res = rollout(provider.art, safety, np.tile(request.roe0_m, (8, 1)), request.target_rtn,
                   -6.0 * np.asarray(provider.reward_scales))
     h = safety.horizon
-    z = np.stack([h.post_burn_step(i, res.roe_m[:, i], res.dv_rtn_mps[:, i])
+    z = np.stack([h.post_burn_at(i, res.roe_m[:, i], res.dv_rtn_mps[:, i])
                   for i in range(h.n_nodes)], axis=1)  # (8, N, 6)
     rng = np.random.default_rng(3)
     pick = rng.permutation(8 * h.n_nodes)[:300]  # a mix of nodes and candidates, shuffled
     b, i = np.divmod(pick, h.n_nodes)
-    batched = safety.steps_violations(i, res.roe_m[b, i], res.dv_rtn_mps[b, i], z[b, i])
-    one = [safety.step_violations(int(n), res.roe_m[[c], n], res.dv_rtn_mps[[c], n],
-                                  z[[c], n])[0] for c, n in zip(b, i)]
+    batched = safety.violated(i, res.roe_m[b, i], res.dv_rtn_mps[b, i], z[b, i])
+    one = [safety.violated(int(n), res.roe_m[[c], n], res.dv_rtn_mps[[c], n], z[[c], n])[0]
+           for c, n in zip(b, i)]
     assert np.array_equal(batched, np.array(one)) and batched.any() and not batched.all()
 
 

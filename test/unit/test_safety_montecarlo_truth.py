@@ -28,7 +28,7 @@ from scipy import stats
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import Horizon
-from art_guidance.optim import Scvx, solve_cvx
+from art_guidance.optim import TransferProblem
 from art_guidance.safety import PassiveSafety
 from helpers import orbit_truth as truth
 
@@ -117,9 +117,9 @@ def cases(horizon: Horizon) -> dict:
     for seed, node in CASES:
         s = sample_scenario(SC, seed)
         x0 = np.linalg.solve(horizon.psi[0], s.rtn0)
-        xf = np.linalg.solve(horizon.psi[-1], s.target_rtn)
-        res = Scvx(ps, x0, xf, ScpConfig.from_yaml(), samples_per_node=3).solve(
-            solve_cvx(horizon, x0, xf).dv_rtn_mps)
+        problem = TransferProblem.to_target(ps, x0, s.target_rtn)
+        res = problem.scvx(ScpConfig.from_yaml(), samples_per_node=3).solve(
+            problem.cvx().dv_rtn_mps)
         assert res.feasible
         margin = ps.evaluate(res.roe_m, res.dv_rtn_mps).margin[node]
         z = ps.post_burn(res.roe_m, res.dv_rtn_mps)[node]

@@ -24,7 +24,7 @@ from art_guidance.art.rollout import rollout
 from art_guidance.cli import main
 from art_guidance.config import GuidanceConfig
 from art_guidance.errors import CheckpointError
-from art_guidance.optim import solve_cvx
+from art_guidance.optim import TransferProblem
 from art_guidance.planning import GuidancePipeline
 from helpers.shipped import heldout_requests
 
@@ -100,11 +100,10 @@ def test_rollouts_are_more_passively_safe_than_cvx(name):
     pipeline = GuidancePipeline(GuidanceConfig.load())
     requests = heldout_requests(100, name)
     transfer = pipeline.transfer(requests[0])
-    horizon, safety = transfer.horizon, transfer.safety
+    safety = transfer.safety
     c_cvx, j_cvx = [], []
     for req in requests:
-        roe_f = np.linalg.solve(horizon.psi[-1], req.target_rtn)
-        cvx = solve_cvx(horizon, req.roe0_m, roe_f)
+        cvx = TransferProblem.to_target(safety, req.roe0_m, req.target_rtn).cvx()
         c_cvx.append(safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0])
         j_cvx.append(cvx.cost_mps)
     res = rollout(provider.art, safety, np.array([r.roe0_m for r in requests]),

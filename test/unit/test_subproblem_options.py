@@ -9,10 +9,9 @@ import pytest
 from art_guidance.config import ScenarioConfig, ScpConfig, UncertaintyConfig
 from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.errors import InputError
-from art_guidance.optim import ScpStatus, Scvx, solve_cvx
+from art_guidance.optim import ScpStatus, TransferProblem
 from art_guidance.optim import problem
 from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions
-from art_guidance.optim.scp import terminal_warm_start
 from art_guidance.safety import PassiveSafety
 from art_guidance.scenarios import sample_scenario
 
@@ -31,8 +30,8 @@ def setup():
     for seed in SEEDS:
         s = sample_scenario(scenario, seed)
         x0 = roe_from_rtn_linear(chief, s.rtn0)
-        xf = np.linalg.solve(horizon.psi[-1], s.target_rtn)
-        problems[seed] = (x0, xf, solve_cvx(horizon, x0, xf).dv_rtn_mps)
+        transfer = TransferProblem.to_target(safety["cc"], x0, s.target_rtn)
+        problems[seed] = (x0, transfer.roe_f_m, transfer.cvx().dv_rtn_mps)
     return safety, problems
 
 
@@ -51,8 +50,8 @@ def test_idle_control_box_leaves_the_optimum_unchanged(setup):
     options = SubproblemOptions(tol=1e-8)
     checked = 0
     for x0, xf, warm in problems.values():
-        scvx = Scvx(safety["cc"], x0, xf, ScpConfig.from_yaml(), samples_per_node=3,
-                    subproblem=options)
+        scvx = TransferProblem(safety["cc"], x0, xf).scvx(ScpConfig.from_yaml(), 3,
+                                                          subproblem=options)
         sub, solve = scvx.sub, scvx.sub.solve
         seen = []
 
@@ -83,7 +82,7 @@ def test_control_box_is_kept_when_not_implied(setup):
     safety, problems = setup
     x0, xf, warm = problems[SEEDS[0]]
     cfg, horizon = ScpConfig.from_yaml(), safety["cc"].horizon
-    dv, roe = terminal_warm_start(horizon, x0, xf, warm)
+    dv, roe = TransferProblem(safety["cc"], x0, xf).terminal_warm_start(warm)
     sub = problem.ScpSubproblem(horizon, x0, xf, samples_per_node=3)
     sub.set_dynamics(horizon.linearize_nonlinear(roe, dv))
     a, rhs, _ = safety["cc"].linearize_samples(roe, dv, 3)
@@ -110,9 +109,9 @@ def test_scvx_plans_match_the_reference_form(setup, mode):
     safety, problems = setup
     cfg = ScpConfig.from_yaml()
     for x0, xf, warm in problems.values():
-        fast = Scvx(safety[mode], x0, xf, cfg, samples_per_node=3).solve(warm)
-        ref = Scvx(safety[mode], x0, xf, cfg, samples_per_node=3,
-                   subproblem=REFERENCE_OPTIONS).solve(warm)
+        transfer = TransferProblem(safety[mode], x0, xf)
+        fast = transfer.scvx(cfg, samples_per_node=3).solve(warm)
+        ref = transfer.scvx(cfg, samples_per_node=3, subproblem=REFERENCE_OPTIONS).solve(warm)
         assert fast.status is ref.status is ScpStatus.CONVERGED
         assert abs(fast.cost_mps - ref.cost_mps) <= cfg.eps_opt
         assert fast.max_violation <= cfg.eps_feas

@@ -88,11 +88,11 @@ def test_the_art_target_is_the_learned_warm_starts_state():
     assert result.window.target_source == "art", result.warm_start_reason
     assert result.proposal is not None and result.posthoc is not None
     horizon = pipeline.transfer(request).horizon
-    warm = (result.proposal.warm_start_dv_rtn_mps, result.proposal.warm_start_roe_m)
+    warm = result.proposal.warm_start
     z = horizon.post_burn_nonlinear(result.roe_m, result.dv_rtn_mps)[20]
-    z_art = horizon.post_burn_nonlinear(warm[1], warm[0])[20]
+    z_art = horizon.post_burn_nonlinear(warm.roe_m, warm.dv_rtn_mps)[20]
     assert np.abs(z - z_art).max() <= 10 * TERMINAL_TOL_M
-    np.testing.assert_array_equal(result.dv_rtn_mps[21:], warm[0][21:])
+    np.testing.assert_array_equal(result.dv_rtn_mps[21:], warm.dv_rtn_mps[21:])
 
 
 @pytest.mark.parametrize("field,value", [("window_nodes", 1), ("window_nodes", -1),
