@@ -22,6 +22,7 @@ import tempfile
 import time
 
 import numpy as np
+from tqdm import tqdm
 
 from art_guidance.errors import InputError
 from art_guidance.planning import GuidancePipeline
@@ -67,8 +68,25 @@ def fly(seed: int, window_nodes: int, target: str, model: str | None = None,
             "dv_mps": float(summary["total_dv_mps"]), "miss_m": float(summary["miss_m"]),
             "replan_ms": [float(r.timings_ms["total"]) for r in results],
             "replans": len(results),
+            "why_not_art": _why_not_art(windows),
             "targets": {s: sum(w.target_source == s for w in windows)
                         for s in ("art", "cvx", "scvx", "waypoint")}}
+
+
+def _why_not_art(windows: list) -> dict:
+    """Why windows asked for an ART target ended at another: counts per reason."""
+    reasons = {"CVX passively safe: ART not run": "passively safe (C_CVX",
+               "rejected by the post hoc check": "rejected by the post hoc check",
+               "the window to the ART target was infeasible": "the window to the ART target",
+               "ART not run or its output refused": "ART not run"}
+    out = {k: 0 for k in reasons}
+    out["other"] = 0
+    for w in windows:
+        if w.target_source != "cvx" or w.reason == "terminal_target cvx":
+            continue
+        key = next((k for k, v in reasons.items() if v in w.reason), "other")
+        out[key] += 1
+    return out
 
 
 def _every_node_s(pipeline: GuidancePipeline) -> float:
@@ -116,11 +134,13 @@ def run(repeats: int = 30, first_seed: int = 1000, min_c_cvx: int | None = None,
         configs[0] = ("full", 0, "cvx", True)
     jobs = [(s, h, t, model, trigger, c) for _, h, t, c in configs for s in seeds]
     if int(workers) > 1:
-        ctx = multiprocessing.get_context("spawn")
-        with ctx.Pool(int(workers)) as pool:
-            flights = pool.map(_fly_job, jobs, chunksize=1)
+        import bench_mpc  # this module as the workers import it (benchmarks/ is on the path)
+
+        with multiprocessing.get_context("spawn").Pool(int(workers)) as pool:
+            flights = list(tqdm(pool.imap(bench_mpc._fly_job, jobs, chunksize=1),
+                                total=len(jobs), desc="bench mpc", unit="flight"))
     else:
-        flights = [_fly_job(j) for j in jobs]
+        flights = [_fly_job(j) for j in tqdm(jobs, desc="bench mpc", unit="flight")]
     by = {name: flights[i * len(seeds):(i + 1) * len(seeds)]
           for i, (name, *_) in enumerate(configs)}
     full = by["full"]
@@ -142,7 +162,9 @@ def summarise(runs: list[dict], full: list[dict] | None) -> dict:
            "replan_ms_median": float(np.median(ms)), "replan_ms_p95": float(np.percentile(ms, 95)),
            "replans_mean": float(np.mean([r["replans"] for r in runs])),
            "targets": {k: int(sum(r["targets"][k] for r in runs))
-                       for k in ("art", "cvx", "scvx", "waypoint")}}
+                       for k in ("art", "cvx", "scvx", "waypoint")},
+           "why_not_art": {k: int(sum(r["why_not_art"][k] for r in runs))
+                           for k in runs[0]["why_not_art"]}}
     if full is not None:
         d = dv - np.array([r["dv_mps"] for r in full])
         f_ms = np.array([t for r in full for t in r["replan_ms"]])
