@@ -62,6 +62,11 @@ def run(repeats: int = 100, first_seed: int = 80000, model: str | None = None) -
             "within_tolerance": sum(r["dv_max_abs_mps"] <= DV_TOL_MPS for r in rows),
             "dv_max_abs_mps": max(r["dv_max_abs_mps"] for r in rows),
             "other_path": len(other),
+            "status_or_iterations_differ": sum(
+                not r["same_decision"] and r["same_posthoc"] and r["same_warm_start"]
+                for r in rows),
+            "cost_diff_over_1mm_s": sum(r["cost_diff_mps"] > 1e-3 for r in rows),
+            "cost_diff_mps_median": float(np.median([r["cost_diff_mps"] for r in rows])),
             "other_path_cost_diff_mps_max": max((r["cost_diff_mps"] for r in other),
                                                 default=0.0)}
     return out
