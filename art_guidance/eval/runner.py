@@ -80,12 +80,16 @@ class EvaluationSpec:
 
 # --------------------------------------------------------------------------- worker side
 def single_thread() -> None:
-    """One thread for torch and for BLAS/OpenMP libraries started from now on."""
-    import torch
+    """One thread for BLAS/OpenMP libraries started from now on, and for torch where it is
+    installed (a flight install evaluates and flies the exported models without it)."""
+    from art_guidance.extras import installed
 
     for var in THREAD_VARS:
         os.environ[var] = "1"
-    torch.set_num_threads(1)
+    if installed("torch"):
+        import torch
+
+        torch.set_num_threads(1)
 
 
 def evaluate_chunk(spec: EvaluationSpec, indices: Sequence[int]) -> dict[str, np.ndarray]:

@@ -370,3 +370,20 @@ def test_the_committed_results_are_complete_and_match_the_shipped_models(run):
     for name in summary["figures"]:
         data = (root / "figures" / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) < 400_000
+
+
+def test_single_thread_needs_no_torch(monkeypatch):
+    """A flight install (no torch) runs evaluate and the contingency Monte Carlo on the
+    exported models: setting one thread does not import torch there."""
+    import os
+    import sys
+
+    from art_guidance import extras
+    from art_guidance.eval.runner import THREAD_VARS, single_thread
+
+    monkeypatch.setattr(extras, "installed", lambda module: module != "torch")
+    monkeypatch.setitem(sys.modules, "torch", None)  # `import torch` would raise
+    for var in THREAD_VARS:
+        monkeypatch.delenv(var, raising=False)
+    single_thread()
+    assert all(os.environ[v] == "1" for v in THREAD_VARS)
