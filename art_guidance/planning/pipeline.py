@@ -134,11 +134,12 @@ class GuidancePipeline:
         evaluation.
         """
         if request.window_nodes:  # optimised over its window (`planning.window`)
-            n_nodes = self.transfer(request).horizon.n_nodes
+            transfer = self.transfer(request)
+            n_nodes = transfer.horizon.n_nodes
             if needs_window(request, n_nodes):
                 if deadline is None and self.deadline_s is not None:
                     deadline = Deadline(time.perf_counter() + self.deadline_s)
-                return plan_window(self, request, deadline)
+                return plan_window(self, transfer, deadline)
             return dataclasses.replace(self.plan(dataclasses.replace(request, window_nodes=0),
                                                  deadline),
                                        request=request, window=waypoint_window(request, n_nodes))

@@ -29,7 +29,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from art_guidance.deadline import Deadline
+from art_guidance.optim import ConvexSolution
 from art_guidance.planning.learned import learned_warm_start
+from art_guidance.planning.transfer import Transfer
 from art_guidance.planning.types import (  # noqa: F401  (targets re-exported)
     REFERENCE_TARGETS, TERMINAL_TARGETS, PlanRequest, PlanResult, WarmStart, WarmStartSource,
 )
@@ -80,12 +82,13 @@ def context_steps(request: PlanRequest) -> int:
     return 0 if request.context is None else request.context.n_steps
 
 
-def plan_window(pipeline: "GuidancePipeline", request: PlanRequest,
+def plan_window(pipeline: "GuidancePipeline", transfer: Transfer,
                 deadline: Deadline | None) -> PlanResult:
-    """Plan `request` over its window (module docstring); never raises for solver or model
-    trouble (the plan's status and reason say what happened)."""
+    """Plan `transfer` (the whole remainder) over its request's window (module docstring);
+    never raises for solver or model trouble (the plan's status and reason say what
+    happened)."""
     t0 = time.perf_counter()
-    transfer = pipeline.transfer(request)
+    request = transfer.request
     horizon, n, h = transfer.horizon, transfer.horizon.n_nodes, int(request.window_nodes)
     cvx = transfer.problem.cvx()
     t_cvx = time.perf_counter()
@@ -110,7 +113,8 @@ def plan_window(pipeline: "GuidancePipeline", request: PlanRequest,
         warm_start_reason=text, window=window)
 
 
-def _reference(pipeline: "GuidancePipeline", transfer, cvx, deadline: Deadline | None):
+def _reference(pipeline: "GuidancePipeline", transfer: Transfer, cvx: ConvexSolution,
+               deadline: Deadline | None) -> tuple:
     """The trajectory the window's target is taken from: (dv (N, 3), roe (N, 6), source,
     reason, the learned step or None)."""
     request = transfer.request
@@ -136,9 +140,9 @@ def _reference(pipeline: "GuidancePipeline", transfer, cvx, deadline: Deadline |
     return (*cvx_ref, "cvx", f"no ART target: {learned.reason}", learned)
 
 
-def _solve_window(pipeline: "GuidancePipeline", request: PlanRequest, transfer,
+def _solve_window(pipeline: "GuidancePipeline", request: PlanRequest, transfer: Transfer,
                   ref_dv: np.ndarray, ref_roe: np.ndarray, h: int, source: str, reason: str,
-                  cvx, deadline: Deadline | None) -> tuple[PlanResult, str, str]:
+                  cvx: ConvexSolution, deadline: Deadline | None) -> tuple[PlanResult, str, str]:
     """SCVx* over nodes 0..h to the reference's post-burn state at node h; an infeasible
     window to an ART target is solved again to the CVX target in the time left."""
     result = pipeline.plan(window_request(pipeline, request, transfer, ref_dv, ref_roe, h),
@@ -148,13 +152,10 @@ def _solve_window(pipeline: "GuidancePipeline", request: PlanRequest, transfer,
         return result, source, reason
     retry = pipeline.plan(window_request(pipeline, request, transfer, cvx.dv_rtn_mps,
                                          cvx.roe_m, h), deadline)
-    if retry.scp.feasible or not result.scp.feasible:
-        why = f"the window to the ART target ended {result.status.name}"
-        return retry, "cvx", why
-    return result, source, reason
+    return retry, "cvx", f"the window to the ART target ended {result.status.name}"
 
 
-def window_request(pipeline: "GuidancePipeline", request: PlanRequest, transfer,
+def window_request(pipeline: "GuidancePipeline", request: PlanRequest, transfer: Transfer,
                    ref_dv: np.ndarray, ref_roe: np.ndarray, h: int) -> PlanRequest:
     """The request of the window [0, h] of `transfer` ending at the post-burn state of the
     reference (`ref_dv`, `ref_roe`) at node h (warm-started from CVX, no window of its own)."""
@@ -164,7 +165,7 @@ def window_request(pipeline: "GuidancePipeline", request: PlanRequest, transfer,
     switch = request.koz_switch_node
     if switch is None:
         switch = pipeline.scenario.ae_to_koz_node
-    z_h = horizon.post_burn_nonlinear(ref_roe, ref_dv)[h]
+    z_h = horizon.post_burn_at(h, ref_roe[h], ref_dv[h])
     shape = dataclasses.replace(request, n_nodes=h + 1, n_orbits=n_orbits,
                                 koz_switch_node=int(switch), warm_start=WarmStart.CVX.value,
                                 window_nodes=0)
