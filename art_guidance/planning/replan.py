@@ -21,7 +21,7 @@ from art_guidance.dynamics import (
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.planning.types import (
     REFERENCE_TARGETS, TERMINAL_TARGETS, NavState, PlanRequest, PlanResult, RolloutContext,
-    Target,
+    Target, window_nodes_valid,
 )
 
 STAMP_CHECKS = ("wallclock", "order", "off")
@@ -104,12 +104,10 @@ def check_window(window_nodes: int, terminal_target: str, horizon_nodes: int) ->
     Raises:
         ConfigError: with the reason.
     """
-    h = window_nodes
-    if isinstance(h, bool) or not isinstance(h, (int, np.integer)) \
-            or not (h == 0 or 2 <= h <= int(horizon_nodes) - 1):
+    if not window_nodes_valid(window_nodes, int(horizon_nodes) - 1):
         raise ConfigError(f"replan_window_nodes must be 0 (the whole remainder) or in [2, "
                           f"{int(horizon_nodes) - 1}] (the horizon's nodes after the first), "
-                          f"got {h!r}")
+                          f"got {window_nodes!r}")
     if terminal_target not in TERMINAL_TARGETS + REFERENCE_TARGETS:
         raise ConfigError(f"terminal_target must be one of {TERMINAL_TARGETS}, got "
                           f"{terminal_target!r}")

@@ -58,6 +58,14 @@ TERMINAL_TARGETS = ("art", "cvx")  # where a replan window ends (`planning.windo
 REFERENCE_TARGETS = ("scvx", "art_any")
 
 
+def window_nodes_valid(window_nodes: object, most: int) -> bool:
+    """Whether `window_nodes` is a replan window: the integer 0 (the whole remainder) or one in
+    [2, `most`] (a window needs two burns to reach its terminal state)."""
+    h = window_nodes
+    return not isinstance(h, bool) and isinstance(h, (int, np.integer)) \
+        and (h == 0 or 2 <= h <= int(most))
+
+
 @dataclass(frozen=True)
 class RolloutContext:
     """The steps flown before a replan's first node, as the learned proposal's context (after
@@ -184,10 +192,9 @@ class PlanRequest:
             raise InputError("n_orbits", f"must be in [{lo:g}, {hi:g}] orbits", self.n_orbits)
         if self.koz_switch_node is not None and int(self.koz_switch_node) < 0:
             raise InputError("koz_switch_node", "must be >= 0", self.koz_switch_node)
-        h = self.window_nodes
-        if isinstance(h, bool) or not isinstance(h, (int, np.integer)) \
-                or not (h == 0 or 2 <= h <= 1000):
-            raise InputError("window_nodes", "must be 0 (the whole horizon) or in [2, 1000]", h)
+        if not window_nodes_valid(self.window_nodes, 1000):
+            raise InputError("window_nodes", "must be 0 (the whole horizon) or in [2, 1000]",
+                             self.window_nodes)
         if self.context is not None and not isinstance(self.context, RolloutContext):
             raise InputError("context", "must be a RolloutContext or None",
                              type(self.context).__name__)
