@@ -29,9 +29,9 @@ NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
 
 
 @contextmanager
-def _node_with_client(ros_env, python_exe, record_dir, name, namespace=""):
-    """A recording guidance node (replanning on every fix) and a matched client, both in
-    `namespace` when given.
+def _node_with_client(ros_env, python_exe, record_dir, name, namespace="", params=()):
+    """A recording guidance node (replanning on every fix; `params`: more of its parameters,
+    "name:=value") and a matched client, both in `namespace` when given.
 
     The client is closed on exit and a node still running is killed; stopping it properly is
     the test's business.
@@ -39,7 +39,8 @@ def _node_with_client(ros_env, python_exe, record_dir, name, namespace=""):
     remap = ["-r", f"__ns:={namespace}"] if namespace else []
     proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "-p", f"record_dir:={record_dir}",
-                             "-p", "replan_sigma_threshold:=1e-9", *remap],
+                             "-p", "replan_sigma_threshold:=1e-9",
+                             *[a for p in params for a in ("-p", p)], *remap],
                             env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     client = Client(name, namespace)
@@ -150,23 +151,12 @@ def test_namespaced_node_records_resolved_topics_and_each_request_once(
 def test_windowed_solves_are_recorded_with_their_window_and_replay(
         ros_env, python_exe, tmp_path):
     bag = tmp_path / "bag"
-    proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
-                             "-p", f"record_dir:={bag}", "-p", "replan_sigma_threshold:=1e-9",
-                             "-p", "replan_window_nodes:=20", "-p", "terminal_target:=art",
-                             "-p", "visualization:=false"],
-                            env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
-    client = Client("recording_client_window")
-    try:
-        assert client.wait_matched(60.0)
+    window = ("replan_window_nodes:=20", "terminal_target:=art", "visualization:=false")
+    with _node_with_client(ros_env, python_exe, bag, "recording_client_window",
+                           params=window) as (proc, client):
         ids = _plan_ids(client, 3, np.random.default_rng(9))
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=30)
-    finally:
-        client.close()
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
     assert proc.returncode == 0, out
     records = {r.plan_id: r for r, _ in read_log(bag).solves()}
     assert set(ids) <= set(records)

@@ -5,6 +5,7 @@ import logging
 
 import numpy as np
 import pytest
+from helpers.benchmarks import load_benchmark
 
 from art_guidance.planning import GuidancePipeline
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
@@ -63,17 +64,12 @@ def test_fixes_before_a_request_or_out_of_order_are_rejected():
 def test_the_hard_family_is_the_seeds_whose_cvx_warm_start_violates_most():
     """bench closed_loop --min-c-cvx N screens seeds by their initial CVX warm start's C_CVX
     (the first replan's transfer without navigation error)."""
-    import importlib.util
-    from pathlib import Path
 
     from art_guidance.dynamics import roe_from_rtn_linear
     from art_guidance.planning import PlanRequest
     from art_guidance.scenarios import sample_scenario
 
-    path = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_closed_loop.py"
-    spec = importlib.util.spec_from_file_location("bench_closed_loop", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("bench_closed_loop")
     pipeline = GuidancePipeline()
     seeds, c_cvx, screened = bench.hard_seeds(pipeline, 0, 2, 40)
     assert len(seeds) == 2 and min(c_cvx) >= 40 and screened == seeds[-1] + 1

@@ -2,11 +2,12 @@
 rows and on the committed evaluations: it picks what `provider.DEFAULT_MODELS` ships."""
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+
+from helpers.benchmarks import load_benchmark
 
 from art_guidance.art.provider import DEFAULT_MODELS, shipped_defaults
 
@@ -16,11 +17,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 
 @pytest.fixture(scope="module")
 def rule():
-    spec = importlib.util.spec_from_file_location("default_models",
-                                                  ROOT / "benchmarks" / "default_models.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("default_models")
 
 
 def _row(model: str, saving: float, worse: int = 0, ms: float = 200.0) -> dict:

@@ -2,23 +2,17 @@
 table of docs/art_training.md is the committed result's rendering."""
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from helpers.benchmarks import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def mod():
-    spec = importlib.util.spec_from_file_location("sweep_candidates",
-                                                  ROOT / "benchmarks" / "sweep_candidates.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("sweep_candidates")
 
 
 def test_documented_table_is_current(mod):
