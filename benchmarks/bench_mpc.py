@@ -32,6 +32,7 @@ from art_guidance.sim.inprocess import InProcessGuidance, default_settings
 
 _LOG = logging.getLogger("bench_mpc")
 _PIPELINE: GuidancePipeline | None = None
+SOURCES = ("art", "cvx", "scvx", "waypoint")  # where the windows' targets came from
 
 
 def _pipeline(model: str | None) -> GuidancePipeline:
@@ -70,7 +71,7 @@ def fly(seed: int, window_nodes: int, target: str, model: str | None = None,
             "replans": len(results),
             "why_not_art": _why_not_art(windows),
             "targets": {s: sum(w.target_source == s for w in windows)
-                        for s in ("art", "cvx", "scvx", "waypoint")}}
+                        for s in SOURCES}}
 
 
 def _why_not_art(windows: list) -> dict:
@@ -162,18 +163,17 @@ def summarise(runs: list[dict], full: list[dict] | None) -> dict:
            "replan_ms_median": float(np.median(ms)), "replan_ms_p95": float(np.percentile(ms, 95)),
            "replans_mean": float(np.mean([r["replans"] for r in runs])),
            "targets": {k: int(sum(r["targets"][k] for r in runs))
-                       for k in ("art", "cvx", "scvx", "waypoint")},
+                       for k in SOURCES},
            "why_not_art": {k: int(sum(r["why_not_art"][k] for r in runs))
                            for k in runs[0]["why_not_art"]}}
     if full is not None:
-        d = dv - np.array([r["dv_mps"] for r in full])
+        full_dv = np.array([r["dv_mps"] for r in full])
+        d = dv - full_dv
+        sem = float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan")
         f_ms = np.array([t for r in full for t in r["replan_ms"]])
-        out.update(dv_minus_full_mps_mean=float(d.mean()),
-                   dv_minus_full_mps_sem=float(d.std(ddof=1) / np.sqrt(d.size))
-                   if d.size > 1 else float("nan"),
+        out.update(dv_minus_full_mps_mean=float(d.mean()), dv_minus_full_mps_sem=sem,
                    dv_minus_full_pct_mean_plus_2sem=float(
-                       100 * (d.mean() + 2 * (d.std(ddof=1) / np.sqrt(d.size) if d.size > 1
-                                              else 0.0)) / np.mean([r["dv_mps"] for r in full])),
+                       100 * (d.mean() + 2 * (sem if d.size > 1 else 0.0)) / full_dv.mean()),
                    replan_ms_median_vs_full=float(np.median(ms) / np.median(f_ms)),
                    replan_ms_p95_vs_full=float(np.percentile(ms, 95)
                                                / np.percentile(f_ms, 95)))
