@@ -260,6 +260,8 @@ class PosthocThresholds:
 # terminal condition (`optim.terminal_warm_start`, what SCVx* starts from), or "rollout", the
 # rollout as the model produced it (the paper's check; the rollout misses the target).
 POSTHOC_SUBJECTS = ("warm_start", "rollout")
+# a replan with a plan in force starts from it (`planning.carry`) or solves afresh
+REPLAN_WARM_STARTS = ("carry", "fresh")
 NUMERICS = ("compiled", "numpy")  # `art_guidance.kernels`: numba kernels or their numpy oracles
 
 
@@ -277,8 +279,13 @@ class PlanningConfig:
     skip_art_when_cvx_safe: bool = True
     propose_concurrently: bool = False
     numerics: str = "compiled"
+    replan_warm_start: str = "carry"
+    carry_guard_mps: float = 0.05
 
     def __post_init__(self) -> None:
+        if self.replan_warm_start not in REPLAN_WARM_STARTS:
+            raise ConfigError(f"replan_warm_start must be one of {REPLAN_WARM_STARTS}, got "
+                              f"{self.replan_warm_start!r}")
         if self.numerics not in NUMERICS:
             raise ConfigError(f"numerics must be one of {NUMERICS}, got {self.numerics!r}")
         if self.posthoc_subject not in POSTHOC_SUBJECTS:
@@ -293,11 +300,11 @@ class PlanningConfig:
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
-        gain = self.art_min_gain_mps
-        if isinstance(gain, bool) or not isinstance(gain, (int, float)) \
-                or not 0.0 <= gain < float("inf"):
-            raise ConfigError(f"art_min_gain_mps must be a finite number >= 0 [m/s], "
-                              f"got {gain!r}")
+        for name in ("art_min_gain_mps", "carry_guard_mps"):
+            gain = getattr(self, name)
+            if isinstance(gain, bool) or not isinstance(gain, (int, float)) \
+                    or not 0.0 <= gain < float("inf"):
+                raise ConfigError(f"{name} must be a finite number >= 0 [m/s], got {gain!r}")
         share = self.art_deadline_share
         if isinstance(share, bool) or not isinstance(share, (int, float)) \
                 or not 0.0 < share < 1.0:
@@ -317,13 +324,15 @@ class PlanningConfig:
 # in-flight choices between warm starts); `samples_per_node` shapes SCVx* and does matter.
 FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
                         "also_solve_from_art", "posthoc_subject", "art_min_gain_mps",
-                        "skip_art_when_cvx_safe", "propose_concurrently", "numerics")
+                        "skip_art_when_cvx_safe", "propose_concurrently", "numerics",
+                        "replan_warm_start", "carry_guard_mps")
 
 
 # What the pipeline did before these planning fields existed: fly the cheaper plan whatever
-# the gap, and run ART even when the CVX plan is passively safe.
+# the gap, run ART even when the CVX plan is passively safe, and replan from scratch.
 _BEFORE = {"art_min_gain_mps": 0.0, "skip_art_when_cvx_safe": False,
-           "propose_concurrently": False, "also_solve_from_art": False}
+           "propose_concurrently": False, "also_solve_from_art": False,
+           "replan_warm_start": "fresh"}
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,16 @@ waypoint, as the first replan sees it without navigation error), flown with erro
 the learned warm start against CVX only. `model`: the model `auto` flies (default: the
 shipped default).
 
+`configs` (`--configs cvx_fresh,auto_fresh,cvx_carry,auto_carry`): instead of the above, every
+seed flown once per configuration, errors on, `workers` processes: the warm start (`cvx`: CVX
+only; `auto`: the learned proposal, the shipped default model or `model`) and the replan's
+(`fresh`: every replan solved from scratch; `carry`: from the plan in force,
+`planning.carry`). Per configuration: reached, delta-v, the worst miss, replans, the paired
+delta-v against `cvx_fresh` (flown too if not named: mean, sem, worst seed), SCVx* iterations of
+every run of a replan, replan time median and p95, the share of replans whose plan ended at the
+iteration cap, and the share that kept the carried plan; the first plan of a flight (a fresh
+target) is left out of the per-replan figures.
+
 Run it on two checkouts to compare planner versions seed by seed (the numbers do not depend on
 the machine's speed: the solve deadline is far above the solve times).
 """
@@ -77,10 +87,16 @@ def _dist(x: np.ndarray) -> dict:
 
 
 def run(repeats: int = 30, warm_starts: bool = True, first_seed: int = 0,
-        min_c_cvx: int | None = None, model: str | None = None) -> dict:
+        min_c_cvx: int | None = None, model: str | None = None, configs: str | None = None,
+        workers: int = 1) -> dict:
     """Seeds first_seed..first_seed+repeats-1 with and without errors; miss and delta-v
     distributions; with `warm_starts`, ART in the loop against CVX only (errors on, paired per
-    seed). With `min_c_cvx`, the hard family (module docstring), errors on only."""
+    seed). With `min_c_cvx`, the hard family (module docstring), errors on only. With
+    `configs`, the named configurations on the same seeds (module docstring)."""
+    if configs is not None:
+        from closed_loop_configs import compare_configs
+
+        return compare_configs(configs, repeats, first_seed, min_c_cvx, model, workers)
     pipeline = GuidancePipeline()
     t0 = time.perf_counter()
     n = max(int(repeats), 1)

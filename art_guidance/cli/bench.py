@@ -51,7 +51,7 @@ _PASSED = {"out": "--out", "workers": "--workers", "engine": "--engine",
            "missed_per_seed": "--missed-per-seed", "first_seed": "--first-seed",
            "model": "--model", "reference": "--reference", "min_c_cvx": "--min-c-cvx",
            "horizons": "--horizons", "targets": "--targets", "trigger": "--trigger",
-           "context": "--context"}
+           "context": "--context", "configs": "--configs"}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -95,4 +95,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--context", default=None, choices=("off", "on", "both"),
                    help="mpc: give the learned proposal the steps flown since the target was "
                    "set (T-MPC's context): off, on, or both (each configuration both ways)")
+    p.add_argument("--configs", default=None, metavar="C,C,...",
+                   help="closed_loop: fly these configurations on the same seeds, each "
+                   "WARMSTART_REPLAN with WARMSTART cvx or auto and REPLAN fresh (every replan "
+                   "from scratch) or carry (from the plan in force), paired against cvx_fresh, "
+                   "e.g. cvx_fresh,auto_fresh,cvx_carry,auto_carry")
     p.set_defaults(func=run)

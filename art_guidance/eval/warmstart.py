@@ -7,7 +7,7 @@ from, `planning.posthoc.check_proposal`, with the paper's check of the rollout i
 them); SCVx* then runs once from CVX ("PS-CVX") and once from the ART rollout ("PS-ART"),
 both with the same configuration and no deadline. The `auto` plan is what the pipeline flies:
 PS-ART if the post hoc check accepts the rollout, else PS-CVX; when
-that run does not converge, the better of the two (`planning.pipeline.keep_first_plan`, with
+that run does not converge, the better of the two (`planning.choice.keep_first_plan`, with
 `art_min_gain_mps`), as the pipeline's retry from the other warm start gives (without a
 deadline); with `also_solve_from_cvx`, an accepted rollout's plan is always compared with
 PS-CVX.
@@ -32,7 +32,7 @@ from art_guidance.config import GuidanceConfig
 from art_guidance.errors import GuidanceError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, TransferProblem
 from art_guidance.optim.problem import SubproblemPool
-from art_guidance.planning.pipeline import keep_first_plan, second_run
+from art_guidance.planning.choice import keep_first_plan, second_run
 from art_guidance.planning.posthoc import check_proposal, posthoc_check
 from art_guidance.planning.types import PosthocDecision, WarmStartProposal, WarmStartSource
 

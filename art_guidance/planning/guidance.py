@@ -163,7 +163,8 @@ class GuidanceCore:
             job = None
             if self._latest is not None:
                 nav, nav_payload = self._latest
-                job = Job(nav, request_for(nav, target, fresh, self.policy.settings), "request",
+                job = Job(nav, request_for(nav, target, fresh, self.policy.settings,
+                                           no_carry="a new target"), "request",
                           nav_payload, payload)
             else:
                 check_target(target)
@@ -182,7 +183,7 @@ class GuidanceCore:
     def _job_for(self, nav: NavState, payload: Any, trigger: str) -> Job:
         window = self.policy.window(nav, self.target.n_orbits)
         request = request_for(nav, self.target, window, self.policy.settings,
-                              self.policy.context_at(nav))
+                              self.policy.context_at(nav), *self.policy.carry_at(nav, window))
         return Job(nav, request, trigger, payload, self._target_payload)
 
     def _submit(self, job: Job) -> None:

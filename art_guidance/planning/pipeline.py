@@ -8,13 +8,16 @@ the post hoc check (`planning.posthoc.check_proposal`: accept when E_R and E_C o
 SCVx* would start from, or of the rollout itself, are inside the configured region); an
 accepted (or, with warm_start "art", forced) proposal warm-starts SCVx*, otherwise CVX does.
 Every plan says in words which warm start it used and why (`PlanResult.warm_start_reason`).
+
+A replan whose request carries the plan in force (`planning.carry`, `replan_warm_start:
+carry`) starts SCVx* from that plan first; the fresh solve above runs only where the carried
+run does not converge (the rescue), where the guard against a locked basin fires, or where
+there is nothing to carry (`PlanResult.carry` says which).
 """
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
-import json
 import threading
 import time
 
@@ -26,6 +29,11 @@ from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx
 from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions, SubproblemPool
+from art_guidance.planning.carry import CarryReport, guard_reason, refusal
+from art_guidance.planning.choice import (
+    CarryStep, Fresh, choose, keep_first_plan, second_run,
+)
+from art_guidance.planning.config_record import config_json_sha256
 from art_guidance.planning.learned import (
     Learned, cvx_is_safe, error_text, timed_learned_warm_start,
 )
@@ -34,6 +42,7 @@ from art_guidance.planning.proposal_process import (
 )
 from art_guidance.planning.transfer import Transfer, Transfers
 from art_guidance.planning.window import needs_window, plan_window, waypoint_window
+from art_guidance.planning.worker_scvx import WorkerScvx
 from art_guidance.planning.types import (
     PlanRequest, PlanResult, ScpAttempt, WarmStart, WarmStartProvider, WarmStartSource,
 )
@@ -68,6 +77,7 @@ class GuidancePipeline:
                 None: the default); recorded with the configuration (`config_json`).
         """
         self.config = config or GuidanceConfig.load()
+        self._config_sha256 = self.config.sha256()
         kernels.set_numerics(self.config.planning.numerics)  # process-wide (`kernels`)
         self.scenario = self.config.scenario
         self.uncertainty = self.config.uncertainty
@@ -136,13 +146,15 @@ class GuidancePipeline:
         if request.window_nodes:  # optimised over its window (`planning.window`)
             transfer = self.transfer(request)
             n_nodes = transfer.horizon.n_nodes
-            if needs_window(request, n_nodes):
+            why = self._no_window_target(request, n_nodes)
+            if needs_window(request, n_nodes) and not why:
                 if deadline is None and self.deadline_s is not None:
                     deadline = Deadline(time.perf_counter() + self.deadline_s)
                 return plan_window(self, transfer, deadline)
             return dataclasses.replace(self.plan(dataclasses.replace(request, window_nodes=0),
                                                  deadline),
-                                       request=request, window=waypoint_window(request, n_nodes))
+                                       request=request,
+                                       window=waypoint_window(request, n_nodes, why))
         with self._pools_lock:
             pool = self._pools.pop() if self._pools else SubproblemPool()
         try:
@@ -151,25 +163,98 @@ class GuidancePipeline:
             with self._pools_lock:
                 self._pools.append(pool)
 
+    def _no_window_target(self, request: PlanRequest, n_nodes: int) -> str:
+        """Why a windowed request has no target and is planned whole ("" = it has one): with
+        `terminal_target` carry, nothing to carry."""
+        if request.terminal_target != "carry":
+            return ""
+        why = refusal(request.carry, request.no_carry, "carry", request.chance_constrained,
+                      self._config_sha256, n_nodes)
+        return why and f"no plan in force to track ({why}): the whole remainder is planned"
+
     def _plan(self, request: PlanRequest, deadline: Deadline | None,
               pool: SubproblemPool) -> PlanResult:
-        """`plan` with the caller's SCVx* subproblems."""
+        """`plan` with the caller's SCVx* subproblems: setup, CVX, the carried run (where
+        there is a plan in force to carry), the fresh runs (where it is needed), the choice,
+        the result."""
         t0 = time.perf_counter()
         if deadline is None and self.deadline_s is not None:
             deadline = Deadline(t0 + self.deadline_s)
         transfer = self.transfer(request)
-        horizon, safety = transfer.horizon, transfer.safety
         t_setup = time.perf_counter()
         cvx = transfer.problem.cvx()
         t_cvx = time.perf_counter()
-        cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
-            else np.zeros((horizon.n_nodes, 3))
         scvx = transfer.scvx(self.config, self.subproblem, pool)
+        step = self._carry(transfer, cvx, scvx, deadline)
+        fresh = None
+        if step.fresh_why is not None:
+            fresh = self._fresh(transfer, cvx, scvx, deadline)
+        run = choose(step, fresh, self.config.planning.art_min_gain_mps)
+        t_end = time.perf_counter()
+        # with the concurrent proposal, "art" (its own wall time) overlaps "scp" (every
+        # SCVx* run, the one from CVX made meanwhile included): their sum then exceeds the
+        # total
+        art_ms, propose_ms, early_ms = (0.0, 0.0, 0.0) if fresh is None else (
+            fresh.art_ms, fresh.propose_ms, fresh.early_ms)
+        timings = {"setup": 1e3 * (t_setup - t0), "cvx": 1e3 * (t_cvx - t_setup),
+                   "art": art_ms, "scp": 1e3 * (t_end - t_cvx) - propose_ms + early_ms,
+                   "total": 1e3 * (t_end - t0)}
+        res, learned = run.result, run.learned
+        margin = float(transfer.safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
+        horizon = transfer.horizon
+        return PlanResult(
+            status=res.status, chief_oe=request.chief_oe, epochs_s=horizon.epochs_s,
+            dv_rtn_mps=res.dv_rtn_mps, roe_m=res.roe_m, rtn=horizon.to_rtn(res.roe_m),
+            cost_mps=res.cost_mps, scp=res, cvx=cvx, warm_start=run.source,
+            posthoc=None if learned is None else learned.posthoc,
+            constraint_margin_m=margin, timings_ms=timings, request=request,
+            proposal=None if learned is None else learned.proposal,
+            warm_start_reason=run.reason, discarded=run.discarded,
+            carry=dataclasses.replace(run.carry, config_sha256=self._config_sha256),
+            scp_iterations_all=run.iterations)
+
+    def _carry(self, transfer: Transfer, cvx: ConvexSolution, scvx: Scvx,
+               deadline: Deadline | None) -> CarryStep:
+        """SCVx* from the plan in force, where the request carries one that this plan can
+        start from (`planning.carry`), and whether the fresh solve must run too."""
+        planning, request = self.config.planning, transfer.request
+        why = refusal(request.carry, request.no_carry, planning.replan_warm_start,
+                      request.chance_constrained, self._config_sha256,
+                      transfer.horizon.n_nodes)
+        if not why and cvx.status.feasible and cvx_is_safe(cvx, transfer.safety):
+            why = "CVX is passively safe: SCVx* from it is the plan, nothing to carry"
+        if why:
+            return CarryStep(CarryReport(planning.replan_warm_start, False, why), fresh_why="")
+        carry = request.carry
+        warm = transfer.problem.terminal_warm_start(carry.dv_rtn_mps)
+        res = scvx.solve(warm.dv_rtn_mps, projected=warm, deadline=None if deadline is None
+                         else deadline.share(planning.art_deadline_share))
+        excess = carry.excess_mps + res.cost_mps - carry.remaining_mps
+        text = (f"carried {carry.plan_id}: SCVx* from its burns ended {res.status.name} after "
+                f"{res.iterations} iterations ({res.cost_mps:.4f} m/s)")
+        report = CarryReport("carry", True, text, True, "", excess, res.iterations)
+        if res.status is not ScpStatus.CONVERGED:
+            return CarryStep(report, res, fresh_why=f"the carried run ended {res.status.name}")
+        guard = guard_reason(excess, res.cost_mps, cvx.cost_mps, planning.carry_guard_mps)
+        if guard and not (deadline is not None and deadline.passed()):
+            return CarryStep(dataclasses.replace(report, guard=guard), res,
+                             fresh_why=f"guard: {guard}")
+        return CarryStep(report, res)
+
+    def _fresh(self, transfer: Transfer, cvx: ConvexSolution, scvx: Scvx,
+               deadline: Deadline | None) -> Fresh:
+        """SCVx* from CVX and, per the request's warm start, from the learned proposal (a
+        plan with no plan in force to carry, the carried run's rescue and its guard)."""
+        request = transfer.request
+        t_start = time.perf_counter()
+        cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
+            else np.zeros((transfer.horizon.n_nodes, 3))
         early, learned, art_ms, art_run = self._propose(transfer, cvx, cvx_dv, scvx, deadline)
         # the worker's run from ART, if any, is cancelled on every path that does not take it
         with art_run or contextlib.nullcontext():
             t_art = time.perf_counter()
             source, reason, discarded = learned.source, learned.reason, None
+            iterations = 0
             warm = {CVX: cvx_dv, ART: learned.dv}
             projected = {CVX: None, ART: learned.warm_start}  # ART's terminal warm start
 
@@ -188,6 +273,7 @@ class GuidancePipeline:
             if warm[other] is not None and deadline is not None:  # leave time for the retry
                 first = deadline.share(self.config.planning.art_deadline_share)
             res = solve(source, first)
+            iterations = res.iterations
             auto = request.warm_start == WarmStart.AUTO.value and not (
                 deadline is not None and deadline.passed())
             second = second_run(res, source, warm[other] is not None,
@@ -198,6 +284,7 @@ class GuidancePipeline:
             if second is not None:
                 alt_source, why = second
                 alt = solve(alt_source, deadline)
+                iterations += alt.iterations
                 keep_first = keep_first_plan(res, alt, source,
                                              self.config.planning.art_min_gain_mps)
                 kept, lost = (res, alt) if keep_first else (alt, res)
@@ -213,18 +300,9 @@ class GuidancePipeline:
                                f"{1e3 * (cvx_plan.cost_mps - art_plan.cost_mps):.2f} mm/s "
                                f"cheaper, not more than art_min_gain_mps)")
                 res = kept
-            t_end = time.perf_counter()
-            margin = float(safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
-            # with the concurrent proposal, "art" (its own wall time) overlaps "scp" (every
-            # SCVx* run, the one from CVX made meanwhile included): their sum then exceeds the
-            # total
-            scp_ms = 1e3 * (t_end - t_art) + (0.0 if early is None else early.solve_time_ms)
-            timings = {"setup": 1e3 * (t_setup - t0), "cvx": 1e3 * (t_cvx - t_setup),
-                       "art": art_ms, "scp": scp_ms, "total": 1e3 * (t_end - t0)}
-            return PlanResult(res.status, request.chief_oe, horizon.epochs_s, res.dv_rtn_mps,
-                              res.roe_m, horizon.to_rtn(res.roe_m), res.cost_mps, res, cvx,
-                              source, learned.posthoc, margin, timings, request,
-                              learned.proposal, reason, discarded)
+        return Fresh(res, source, reason, discarded, learned, art_ms,
+                     1e3 * (t_art - t_start), 0.0 if early is None else early.solve_time_ms,
+                     iterations)
 
     def _propose(self, transfer: Transfer, cvx: ConvexSolution, cvx_dv: np.ndarray,
                  scvx: Scvx, deadline: Deadline | None
@@ -316,110 +394,3 @@ class GuidancePipeline:
         concurrent proposal starts it again)."""
         if self._worker is not None:
             self._worker.close()
-
-
-_RECORD_EXTRAS = ("deadline_s", "config_sha256", "scp_subproblem", "record_sha256")
-
-
-class WorkerScvx:
-    """SCVx* from the proposal of one plan, solved in the proposal worker: taken where the plan
-    needs it (`result`), cancelled otherwise (`dismiss`)."""
-
-    def __init__(self, worker: ProposalProcess, job_id: int) -> None:
-        self._worker, self._job_id = worker, job_id
-        self._taken = False
-
-    def result(self, deadline: Deadline | None) -> ScpResult | None:
-        """The worker's run (waiting for it within the plan's deadline and `GRACE_S`), or None:
-        the plan solves it in line."""
-        self._taken = True
-        wait = NO_DEADLINE_TIMEOUT_S if deadline is None else deadline.left_s() + GRACE_S
-        return self._worker.scvx_result(self._job_id, wait)
-
-    def dismiss(self) -> None:
-        """Cancel the run if the plan did not take it."""
-        if not self._taken:
-            self._worker.dismiss(self._job_id)
-
-    def __enter__(self) -> "WorkerScvx":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.dismiss()
-
-
-def _canonical_sha256(data: dict) -> str:
-    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
-
-
-def config_json_sha256(data: dict) -> str:
-    """Fingerprint of a recorded configuration (`GuidancePipeline.config_json`): the sha256 of
-    its canonical JSON without the `record_sha256` entry itself."""
-    return _canonical_sha256({k: v for k, v in data.items() if k != "record_sha256"})
-
-
-def recorded_config_problem(data: dict) -> str:
-    """Why a recorded configuration cannot be trusted ("" = it can): its `record_sha256` does
-    not match its content, or, in a record from before that seal, the configuration bundle as
-    recorded does not match its `config_sha256` (`GuidanceConfig.sha256`, computed on the
-    bundle as it was written, so a field added since does not count as a change)."""
-    sealed, bundle = data.get("record_sha256"), data.get("config_sha256")
-    if sealed is not None:
-        ok, name = sealed == config_json_sha256(data), "record_sha256"
-    elif bundle is not None:
-        recorded = {k: v for k, v in data.items() if k not in _RECORD_EXTRAS}
-        ok, name = bundle == _canonical_sha256(recorded), "config_sha256"
-    else:
-        return ""
-    return "" if ok else (f"the recorded configuration does not match its {name}: it was "
-                          "altered after recording")
-
-
-def second_run(first: ScpResult, source: WarmStartSource, other_exists: bool,
-               also_from_cvx: bool,
-               also_from_art: bool = False) -> tuple[WarmStartSource, str] | None:
-    """Whether SCVx* runs a second time after `first` (warm-started from `source`): (the other
-    warm start, why), or None.
-
-    A run that did not converge is retried from the other warm start when there is one
-    (`other_exists`); a converged run from ART is also solved from CVX when `also_from_cvx`
-    (the caller's `also_solve_from_cvx` conditions: warm start "auto", time left); a converged
-    run from CVX is also solved from a valid ART proposal the check rejected when
-    `also_from_art` (`also_solve_from_art`, the same conditions).
-    """
-    other = source.other
-    if first.status is not ScpStatus.CONVERGED and other_exists:
-        return other, (f"SCP from {source.label} ended {first.status.name}, retried from "
-                       f"{other.label}")
-    if source is ART and also_from_cvx:
-        return CVX, "also solved from CVX"
-    if source is CVX and other_exists and also_from_art:
-        return ART, "also solved from ART"
-    return None
-
-
-def better_plan(a: ScpResult, b: ScpResult) -> bool:
-    """True if `a` is at least as good as `b`: feasible first, then the lower cost (feasible)
-    or the smaller violation (neither feasible)."""
-    if a.feasible != b.feasible:
-        return a.feasible
-    if a.feasible:
-        return a.cost_mps <= b.cost_mps
-    return a.max_violation <= b.max_violation
-
-
-def keep_first_plan(first: ScpResult, second: ScpResult, source: WarmStartSource,
-                    min_gain_mps: float) -> bool:
-    """Whether the plan of the first SCVx* run (warm-started from `source`) is
-    kept over the second's (from the other warm start): the better plan (`better_plan`),
-    except that when both are feasible the ART-warm-started plan must be cheaper than the
-    CVX-warm-started one by more than `min_gain_mps` [m/s] (`planning.yaml`
-    `art_min_gain_mps`). In replanning the two converge to plans of nearly the same cost that
-    time their burns differently, and switching between them costs more under the errors
-    than the difference saves."""
-    art, cvx = (first, second) if source is ART else (second, first)
-    if art.feasible and cvx.feasible:
-        keep_cvx = not art.cost_mps < cvx.cost_mps - min_gain_mps
-    else:
-        keep_cvx = better_plan(cvx, art)
-    return keep_cvx == (source is CVX)

@@ -19,6 +19,7 @@ from art_guidance.dynamics import (
     control_matrix, orbital_period_s, propagate_mean_oe, stm_j2,
 )
 from art_guidance.errors import ConfigError, GuidanceError
+from art_guidance.planning.carry import GRID_TOL, CarriedPlan
 from art_guidance.planning.types import (
     REFERENCE_TARGETS, TERMINAL_TARGETS, NavState, PlanRequest, PlanResult, RolloutContext,
     Target, window_nodes_valid,
@@ -154,6 +155,7 @@ class ReplanPolicy:
         self.active: ActivePlan | None = None
         self.stamp_floor_ns: int | None = None
         self.last_plan_ns: int | None = None
+        self.no_carry = "no plan in force"  # why `carry_at` has nothing while none is
 
     @property
     def active_id(self) -> str:
@@ -164,6 +166,7 @@ class ReplanPolicy:
         """A new target: drop the plan in force and start a new stamp sequence."""
         self.active = None
         self.stamp_floor_ns = None
+        self.no_carry = "a new target"
 
     def check_stamp(self, stamp_ns: int, now_ns: int) -> None:
         """Refuse a stale, out-of-order or future stamp.
@@ -235,6 +238,30 @@ class ReplanPolicy:
         switch = max(0, math.ceil((active.switch_ns - nav.stamp_ns) * 1e-9 / active.dt_s))
         return ReplanWindow(max(n_nodes, 3), max(remaining_s, 2 * active.dt_s) / period, switch)
 
+    def carry_at(self, nav: NavState, window: ReplanWindow) -> tuple[CarriedPlan | None, str]:
+        """The plan in force's burns at the nodes of a replan from `nav` over `window`
+        (`planning.carry`), or None and why there are none."""
+        active = self.active
+        if active is None:
+            return None, self.no_carry
+        res = active.result
+        offset = (nav.stamp_ns - active.t0_ns) * 1e-9 / active.dt_s
+        m = int(round(offset))
+        if abs(offset - m) > GRID_TOL:
+            return None, (f"the fix is {abs(offset - m) * active.dt_s:.1f} s off the plan in "
+                          "force's node grid")
+        left = len(res.epochs_s) - m
+        if window.n_nodes != left:
+            return None, (f"the replan's horizon was raised to its minimum of "
+                          f"{window.n_nodes} nodes ({left} left in the plan in force)")
+        dv, roe = res.dv_rtn_mps[m:], res.roe_m[m:]
+        if not (np.all(np.isfinite(dv)) and np.all(np.isfinite(roe))):
+            return None, "the plan in force's burns or states are not finite"
+        report = res.carry
+        return CarriedPlan(active.plan_id, dv, roe, 0.0 if report is None else report.excess_mps,
+                           bool(res.request is None or res.request.chance_constrained),
+                           "" if report is None else report.config_sha256), ""
+
     def context_at(self, nav: NavState) -> RolloutContext | None:
         """The steps flown before `nav` since the target was set (`art_context`; None: off,
         or nothing flown): the context of the plan in force followed by its own states and
@@ -275,16 +302,19 @@ class ReplanPolicy:
 
 def request_for(nav: NavState, target: Target, window: ReplanWindow,
                 settings: ReplanSettings | None = None,
-                context: RolloutContext | None = None) -> PlanRequest:
+                context: RolloutContext | None = None, carry: CarriedPlan | None = None,
+                no_carry: str = "") -> PlanRequest:
     """The planning request for a fix, a target and a replan window (optimised over the
-    `settings`' window, if any; the learned proposal given the flown `context`, if any)."""
+    `settings`' window, if any; the learned proposal given the flown `context`, if any; the
+    plan in force `carry`, or why there is none)."""
     s = settings or ReplanSettings()
     return PlanRequest(nav.chief_oe, nav.roe_m, target.target_rtn,
                        chance_constrained=target.chance_constrained,
                        warm_start=target.warm_start, n_nodes=window.n_nodes,
                        n_orbits=window.n_orbits, koz_switch_node=window.koz_switch_node,
                        window_nodes=int(s.replan_window_nodes),
-                       terminal_target=s.terminal_target, context=context)
+                       terminal_target=s.terminal_target, context=context, carry=carry,
+                       no_carry=no_carry)
 
 
 def check_target(target: Target) -> None:

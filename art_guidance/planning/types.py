@@ -16,6 +16,7 @@ from art_guidance.deadline import Deadline
 from art_guidance.dynamics import check_chief, check_deputy_inclination, mean_motion
 from art_guidance.errors import InputError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Trajectory, TransferProblem
+from art_guidance.planning.carry import CarriedPlan, CarryReport
 
 
 class WarmStart(str, enum.Enum):
@@ -34,15 +35,17 @@ WARM_STARTS = tuple(w.value for w in WarmStart)
 
 
 class WarmStartSource(enum.Enum):
-    """The warm start an SCVx* run started from: the convex TPBVP solution or the learned
-    proposal. Its value is the string the plan message, the solve record and the JSON carry."""
+    """The warm start an SCVx* run started from: the convex TPBVP solution, the learned
+    proposal or the plan in force (`planning.carry`). Its value is the string the plan message,
+    the solve record and the JSON carry."""
 
     CVX = "cvx"
     ART = "art"
+    CARRIED = "carried"
 
     @property
     def other(self) -> "WarmStartSource":
-        """The other warm start."""
+        """The other fresh warm start (CVX for ART and for the carried plan)."""
         return WarmStartSource.ART if self is WarmStartSource.CVX else WarmStartSource.CVX
 
     @property
@@ -52,7 +55,7 @@ class WarmStartSource(enum.Enum):
 
 
 N_ORBITS_RANGE = (0.01, 20.0)  # a plan's horizon [orbits], inclusive
-TERMINAL_TARGETS = ("art", "cvx")  # where a replan window ends (`planning.window`)
+TERMINAL_TARGETS = ("art", "cvx", "carry")  # where a replan window ends (`planning.window`)
 # benchmark references of a window's end (`bench mpc`), not node parameters: the full-horizon
 # SCVx* plan's state (the oracle: costs the full replan it saves) and ART's whatever the check
 REFERENCE_TARGETS = ("scvx", "art_any")
@@ -158,6 +161,8 @@ class PlanRequest:
             `terminal_target`'s state at node H (`planning.window`); 0 the whole horizon.
         terminal_target: "art" or "cvx" (`planning.window`).
         context: the steps flown before node 0, given to the learned proposal (None: none).
+        carry: the plan in force's burns at the request's nodes (`planning.carry`; None: none).
+        no_carry: why the guidance carried none ("" = no plan in force).
     """
 
     chief_oe: np.ndarray
@@ -171,6 +176,8 @@ class PlanRequest:
     window_nodes: int = 0
     terminal_target: str = "art"
     context: RolloutContext | None = None
+    carry: CarriedPlan | None = None
+    no_carry: str = ""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "chief_oe", check_chief(self.chief_oe))
@@ -201,6 +208,8 @@ class PlanRequest:
         if self.terminal_target not in TERMINAL_TARGETS + REFERENCE_TARGETS:
             raise InputError("terminal_target", f"must be one of {TERMINAL_TARGETS} (or a "
                              f"benchmark's reference {REFERENCE_TARGETS})", self.terminal_target)
+        if self.carry is not None and not isinstance(self.carry, CarriedPlan):
+            raise InputError("carry", "must be a CarriedPlan or None", type(self.carry).__name__)
 
     def to_json(self) -> dict:
         """Everything needed to solve this request again (see `from_json`)."""
@@ -211,7 +220,9 @@ class PlanRequest:
                 "n_orbits": self.n_orbits, "koz_switch_node": self.koz_switch_node,
                 "window_nodes": int(self.window_nodes),
                 "terminal_target": self.terminal_target,
-                "context": None if self.context is None else self.context.to_json()}
+                "context": None if self.context is None else self.context.to_json(),
+                "carry": None if self.carry is None else self.carry.to_json(),
+                "no_carry": self.no_carry}
 
     @classmethod
     def from_json(cls, data: dict) -> "PlanRequest":
@@ -223,7 +234,10 @@ class PlanRequest:
                        data.get("koz_switch_node"), data.get("window_nodes", 0),
                        data.get("terminal_target", "art"),
                        None if data.get("context") is None
-                       else RolloutContext.from_json(data["context"]))
+                       else RolloutContext.from_json(data["context"]),
+                       None if data.get("carry") is None
+                       else CarriedPlan.from_json(data["carry"]),
+                       str(data.get("no_carry", "")))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError("request_json", f"malformed: {exc!r}") from exc
 
@@ -304,6 +318,8 @@ class PlanResult:
     warm_start_reason: str = ""  # why this warm start, in words
     discarded: ScpAttempt | None = None  # an SCP run replaced by a better retry
     window: Any = None  # `planning.window.PlanWindow` of a windowed replan (None: not one)
+    carry: CarryReport | None = None  # what the plan did with the plan in force
+    scp_iterations_all: int = 0  # iterations of every SCVx* run of this plan, kept or not
 
     @property
     def art_dv_rtn_mps(self) -> np.ndarray | None:
@@ -323,6 +339,7 @@ class PlanResult:
             "cvx_cost_mps": self.cvx.cost_mps,
             "status": self.status.name,
             "scp_iterations": self.scp.iterations,
+            "scp_iterations_all": self.scp_iterations_all,
             "warm_start": self.warm_start.value,
             "warm_start_reason": self.warm_start_reason,
             "posthoc": None if ph is None else {"E_R": ph.e_r, "E_C": ph.e_c,
@@ -336,6 +353,7 @@ class PlanResult:
             "timings_ms": dict(self.timings_ms),
             "constraint_margin_m": self.constraint_margin_m,
             "window": None if self.window is None else self.window.to_json(),
+            "carry": None if self.carry is None else self.carry.to_json(),
         }
 
 

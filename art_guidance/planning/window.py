@@ -10,7 +10,10 @@ remainder:
   post hoc check accepted: the rollout's controls corrected onto the waypoint condition, so that
   its state at node H lies on a trajectory that reaches the waypoint);
 - "cvx", or "art" where the proposal is rejected, missing or not run: the convex solution of the
-  remainder (CVX, solved for every plan anyway as the post hoc reference).
+  remainder (CVX, solved for every plan anyway as the post hoc reference);
+- "carry": the plan in force (`planning.carry`), its own predicted state at node H: a tracking
+  MPC. The window's SCVx* starts from the plan in force's burns there. With nothing to carry
+  (the first plan of a target, or a carry refused) the whole remainder is planned.
 
 The terminal condition is hard: the window's post-burn state at node H equals the reference's
 (within SCVx*'s terminal tolerance), so the plan published is the window's plan followed by
@@ -70,11 +73,12 @@ def needs_window(request: PlanRequest, n_nodes: int) -> bool:
     return 0 < int(request.window_nodes) < n_nodes - 1
 
 
-def waypoint_window(request: PlanRequest, n_nodes: int) -> PlanWindow:
-    """The window of a request whose remainder of `n_nodes` fits in it: planned whole."""
+def waypoint_window(request: PlanRequest, n_nodes: int, why: str = "") -> PlanWindow:
+    """The window of a request whose remainder of `n_nodes` fits in it, or that has no target
+    (`why`): planned whole."""
     return PlanWindow(int(request.window_nodes), n_nodes - 1, "waypoint",
-                      "the waypoint is inside the window: the whole remainder is planned",
-                      context_steps(request))
+                      why or "the waypoint is inside the window: the whole remainder is "
+                      "planned", context_steps(request))
 
 
 def context_steps(request: PlanRequest) -> int:
@@ -119,6 +123,10 @@ def _reference(pipeline: "GuidancePipeline", transfer: Transfer, cvx: ConvexSolu
     reason, the learned step or None)."""
     request = transfer.request
     cvx_ref = (cvx.dv_rtn_mps, cvx.roe_m)
+    if request.terminal_target == "carry":  # usable: `GuidancePipeline.plan` checked it
+        carry = request.carry
+        return carry.dv_rtn_mps, carry.roe_m, "carry", f"the plan in force {carry.plan_id}", \
+            None
     if request.terminal_target == "cvx":
         return (*cvx_ref, "cvx", "terminal_target cvx", None)
     if not cvx.status.feasible:
@@ -158,7 +166,8 @@ def _solve_window(pipeline: "GuidancePipeline", request: PlanRequest, transfer: 
 def window_request(pipeline: "GuidancePipeline", request: PlanRequest, transfer: Transfer,
                    ref_dv: np.ndarray, ref_roe: np.ndarray, h: int) -> PlanRequest:
     """The request of the window [0, h] of `transfer` ending at the post-burn state of the
-    reference (`ref_dv`, `ref_roe`) at node h (warm-started from CVX, no window of its own)."""
+    reference (`ref_dv`, `ref_roe`) at node h (warm-started from CVX, no window of its own;
+    from the plan in force's burns where that is the reference)."""
     horizon = transfer.horizon
     n = horizon.n_nodes
     n_orbits = float(request.n_orbits or pipeline.scenario.n_orbits) * h / (n - 1)
@@ -166,8 +175,12 @@ def window_request(pipeline: "GuidancePipeline", request: PlanRequest, transfer:
     if switch is None:
         switch = pipeline.scenario.ae_to_koz_node
     z_h = horizon.post_burn_at(h, ref_roe[h], ref_dv[h])
+    tracking = request.terminal_target == "carry" and request.carry is not None \
+        and ref_dv is request.carry.dv_rtn_mps
+    carry = request.carry.first(h + 1) if tracking else None
     shape = dataclasses.replace(request, n_nodes=h + 1, n_orbits=n_orbits,
                                 koz_switch_node=int(switch), warm_start=WarmStart.CVX.value,
-                                window_nodes=0)
+                                window_nodes=0, carry=carry,
+                                no_carry="" if tracking else "a window to a fresh target")
     psi_h = pipeline.transfer(shape).horizon.psi[-1]
     return dataclasses.replace(shape, target_rtn=psi_h @ z_h)

@@ -93,7 +93,8 @@ class GuidanceNodeBase:
         config = GuidanceConfig.load(p.config_dir or None)
         config = config.replace(planning=dataclasses.replace(
             config.planning, samples_per_node=p.samples_per_node,
-            propose_concurrently=p.propose_concurrently, numerics=p.numerics))
+            propose_concurrently=p.propose_concurrently, numerics=p.numerics,
+            replan_warm_start=p.replan_warm_start))
         self.scenario = config.scenario
         if p.default_waypoint not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {p.default_waypoint!r} is not one of "

@@ -15,7 +15,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from art_guidance.config import NUMERICS
+from art_guidance.config import NUMERICS, REPLAN_WARM_STARTS
 from art_guidance.errors import ConfigError
 from art_guidance.planning import WARM_STARTS
 from art_guidance.planning.replan import STAMP_CHECKS, ReplanSettings
@@ -161,9 +161,16 @@ SPECS: dict[str, ParamSpec] = {
                           "loaded from their cache at configure) or 'numpy' (their oracles); "
                           "numba missing or failing to compile is said at configure and the "
                           "numpy path taken (default: planning.yaml)", "str", NUMERICS),
+    "replan_warm_start": ParamSpec("a replan with a plan in force: 'carry' starts SCVx* from "
+                                   "that plan's burns (the fresh solve, from CVX and with "
+                                   "warm_start auto from the learned proposal, runs where "
+                                   "there is nothing to carry, where the carried run does not "
+                                   "converge, and where the plan has grown far above a fresh "
+                                   "one's); 'fresh' solves every replan from scratch (default: "
+                                   "planning.yaml)", "str", REPLAN_WARM_STARTS),
 }
 # parameters whose defaults come from planning.yaml, not guidance_node.yaml
-PLANNING_PARAMETERS = ("samples_per_node", "numerics")
+PLANNING_PARAMETERS = ("samples_per_node", "numerics", "replan_warm_start")
 # the replan policy's parameters (`planning.replan.ReplanSettings`)
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
@@ -204,6 +211,7 @@ class NodeParameters:
     record_max_total_bytes: int
     samples_per_node: int
     numerics: str
+    replan_warm_start: str
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any]) -> "NodeParameters":
