@@ -279,7 +279,7 @@ class PlanningConfig:
     skip_art_when_cvx_safe: bool = True
     propose_concurrently: bool = False
     numerics: str = "compiled"
-    replan_warm_start: str = "carry"
+    replan_warm_start: str = "fresh"
     carry_guard_mps: float = 0.05
 
     def __post_init__(self) -> None:

@@ -32,7 +32,7 @@ from art_guidance.sim.inprocess import InProcessGuidance, default_settings
 
 _LOG = logging.getLogger("bench_mpc")
 _PIPELINE: GuidancePipeline | None = None
-SOURCES = ("art", "cvx", "scvx", "waypoint")  # where the windows' targets came from
+SOURCES = ("art", "cvx", "scvx", "carry", "waypoint")  # where the windows' targets came from
 
 
 def _pipeline(model: str | None) -> GuidancePipeline:
@@ -69,6 +69,7 @@ def fly(seed: int, window_nodes: int, target: str, model: str | None = None,
             "dv_mps": float(summary["total_dv_mps"]), "miss_m": float(summary["miss_m"]),
             "replan_ms": [float(r.timings_ms["total"]) for r in results],
             "replans": len(results),
+            "infeasible": sum(r.status.name == "INFEASIBLE" for r in results),
             "why_not_art": _why_not_art(windows),
             "targets": {s: sum(w.target_source == s for w in windows)
                         for s in SOURCES}}
@@ -162,6 +163,8 @@ def summarise(runs: list[dict], full: list[dict] | None) -> dict:
            "dv_mps_mean": float(dv.mean()), "miss_m_max": float(max(r["miss_m"] for r in runs)),
            "replan_ms_median": float(np.median(ms)), "replan_ms_p95": float(np.percentile(ms, 95)),
            "replans_mean": float(np.mean([r["replans"] for r in runs])),
+           "infeasible_share": sum(r["infeasible"] for r in runs)
+           / max(sum(r["replans"] for r in runs), 1),
            "targets": {k: int(sum(r["targets"][k] for r in runs))
                        for k in SOURCES},
            "why_not_art": {k: int(sum(r["why_not_art"][k] for r in runs))

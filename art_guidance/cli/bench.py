@@ -88,7 +88,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--horizons", default=None, metavar="H,H,...",
                    help="mpc: the replan windows to fly [nodes], e.g. 10,20,40")
     p.add_argument("--targets", default=None, metavar="T,T",
-                   help="mpc: the windows' terminal targets, art and/or cvx")
+                   help="mpc: the windows' terminal targets, art, cvx and/or carry (the "
+                   "plan in force's state: a tracking MPC)")
     p.add_argument("--trigger", default=None, choices=("sigma", "every"),
                    help="mpc: replan on the node's deviation rule (and when half a window is "
                    "flown) or at every node")

@@ -152,7 +152,8 @@ def _solve_window(pipeline: "GuidancePipeline", request: PlanRequest, transfer: 
                   ref_dv: np.ndarray, ref_roe: np.ndarray, h: int, source: str, reason: str,
                   cvx: ConvexSolution, deadline: Deadline | None) -> tuple[PlanResult, str, str]:
     """SCVx* over nodes 0..h to the reference's post-burn state at node h; an infeasible
-    window to an ART target is solved again to the CVX target in the time left."""
+    window to an ART (or carried) target is solved again to the CVX target in the time
+    left."""
     result = pipeline.plan(window_request(pipeline, request, transfer, ref_dv, ref_roe, h),
                            deadline)
     if result.scp.feasible or source == "cvx" or not cvx.status.feasible \
@@ -160,7 +161,8 @@ def _solve_window(pipeline: "GuidancePipeline", request: PlanRequest, transfer: 
         return result, source, reason
     retry = pipeline.plan(window_request(pipeline, request, transfer, cvx.dv_rtn_mps,
                                          cvx.roe_m, h), deadline)
-    return retry, "cvx", f"the window to the ART target ended {result.status.name}"
+    return retry, "cvx", (f"the window to the {source.upper()} target ended "
+                          f"{result.status.name}")
 
 
 def window_request(pipeline: "GuidancePipeline", request: PlanRequest, transfer: Transfer,

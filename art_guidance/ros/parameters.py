@@ -136,8 +136,10 @@ SPECS: dict[str, ParamSpec] = {
                                      "[2, the horizon's nodes - 1] [nodes]", "int", minimum=0,
                                      dynamic=True),
     "terminal_target": ParamSpec("where a window ends: art (the learned proposal's state, "
-                                 "CVX's where it is rejected or missing) or cvx (the convex "
-                                 "solution's state)", "str", TERMINAL_TARGETS, dynamic=True),
+                                 "CVX's where it is rejected or missing), cvx (the convex "
+                                 "solution's state) or carry (the plan in force's own state: a "
+                                 "tracking MPC; the whole remainder where there is none)",
+                                 "str", TERMINAL_TARGETS, dynamic=True),
     "art_context": ParamSpec("give the learned proposal the steps flown since the target "
                              "was set (states, burns, R) as its context, T-MPC's closed loop; "
                              "false: each replan's rollout starts afresh from the fix", "bool",
