@@ -72,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
         node_cmd += ["-p", f"replan_window_nodes:={int(args.replan_window_nodes)}"]
     if args.terminal_target is not None:
         node_cmd += ["-p", f"terminal_target:={args.terminal_target}"]
+    if args.replan_warm_start is not None:  # else planning.yaml's
+        node_cmd += ["-p", f"replan_warm_start:={args.replan_warm_start}"]
     sim_cmd = [sys.executable, "-m", "art_guidance.ros.sim_node", "--ros-args",
                "-p", f"waypoint:={args.waypoint}", "-p", f"seed:={args.seed}",
                "-p", f"png_path:={run / 'rendezvous.png'}",
@@ -197,7 +199,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--replan-window-nodes", type=int, default=None, metavar="H",
                    help="the node's replan_window_nodes: each replan optimises H nodes ahead "
                    "to a terminal target (0 = the whole remainder; default: the node's)")
-    p.add_argument("--terminal-target", choices=("art", "cvx"), default=None,
+    p.add_argument("--replan-warm-start", choices=("carry", "fresh"), default=None,
+                   help="the node's replan_warm_start: a replan with a plan in force starts "
+                   "from it (carry) or solves afresh (fresh; default: planning.yaml's)")
+    p.add_argument("--terminal-target", choices=("art", "cvx", "carry"), default=None,
                    help="the node's terminal_target: where a window ends (default: the "
                    "node's)")
     p.add_argument("--out", default="out/demo", help="where the run folder goes")

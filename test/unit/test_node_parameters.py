@@ -19,7 +19,8 @@ def params() -> NodeParameters:
     planning = GuidanceConfig.load().planning
     return NodeParameters.from_values({**defaults,
                                        "samples_per_node": planning.samples_per_node,
-                                       "numerics": planning.numerics})
+                                       "numerics": planning.numerics,
+                                       "replan_warm_start": planning.replan_warm_start})
 
 
 def test_every_spec_is_a_typed_field_in_order(params):

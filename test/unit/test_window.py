@@ -122,7 +122,8 @@ def test_bad_window_parameters_are_refused_with_the_reason(changes, reason):
     from art_guidance.config import node_parameter_defaults
 
     params = NodeParameters.from_values({**node_parameter_defaults(),
-                                         "samples_per_node": 3, "numerics": "compiled"})
+                                         "samples_per_node": 3, "numerics": "compiled",
+                                         "replan_warm_start": "fresh"})
     with pytest.raises(ConfigError, match=reason):
         params.changed(changes)
     good = params.changed({"replan_window_nodes": 20, "terminal_target": "cvx"})
