@@ -17,12 +17,10 @@ of its nodes are left; "every" replans at every node.
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import tempfile
 import time
 
 import numpy as np
-from tqdm import tqdm
 
 from art_guidance.errors import InputError
 from art_guidance.planning import GuidancePipeline
@@ -135,14 +133,9 @@ def run(repeats: int = 30, first_seed: int = 1000, min_c_cvx: int | None = None,
     if context == "on":
         configs[0] = ("full", 0, "cvx", True)
     jobs = [(s, h, t, model, trigger, c) for _, h, t, c in configs for s in seeds]
-    if int(workers) > 1:
-        import bench_mpc  # this module as the workers import it (benchmarks/ is on the path)
+    from flights import fly_all  # benchmarks/ is on the path
 
-        with multiprocessing.get_context("spawn").Pool(int(workers)) as pool:
-            flights = list(tqdm(pool.imap(bench_mpc._fly_job, jobs, chunksize=1),
-                                total=len(jobs), desc="bench mpc", unit="flight"))
-    else:
-        flights = [_fly_job(j) for j in tqdm(jobs, desc="bench mpc", unit="flight")]
+    flights = fly_all("bench_mpc", jobs, workers, "bench mpc")
     by = {name: flights[i * len(seeds):(i + 1) * len(seeds)]
           for i, (name, *_) in enumerate(configs)}
     full = by["full"]

@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import multiprocessing
 import tempfile
 import time
 
 import numpy as np
-from tqdm import tqdm
 
 from art_guidance.config import GuidanceConfig
 from art_guidance.errors import InputError
@@ -115,14 +113,9 @@ def compare_configs(configs: str, repeats: int = 30, first_seed: int = 0,
     # seed after seed, every configuration in turn: a load on the machine meanwhile falls on
     # all of them alike
     jobs = [(s, name, model) for s in seeds for name in names]
-    if int(workers) > 1:
-        import closed_loop_configs  # this module as the workers import it
+    from flights import fly_all  # benchmarks/ is on the path
 
-        with multiprocessing.get_context("spawn").Pool(int(workers)) as pool:
-            flights = list(tqdm(pool.imap(closed_loop_configs._fly_job, jobs, chunksize=1),
-                                total=len(jobs), desc="bench closed_loop", unit="flight"))
-    else:
-        flights = [_fly_job(j) for j in tqdm(jobs, desc="bench closed_loop", unit="flight")]
+    flights = fly_all("closed_loop_configs", jobs, workers, "bench closed_loop")
     by = {name: flights[i::len(names)] for i, name in enumerate(names)}
     out.update(seeds=seeds, configs={name: summarise(runs, by[REFERENCE], name)
                                      for name, runs in by.items()},

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from art_guidance.checks import as_finite_array
-from art_guidance.config import REPLAN_WARM_STARTS  # noqa: F401  (re-exported)
 from art_guidance.errors import InputError
 
 GRID_TOL = 0.01  # a fix within this share of a node spacing of a node is on the grid

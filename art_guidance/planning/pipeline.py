@@ -210,8 +210,7 @@ class GuidancePipeline:
             constraint_margin_m=margin, timings_ms=timings, request=request,
             proposal=None if learned is None else learned.proposal,
             warm_start_reason=run.reason, discarded=run.discarded,
-            carry=dataclasses.replace(run.carry, config_sha256=self._config_sha256),
-            scp_iterations_all=run.iterations)
+            carry=run.carry, scp_iterations_all=run.iterations)
 
     def _carry(self, transfer: Transfer, cvx: ConvexSolution, scvx: Scvx,
                deadline: Deadline | None) -> CarryStep:
@@ -224,7 +223,8 @@ class GuidancePipeline:
         if not why and cvx.status.feasible and cvx_is_safe(cvx, transfer.safety):
             why = "CVX is passively safe: SCVx* from it is the plan, nothing to carry"
         if why:
-            return CarryStep(CarryReport(planning.replan_warm_start, False, why), fresh_why="")
+            return CarryStep(CarryReport(planning.replan_warm_start, False, why,
+                                         config_sha256=self._config_sha256), fresh_why="")
         carry = request.carry
         warm = transfer.problem.terminal_warm_start(carry.dv_rtn_mps)
         res = scvx.solve(warm.dv_rtn_mps, projected=warm, deadline=None if deadline is None
@@ -232,7 +232,8 @@ class GuidancePipeline:
         excess = carry.excess_mps + res.cost_mps - carry.remaining_mps
         text = (f"carried {carry.plan_id}: SCVx* from its burns ended {res.status.name} after "
                 f"{res.iterations} iterations ({res.cost_mps:.4f} m/s)")
-        report = CarryReport("carry", True, text, True, "", excess, res.iterations)
+        report = CarryReport("carry", True, text, True, "", excess, res.iterations,
+                             self._config_sha256)
         if res.status is not ScpStatus.CONVERGED:
             return CarryStep(report, res, fresh_why=f"the carried run ended {res.status.name}")
         guard = guard_reason(excess, res.cost_mps, cvx.cost_mps, planning.carry_guard_mps)

@@ -154,8 +154,8 @@ def _solve_window(pipeline: "GuidancePipeline", request: PlanRequest, transfer: 
     """SCVx* over nodes 0..h to the reference's post-burn state at node h; an infeasible
     window to an ART (or carried) target is solved again to the CVX target in the time
     left."""
-    result = pipeline.plan(window_request(pipeline, request, transfer, ref_dv, ref_roe, h),
-                           deadline)
+    result = pipeline.plan(window_request(pipeline, request, transfer, ref_dv, ref_roe, h,
+                                          tracking=source == "carry"), deadline)
     if result.scp.feasible or source == "cvx" or not cvx.status.feasible \
             or (deadline is not None and deadline.passed()):
         return result, source, reason
@@ -166,10 +166,12 @@ def _solve_window(pipeline: "GuidancePipeline", request: PlanRequest, transfer: 
 
 
 def window_request(pipeline: "GuidancePipeline", request: PlanRequest, transfer: Transfer,
-                   ref_dv: np.ndarray, ref_roe: np.ndarray, h: int) -> PlanRequest:
+                   ref_dv: np.ndarray, ref_roe: np.ndarray, h: int,
+                   tracking: bool = False) -> PlanRequest:
     """The request of the window [0, h] of `transfer` ending at the post-burn state of the
     reference (`ref_dv`, `ref_roe`) at node h (warm-started from CVX, no window of its own;
-    from the plan in force's burns where that is the reference)."""
+    with `tracking`, the reference is the request's carried plan, whose first h + 1 nodes it
+    carries)."""
     horizon = transfer.horizon
     n = horizon.n_nodes
     n_orbits = float(request.n_orbits or pipeline.scenario.n_orbits) * h / (n - 1)
@@ -177,8 +179,6 @@ def window_request(pipeline: "GuidancePipeline", request: PlanRequest, transfer:
     if switch is None:
         switch = pipeline.scenario.ae_to_koz_node
     z_h = horizon.post_burn_at(h, ref_roe[h], ref_dv[h])
-    tracking = request.terminal_target == "carry" and request.carry is not None \
-        and ref_dv is request.carry.dv_rtn_mps
     carry = request.carry.first(h + 1) if tracking else None
     shape = dataclasses.replace(request, n_nodes=h + 1, n_orbits=n_orbits,
                                 koz_switch_node=int(switch), warm_start=WarmStart.CVX.value,
