@@ -7,6 +7,8 @@ quasi-nonsingular and scaled by the chief's a, ``roe_m = a * [da, dlambda, dex, 
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from art_guidance.checks import as_finite_array
@@ -44,6 +46,8 @@ MIN_INCLINATION_RAD = float(np.radians(1.0))
 # The deputy's own inclination (chief's + dix / a) may come closer, to half of it: the deputy
 # matrix's sin(i) / sin(i + dix / a) stays <= 2 for a chief at the limit.
 MIN_DEPUTY_INCLINATION_RAD = 0.5 * MIN_INCLINATION_RAD
+# `reduce_angles`: fmod by the double 2 pi up to 1,024 turns, the exact reduction beyond.
+FMOD_MAX_RAD = 1024 * 2.0 * np.pi
 
 
 def check_chief(oe: object, field: str = "chief_oe") -> np.ndarray:
@@ -74,15 +78,56 @@ def check_chief(oe: object, field: str = "chief_oe") -> np.ndarray:
 
 
 def reduce_angles(oe: np.ndarray) -> np.ndarray:
-    """(6,) elements with raan, argp and M reduced modulo 2 pi (`np.fmod`, exact: an angle
-    within (-2 pi, 2 pi) is returned bit for bit, a larger one keeps its sign).
+    """(6,) elements with raan, argp and M reduced modulo 2 pi: an angle within (-2 pi, 2 pi)
+    is returned bit for bit; up to FMOD_MAX_RAD `np.fmod` by the double 2 pi, keeping its sign
+    (the recorded flights' growing anomalies, bit for bit as before); beyond, reduced exactly
+    (`reduce_exactly`) into (-pi, pi].
 
-    The J2 secular propagation adds `rate * tau` to each angle: above ~1e15 rad one ulp is
-    a radian or more, so an unreduced angle is rounded or frozen along the horizon and the
-    plan is made on another orbit."""
+    The double 2 pi is 2.45e-16 short of 2 pi: `fmod` drifts by that much a turn, 2.5e-13 rad
+    (a micrometre along the orbit) at FMOD_MAX_RAD, but 0.27 rad at 7e15 rad and arbitrary
+    from 1e17. The J2 secular propagation adds `rate * tau` to each angle: above ~1e15 rad one
+    ulp is a radian or more, so an unreduced angle is rounded or frozen along the horizon and
+    the plan is made on another orbit."""
     out = np.array(oe, dtype=float)
-    out[3:] = np.fmod(out[3:], 2.0 * np.pi)
+    for i in range(3, 6):
+        x = float(out[i])
+        out[i] = reduce_exactly(x) if abs(x) > FMOD_MAX_RAD else math.fmod(x, 2.0 * math.pi)
     return out
+
+
+def _two_pi_scaled(bits: int) -> int:
+    """round(2 pi * 2**bits), from Machin's formula in integer arithmetic (40 guard bits)."""
+    one = 1 << (bits + 40)
+
+    def atan_inv(n: int) -> int:  # atan(1 / n) * one
+        total, power, k = 0, one // n, 0
+        while power:
+            total += (-1) ** k * (power // (2 * k + 1))
+            power //= n * n
+            k += 1
+        return total
+
+    pi = 16 * atan_inv(5) - 4 * atan_inv(239)
+    return (2 * pi + (1 << 39)) >> 40
+
+
+_REDUCTION_BITS = 1150  # 2 pi to 2**-1150: a double's remainder exact to ~2**-120 rad
+_TWO_PI_SCALED = _two_pi_scaled(_REDUCTION_BITS)
+
+
+def reduce_exactly(x: float) -> float:
+    """A finite angle `x` [rad] modulo 2 pi, into (-pi, pi], correctly rounded: x is an
+    exact binary fraction, reduced in integer arithmetic against 2 pi to 1,150 bits (the
+    Payne-Hanek idea); a few microseconds."""
+    mantissa, exponent = math.frexp(x)
+    m, e = int(mantissa * 2.0 ** 53), exponent - 53
+    shift = e + _REDUCTION_BITS
+    if shift < 0:  # |x| < 2**-1097: already reduced
+        return x
+    r = (m << shift) % _TWO_PI_SCALED
+    if 2 * r > _TWO_PI_SCALED:
+        r -= _TWO_PI_SCALED
+    return r / (1 << _REDUCTION_BITS)  # int / int is correctly rounded
 
 
 def check_deputy_inclination(chief_oe: np.ndarray, dix_max_m: float, field: str) -> None:

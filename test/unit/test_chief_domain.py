@@ -4,6 +4,7 @@ validation with the element named, or planned to finite numbers (no NaN reaches 
 from an accepted request)."""
 from __future__ import annotations
 
+import decimal
 import math
 
 import numpy as np
@@ -97,15 +98,41 @@ def test_chief_elements_at_their_edges_are_refused_or_planned_finite(pipeline):
     assert refused == 12 and planned == 26, (refused, planned)
 
 
-@pytest.mark.parametrize("i", [3, 4, 5])
-def test_a_huge_finite_chief_angle_is_planned_as_its_reduction(i):
+def exact_reduction(x: float) -> float:
+    """x modulo 2 pi into (-pi, pi], in 80-digit decimal arithmetic (x is exact as a double)."""
+    with decimal.localcontext() as ctx:
+        ctx.prec = 80
+        two_pi = 2 * decimal.Decimal(PI_60)
+        r = decimal.Decimal(x) % two_pi  # the sign of x
+        if r > two_pi / 2:
+            r -= two_pi
+        elif r <= -two_pi / 2:
+            r += two_pi
+        return float(r)
+
+
+PI_60 = "3.141592653589793238462643383279502884197169399375105820974944"
+
+
+@pytest.mark.parametrize("value", [7e15, 1e17, 1e18, -3.3e17, 5e4, 6434.0])
+def test_huge_angles_are_reduced_exactly(value):
+    """`np.fmod` by the double 2 pi drifts 2.45e-16 rad a turn (0.27 rad at 7e15, arbitrary
+    from 1e17): beyond 1,024 turns the reduction is exact, checked against 80-digit decimal
+    arithmetic: bit for bit (correctly rounded)."""
+    chief = CHIEF.copy()
+    chief[3:] = value
+    reduced = check_chief(chief)[3:]
+    assert np.all(reduced == exact_reduction(value)), (reduced, value)
+
+
+@pytest.mark.parametrize("i, value", [(3, 1e17), (4, 7e15), (5, 1e18)])
+def test_a_huge_finite_chief_angle_is_planned_as_its_reduction(i, value):
     """raan, argp and M above ~1e15 rad are below one ulp of their J2 drift over the horizon:
     unreduced, the plan was made on another orbit (argp = 7e15 rad: a CONVERGED plan that
-    missed the waypoint by 936 m in the planner's own model). Reduced modulo 2 pi where the
-    chief enters the planner, they give the reduced angle's plan, bit for bit."""
+    missed the waypoint by 936 m in the planner's own model). Reduced exactly where the chief
+    enters the planner, they give the exactly reduced angle's plan, bit for bit."""
     huge, reduced = CHIEF.copy(), CHIEF.copy()
-    huge[i], reduced[i] = 7e15, math.fmod(7e15, 2.0 * math.pi)
-    assert np.array_equal(check_chief(huge), reduced)
+    huge[i], reduced[i] = value, exact_reduction(value)
     pipeline = GuidancePipeline(GuidanceConfig.load(), deadline_s=10.0)
     plans = [pipeline.plan(PlanRequest(chief, roe_from_rtn_linear(check_chief(chief), RTN0),
                                        TARGET, warm_start="cvx")) for chief in (huge, reduced)]
