@@ -41,7 +41,9 @@ from art_guidance.planning.proposal_process import (
     GRACE_S, NO_DEADLINE_TIMEOUT_S, ProposalProcess, model_key,
 )
 from art_guidance.planning.transfer import Transfer, Transfers
-from art_guidance.planning.window import needs_window, plan_window, waypoint_window
+from art_guidance.planning.window import (
+    needs_window, plan_window, short_window, waypoint_window,
+)
 from art_guidance.planning.worker_scvx import WorkerScvx
 from art_guidance.planning.types import (
     PlanRequest, PlanResult, ScpAttempt, WarmStart, WarmStartProvider, WarmStartSource,
@@ -146,15 +148,19 @@ class GuidancePipeline:
         if request.window_nodes:  # optimised over its window (`planning.window`)
             transfer = self.transfer(request)
             n_nodes = transfer.horizon.n_nodes
-            why = self._no_window_target(request, n_nodes)
+            why = self._no_window_target(request, n_nodes) \
+                or short_window(request, n_nodes, self.scenario.n_orbits)
             if needs_window(request, n_nodes) and not why:
                 if deadline is None and self.deadline_s is not None:
                     deadline = Deadline(time.perf_counter() + self.deadline_s)
-                return plan_window(self, transfer, deadline)
-            return dataclasses.replace(self.plan(dataclasses.replace(request, window_nodes=0),
-                                                 deadline),
-                                       request=request,
-                                       window=waypoint_window(request, n_nodes, why))
+                windowed = plan_window(self, transfer, deadline)
+                if windowed.scp.feasible:
+                    return windowed
+                why = (f"the window's plan ended {windowed.status.name}: the whole remainder "
+                       "is planned")
+                whole = self._whole(request, n_nodes, why, deadline)
+                return whole if whole.scp.feasible else windowed
+            return self._whole(request, n_nodes, why, deadline)
         with self._pools_lock:
             pool = self._pools.pop() if self._pools else SubproblemPool()
         try:
@@ -162,6 +168,13 @@ class GuidancePipeline:
         finally:
             with self._pools_lock:
                 self._pools.append(pool)
+
+    def _whole(self, request: PlanRequest, n_nodes: int, why: str,
+               deadline: Deadline | None) -> PlanResult:
+        """A windowed request planned over its whole remainder, its window saying `why`."""
+        whole = self.plan(dataclasses.replace(request, window_nodes=0), deadline)
+        return dataclasses.replace(whole, request=request,
+                                   window=waypoint_window(request, n_nodes, why))
 
     def _no_window_target(self, request: PlanRequest, n_nodes: int) -> str:
         """Why a windowed request has no target and is planned whole ("" = it has one): with

@@ -36,7 +36,8 @@ from art_guidance.optim import ConvexSolution
 from art_guidance.planning.learned import learned_warm_start
 from art_guidance.planning.transfer import Transfer
 from art_guidance.planning.types import (  # noqa: F401  (targets re-exported)
-    REFERENCE_TARGETS, TERMINAL_TARGETS, PlanRequest, PlanResult, WarmStart, WarmStartSource,
+    N_ORBITS_RANGE, REFERENCE_TARGETS, TERMINAL_TARGETS, PlanRequest, PlanResult, WarmStart,
+    WarmStartSource,
 )
 
 if TYPE_CHECKING:
@@ -71,6 +72,23 @@ class PlanWindow:
 def needs_window(request: PlanRequest, n_nodes: int) -> bool:
     """Whether a request over `n_nodes` nodes is planned over a window shorter than it."""
     return 0 < int(request.window_nodes) < n_nodes - 1
+
+
+def window_orbits(request: PlanRequest, n_nodes: int, default_orbits: float) -> float:
+    """The span of a request's window [orbits]: its H of the remainder's `n_nodes` - 1
+    intervals (`default_orbits`: the scenario's horizon, for a request that names none)."""
+    return float(request.n_orbits or default_orbits) * int(request.window_nodes) / (n_nodes - 1)
+
+
+def short_window(request: PlanRequest, n_nodes: int, default_orbits: float) -> str:
+    """Why a request's window is too short for the planner to take ("" = it is not): such a
+    request plans the whole remainder."""
+    span, lowest = window_orbits(request, n_nodes, default_orbits), N_ORBITS_RANGE[0]
+    if span >= lowest:
+        return ""
+    return (f"a window of {int(request.window_nodes)} of {n_nodes - 1} nodes would span "
+            f"{span:.3g} orbits, below the planner's {lowest:g}: the whole remainder is "
+            "planned")
 
 
 def waypoint_window(request: PlanRequest, n_nodes: int, why: str = "") -> PlanWindow:
@@ -174,7 +192,7 @@ def window_request(pipeline: "GuidancePipeline", request: PlanRequest, transfer:
     carries)."""
     horizon = transfer.horizon
     n = horizon.n_nodes
-    n_orbits = float(request.n_orbits or pipeline.scenario.n_orbits) * h / (n - 1)
+    n_orbits = window_orbits(request, n, pipeline.scenario.n_orbits)
     switch = request.koz_switch_node
     if switch is None:
         switch = pipeline.scenario.ae_to_koz_node

@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 pytest.importorskip("rclpy")
-from art_guidance_msgs.msg import ReplanRequest  # noqa: E402
+from art_guidance_msgs.msg import ManeuverPlan, ReplanRequest  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from helpers.ros_client import Client, nav_msg  # noqa: E402
 from helpers.rosbag2_metadata import consistency_problems, metadata_problems  # noqa: E402
@@ -168,6 +168,41 @@ def test_windowed_solves_are_recorded_with_their_window_and_replay(
     report = replay(bag)
     assert report["compared"] >= 3 and report["mismatched"] == 0, report
     assert all(r["window_match"] for r in report["per_solve"] if r["match"] is not None)
+
+
+def test_a_window_too_short_for_the_planner_leaves_a_plan_in_force(
+        ros_env, python_exe, tmp_path):
+    """replan_window_nodes 2 with a request of 0.3 orbits: the window would span 0.006 orbits,
+    below the planner's 0.01 (it was SOLVER_ERROR and no plan in force, fix after fix). The
+    whole remainder is planned, the plan says why, and it is in force; at 0.01 orbits the node
+    plans as without a window (its status that of window 0, never a SOLVER_ERROR for the
+    window). The bag replays."""
+    bag = tmp_path / "bag"
+    params = ("replan_window_nodes:=2", "visualization:=false")
+    with _node_with_client(ros_env, python_exe, bag, "recording_client_short_window",
+                           params=params) as (proc, client):
+        statuses = {}
+        for orbits in (0.3, 0.01):
+            since = time.monotonic()
+            client.req_pub.publish(ReplanRequest(waypoint="plus_vbar", chance_constrained=True,
+                                                 horizon_orbits=orbits))
+            assert client.wait_for(lambda _, diags: any(
+                n == "art_guidance/replan_request" and t >= since for t, _, n in diags), 15.0)
+            stamp, _ = client.send_nav(NOMINAL_RTN)
+            plan = client.plan_for(stamp, timeout_s=60.0)
+            assert plan is not None, orbits
+            statuses[orbits] = plan
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert statuses[0.3].status == ManeuverPlan.STATUS_CONVERGED, statuses[0.3].status_text
+    assert statuses[0.3].plan_id and "in force" not in statuses[0.3].status_text
+    assert statuses[0.01].status != ManeuverPlan.STATUS_SOLVER_ERROR, statuses[0.01].status_text
+    records = [r for r, _ in read_log(bag).solves()]
+    reasons = [json.loads(r.window_json)["reason"] for r in records]
+    assert len(reasons) >= 2 and all("below the planner's 0.01" in r for r in reasons), reasons
+    report = replay(bag)
+    assert report["mismatched"] == 0, report
 
 
 @pytest.mark.parametrize("where", ["under_a_file", "proc"])

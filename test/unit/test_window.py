@@ -12,6 +12,7 @@ import pytest
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import propagate_mean_oe, roe_from_rtn_linear
 from art_guidance.errors import ConfigError, InputError
+from art_guidance.optim import ScpStatus
 from art_guidance.optim.scp import TERMINAL_TOL_M
 from art_guidance.planning import GuidancePipeline, NavState, PlanRequest
 from art_guidance.planning.replan import Decision, ReplanPolicy, ReplanSettings
@@ -75,6 +76,33 @@ def test_a_remainder_inside_the_window_is_planned_whole(pipeline):
     whole = pipeline.plan(dataclasses.replace(request, window_nodes=0))
     np.testing.assert_array_equal(windowed.dv_rtn_mps, whole.dv_rtn_mps)
     assert windowed.window.target_source == "waypoint" and windowed.window.end_node == 14
+
+
+@pytest.mark.parametrize("n_orbits", [0.3, 0.01])
+def test_a_window_shorter_than_the_planner_takes_plans_the_whole_remainder(pipeline, n_orbits):
+    """Window 2 of 99 intervals at 0.3 orbits spans 0.006 orbits, below the planner's 0.01
+    (it was SOLVER_ERROR, "n_orbits ..."): the valid request plans its whole remainder, as
+    without a window (bit for bit), and says so."""
+    request = _request(window_nodes=2, n_orbits=n_orbits)
+    result = pipeline.plan(request)
+    whole = pipeline.plan(dataclasses.replace(request, window_nodes=0))
+    assert result.status is not ScpStatus.SOLVER_ERROR, result.warm_start_reason
+    np.testing.assert_array_equal(result.dv_rtn_mps, whole.dv_rtn_mps)
+    assert result.window.target_source == "waypoint" and result.window.window_nodes == 2
+    assert "below the planner's 0.01" in result.window.reason, result.window.reason
+    assert result.request is request
+    if n_orbits == 0.3:
+        assert result.scp.feasible, result.status
+
+
+def test_a_window_that_fails_falls_back_to_the_whole_remainder(pipeline):
+    """Window 20 at 0.3 orbits: its plan ends INFEASIBLE where the whole remainder converges;
+    the request gets the whole remainder's plan, saying why."""
+    request = _request(window_nodes=20, n_orbits=0.3, terminal_target="cvx")
+    result = pipeline.plan(request)
+    assert result.scp.feasible, (result.status, result.warm_start_reason)
+    assert result.window.target_source == "waypoint" and result.window.window_nodes == 20
+    assert "the window's plan ended INFEASIBLE" in result.window.reason, result.window.reason
 
 
 def test_the_art_target_is_the_learned_warm_starts_state():
