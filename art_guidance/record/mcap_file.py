@@ -23,6 +23,7 @@ from mcap.writer import CompressionType, Writer
 from art_guidance.files import fsync_dir
 from art_guidance.record.bag_metadata import FileInfo
 from art_guidance.record.mcap_records import MAGIC
+from art_guidance.record.seal import SEALING_LIBRARY
 
 
 def provisional_tail() -> bytes:
@@ -93,11 +94,12 @@ class ClosedFile:
 
 def start_file(path: Path, schemas: dict[str, str], hashes: dict[str, str],
                topics: dict[str, str], metadata: dict[str, str]) -> OpenFile:
-    """A file in memory: header, schemas ('pkg/msg/Type' -> ros2msg text), one cdr channel per
-    topic (topic -> type, with the type's hash) and the run metadata (nothing on disk)."""
+    """A file in memory: header (its library says the run metadata is sealed, `record.seal`),
+    schemas ('pkg/msg/Type' -> ros2msg text), one cdr channel per topic (topic -> type, with the
+    type's hash) and the run metadata, sealed (nothing on disk)."""
     stream = OffsetStream()
     writer = Writer(stream, compression=CompressionType.ZSTD)
-    writer.start(profile="ros2", library="art_guidance")
+    writer.start(profile="ros2", library=SEALING_LIBRARY)
     handle = OpenFile(path, writer, stream)
     schema_ids = {t: writer.register_schema(name=t, encoding="ros2msg", data=text.encode())
                   for t, text in schemas.items()}

@@ -28,7 +28,9 @@ from art_guidance.record.bag_metadata import bag_files
 from art_guidance.record.loss import account
 from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE
 from art_guidance.record.scan import Damage, FileScan, lend_channels, scan_file
-from art_guidance.record.seal import SEAL_KEY, seal_problems, shown
+from art_guidance.record.seal import (
+    SEAL_KEY, SEALING_LIBRARY, seal_problems, shown, shown_name, unknown_fields,
+)
 
 COST_REL_TOL = 1e-6     # relative cost agreement of a re-solve
 DV_ABS_TOL_MPS = 1e-5   # largest delta-v component difference [m/s]
@@ -40,6 +42,7 @@ EXIT_UNCOMPARED = 4  # no compared solve differs, but solves recorded with anoth
 #                      the one replayed were not compared (without `allow_uncompared`)
 OTHER_MODEL = "recorded with a different model"
 DEADLINE_HIT = "recorded solve hit its deadline"
+NOT_REPLAYED = "the recording was altered and no longer reads"
 
 
 def _stamp_ns(stamp: object) -> int:
@@ -58,6 +61,7 @@ class RecordedLog:
 
     metadata: dict = field(default_factory=dict)  # the last file's record, which replay reads
     metadata_records: dict[str, dict] = field(default_factory=dict)  # file name -> its record
+    writers: dict[str, str] = field(default_factory=dict)  # file name -> MCAP header library
     messages: list[tuple[str, object, int]] = field(default_factory=list)  # topic, msg, t_ns
     types: dict[str, str] = field(default_factory=dict)  # topic -> 'pkg/msg/Type'
     truncated: list[str] = field(default_factory=list)  # torn ends ("<file>: <why>")
@@ -77,20 +81,22 @@ class RecordedLog:
 
     def metadata_check(self) -> tuple[str, list[str]]:
         """("sealed" | "unsealed" | "altered", problems): every file's run metadata record
-        against its seal (`record.seal`), and against the record replay reads (the last
-        file's; the recorder writes the same one to every file). Each problem names the file,
-        the field and its value. "unsealed": recorded before the seal, nothing to check by."""
+        against its seal (`record.seal`; it must have one where its file's writer seals), and
+        against the record replay reads (the last file's; the recorder writes the same one to
+        every file). Each problem names the file, the field and its value. "unsealed":
+        recorded before the seal, nothing to check by."""
         problems, unsealed = [], []
         last = next(reversed(self.metadata_records), None)
         for name, record in self.metadata_records.items():
-            found = seal_problems(record)
+            found = seal_problems(record, self.writers.get(name) == SEALING_LIBRARY)
             if found is None:
                 unsealed.append(name)
             problems += [f"{name}: {problem}" for problem in found or []]
             if name != last:
                 reads = self.metadata_records[last]
-                problems += [f"{name}: {key} = {shown(str(record.get(key, '')))} differs from "
-                             f"{last}'s {shown(str(reads.get(key, '')))}, which replay reads"
+                problems += [f"{name}: {shown_name(key)} = {shown(str(record.get(key, '')))} "
+                             f"differs from {last}'s {shown(str(reads.get(key, '')))}, which "
+                             "replay reads"
                              for key in sorted(set(record) | set(reads))
                              if key != SEAL_KEY and record.get(key) != reads.get(key)]
         if unsealed and len(unsealed) < len(self.metadata_records):
@@ -154,6 +160,8 @@ def _decode(log: RecordedLog, scan: FileScan) -> None:
         channels[cid] = (channel.topic, factory.decoder_for(channel.message_encoding, schema))
         if schema is not None:
             log.types[channel.topic] = schema.name
+    if scan.header is not None:
+        log.writers[scan.path.name] = scan.header.library
     for record in scan.metadata:
         if record.name == "art_guidance":
             log.metadata = dict(record.metadata)
@@ -313,15 +321,37 @@ def advice(path: str | Path, log: RecordedLog) -> list[str]:
 
 def _metadata_report(log: RecordedLog) -> tuple[str, list[str]]:
     """The report's `metadata_check` ("ok", "unsealed: ...", or "altered: ...") and its
-    problems (`RecordedLog.metadata_check`)."""
+    problems (`RecordedLog.metadata_check`). An unsealed record's fields that are not run
+    metadata are named in its "unsealed: ..." (nothing tells whether they were added after
+    recording)."""
     state, problems = log.metadata_check()
     if state == "unsealed":
+        unknown = sorted({name for record in log.metadata_records.values()
+                          for name in unknown_fields(record)})
         return ("unsealed: recorded before the metadata seal; model_checksum, art_runtime and "
                 "art_runtime_checksum are taken as recorded (the configuration is sealed by its "
-                "own record_sha256)"), []
+                "own record_sha256)" + "".join(
+                    f"; {shown_name(name)} is not run metadata" for name in unknown)), []
     if problems:
         return f"altered: {len(problems)} value(s) do not match the seal", problems
     return "ok", []
+
+
+def _recorded_config(log: RecordedLog, path: str | Path) -> dict:
+    """The recorded configuration (`GuidancePipeline.config_json`).
+
+    Raises:
+        InputError: the log has none, or it is not a JSON object.
+    """
+    if "config" not in log.metadata:
+        raise InputError("log", "no art_guidance configuration in the MCAP metadata", str(path))
+    try:
+        recorded = json.loads(log.metadata["config"])
+    except ValueError as exc:
+        raise InputError("config", f"recorded configuration is not JSON: {exc}") from exc
+    if not isinstance(recorded, dict):
+        raise InputError("config", "the recorded configuration is not a JSON object")
+    return recorded
 
 
 def replay(path: str | Path, model: str | Path | None = None,
@@ -344,29 +374,35 @@ def replay(path: str | Path, model: str | Path | None = None,
     ..." with each altered field and value) and `exit_code`: EXIT_MISMATCH if a compared solve
     differs, the configuration or any run metadata value was altered; else EXIT_UNCOMPARED if
     solves went uncompared for another model (unless `allow_uncompared`); else EXIT_LOST if
-    data was lost; else EXIT_OK.
+    data was lost; else EXIT_OK. The seals are checked before the recorded values are used:
+    where the recording was altered and the configuration or the model it names can no longer
+    be read or loaded, no solve is replayed (NOT_REPLAYED, EXIT_MISMATCH).
 
     Args:
         path: an .mcap file or a bag folder.
         model: checkpoint to replay learned warm starts with (default: the shipped model if it
             is the recorded one; see the report's "model" note otherwise).
         allow_uncompared: solves left uncompared for another model do not set the exit code.
+
+    Raises:
+        InputError: no such log, no configuration in it, or a recorded value that cannot be
+            used where nothing says it was altered (a record from before the seal).
     """
     log = read_log(path)
-    if "config" not in log.metadata:
-        raise InputError("log", "no art_guidance configuration in the MCAP metadata", str(path))
     metadata_check, metadata_problems = _metadata_report(log)
-    provider, model_note = _replay_provider(log, model)
-    same_model = provider is None or provider.sha256 == log.metadata.get("model_checksum")
+    config_problem, provider, pipeline = "", None, None
     try:
-        recorded = json.loads(log.metadata["config"])
-    except ValueError as exc:
-        raise InputError("config", f"recorded configuration is not JSON: {exc}") from exc
-    config_problem = recorded_config_problem(recorded) if isinstance(recorded, dict) else \
-        "the recorded configuration is not a JSON object"
-    # the pipeline as recorded: configuration, ranking of the candidates, model; replays are
-    # not time-boxed (timed-out solves are flagged)
-    pipeline = GuidancePipeline.from_config_json(recorded, provider, time_boxed=False)
+        recorded = _recorded_config(log, path)
+        config_problem = recorded_config_problem(recorded)
+        provider, model_note = _replay_provider(log, model)
+        # the pipeline as recorded: configuration, ranking of the candidates, model; replays
+        # are not time-boxed (timed-out solves are flagged)
+        pipeline = GuidancePipeline.from_config_json(recorded, provider, time_boxed=False)
+    except GuidanceError as exc:
+        if not (metadata_problems or config_problem):
+            raise  # nothing says it was altered: the log cannot be replayed as it is
+        provider, model_note = None, f"not replayed, the recording was altered: {exc}"
+    same_model = provider is None or provider.sha256 == log.metadata.get("model_checksum")
     rows = []
     for record, plan in log.solves():
         cost, dv = _plan_arrays(plan)
@@ -375,6 +411,10 @@ def replay(path: str | Path, model: str | Path | None = None,
         reason = str(getattr(record, "warm_start_reason", ""))
         if plan.status_text.startswith("TIMEOUT") or "TIMEOUT" in reason:
             row.update(match=None, reason=DEADLINE_HIT)
+            rows.append(row)
+            continue
+        if pipeline is None:
+            row.update(match=None, reason=NOT_REPLAYED)
             rows.append(row)
             continue
         if not same_model and len(getattr(record, "warm_start_art_dv_rtn_mps", [])):

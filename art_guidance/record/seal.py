@@ -9,6 +9,13 @@ adds `metadata_seal` to it: JSON {"format", "fields": {name: sha256 of the value
 its seal (field and value), every field added or removed since, and a seal that is itself
 damaged. A recording from before the seal has no `metadata_seal` and is reported as unsealed
 (its configuration is still sealed by its own `record_sha256`).
+
+A record without `metadata_seal` must still have one where its file says that its writer seals
+every record (the MCAP header's `library` is `SEALING_LIBRARY`; the package version in
+`versions` is the same with and without the seal, and files sealed before that header say
+"art_guidance") or where another field holds a seal (its key was altered): `seal_problems` then
+reports the seal as altered, checks the values against a seal found under another key, and
+names every field that is not run metadata (`RUN_METADATA_KEYS`).
 """
 from __future__ import annotations
 
@@ -17,7 +24,11 @@ import json
 
 SEAL_KEY = "metadata_seal"
 SEAL_FORMAT = 1
+SEALING_LIBRARY = f"art_guidance (writes {SEAL_KEY})"  # MCAP header `library` of the recorder
 SHOWN_CHARS = 72  # a value longer than this is shown cut, with its length
+# the fields the node records (`ros.solve_recording`), every version
+RUN_METADATA_KEYS = frozenset({"config", "versions", "model_checksum", "model", "parameters",
+                               "art_runtime", "art_runtime_checksum"})
 
 
 def _sha256(text: str) -> str:
@@ -35,6 +46,25 @@ def shown(value: str) -> str:
     return f"{value[:SHOWN_CHARS]!r}... ({len(value)} characters)"
 
 
+def shown_name(name: str) -> str:
+    """A field's name for a message: as it is, or quoted and cut as `shown` does where it is
+    long or does not print."""
+    return name if len(name) <= SHOWN_CHARS and name.isprintable() else shown(name)
+
+
+def unknown_fields(metadata: dict[str, str]) -> list[str]:
+    """The fields of a metadata record that are neither run metadata nor its seal, sorted."""
+    return sorted(set(metadata) - RUN_METADATA_KEYS - {SEAL_KEY})
+
+
+def _reads_as_seal(value: str) -> bool:
+    try:
+        body = json.loads(value)
+    except ValueError:
+        return False
+    return isinstance(body, dict) and set(body) == {"format", "fields", "sha256"}
+
+
 def seal(metadata: dict[str, str]) -> dict[str, str]:
     """`metadata` (string values, as the record stores them) with its `metadata_seal` over
     every other field."""
@@ -45,11 +75,23 @@ def seal(metadata: dict[str, str]) -> dict[str, str]:
             SEAL_KEY: json.dumps({**body, "sha256": _body_sha256(body)}, sort_keys=True)}
 
 
-def seal_problems(metadata: dict[str, str]) -> list[str] | None:
+def seal_problems(metadata: dict[str, str], writer_seals: bool = False) -> list[str] | None:
     """What in a metadata record does not match its seal ([] = every value does); None when
-    the record has no seal (recorded before it). Each problem names the field and its value."""
+    the record has no seal and need not have one (recorded before it). Each problem names the
+    field and its value. A record without its seal must have one where `writer_seals` (its
+    file's writer seals every record) or where another field holds a seal (see the module
+    docstring)."""
     if SEAL_KEY not in metadata:
-        return None
+        moved = next((k for k in sorted(metadata) if _reads_as_seal(metadata[k])), None)
+        if moved is not None:  # the seal's key was altered: the values are checked all the same
+            rest = {k: v for k, v in metadata.items() if k != moved}
+            return [f"no {SEAL_KEY}, but {shown_name(moved)} holds a seal: its key was altered "
+                    "after recording", *seal_problems({**rest, SEAL_KEY: metadata[moved]})]
+        if not writer_seals:
+            return None
+        return [f"no {SEAL_KEY}, though the file's writer seals every record: removed after "
+                "recording", *(f"{shown_name(k)} = {shown(metadata[k])} is not run metadata: "
+                               "added after recording" for k in unknown_fields(metadata))]
     try:
         sealed = json.loads(metadata[SEAL_KEY])
         body = {"format": sealed["format"], "fields": dict(sealed["fields"])}
@@ -63,13 +105,13 @@ def seal_problems(metadata: dict[str, str]) -> list[str] | None:
     problems = []
     for name, digest in sorted(body["fields"].items()):
         if name not in metadata:
-            problems.append(f"{name} is sealed but missing from the record: removed after "
-                            "recording")
+            problems.append(f"{shown_name(name)} is sealed but missing from the record: removed "
+                            "after recording")
         elif _sha256(metadata[name]) != digest:
-            problems.append(f"{name} = {shown(metadata[name])} does not match its seal "
-                            f"(sha256 {_sha256(metadata[name])[:16]}..., sealed "
+            problems.append(f"{shown_name(name)} = {shown(metadata[name])} does not match its "
+                            f"seal (sha256 {_sha256(metadata[name])[:16]}..., sealed "
                             f"{digest[:16]}...): altered after recording")
     for name in sorted(set(metadata) - set(body["fields"]) - {SEAL_KEY}):
-        problems.append(f"{name} = {shown(metadata[name])} is not in the seal: added after "
-                        "recording")
+        problems.append(f"{shown_name(name)} = {shown(metadata[name])} is not in the seal: added "
+                        "after recording")
     return problems

@@ -26,6 +26,7 @@ from art_guidance.record.recorder import (
 )
 from art_guidance.record.reindex import has_summary, repair_bag
 from art_guidance.record.replay import EXIT_UNCOMPARED, read_log, replay
+from art_guidance.record.seal import SEALING_LIBRARY
 from art_guidance.ros.adapters import plan_to_msg, solve_record_msg
 
 AnyReader = pytest.importorskip("rosbags.highlevel").AnyReader
@@ -386,7 +387,7 @@ def _plain_writer_bytes(rec: McapRecorder, solves) -> list[bytes]:
 
     out = io.BytesIO()
     writer = Writer(out, compression=CompressionType.ZSTD)
-    writer.start(profile="ros2", library="art_guidance")
+    writer.start(profile="ros2", library=SEALING_LIBRARY)
     ids = {t: writer.register_schema(name=t, encoding="ros2msg", data=ros2msg_schema(t).encode())
            for t in rec._schemas}
     channels = {topic: writer.register_channel(
