@@ -20,7 +20,7 @@ from art_guidance.errors import GuidanceError
 from art_guidance.extras import require
 
 SUBCOMMANDS = ("demo", "plan", "generate", "train", "distill", "dagger", "evaluate", "export",
-               "replay", "bag", "bench", "node", "sim")
+               "replay", "bag", "bench", "node", "sim", "kernels")
 
 
 def build_parser() -> argparse.ArgumentParser:

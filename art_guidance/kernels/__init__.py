@@ -1,53 +1,69 @@
 """Compiled numerics (numba) behind the array doors of the numpy modules they are named after;
-the numpy forms stay where they are and are the test oracles.
+the numpy forms stay where they are and are the test oracles (the same decisions).
 
 One process-wide setting chooses the path (`set_numerics`): "compiled" (the default where numba
-imports and the kernels compile) or "numpy". `warm_up` compiles the kernels or loads them from
-numba's on-disk cache, before the first plan; a failure is reported and the numpy path taken.
+imports and the kernels load) or "numpy". Every process that plans goes through one door that
+loads the kernels, `prepare` (the node at configure, the worker at its warm-up, anything else
+at its first plan through `compiled`):
 
-The cache lives in `NUMBA_CACHE_DIR` where that is set; else beside the modules where the
-package folder is writable; else in `~/.cache/art_guidance/numba`; else nowhere (compiled in
-memory at every start, `cache_note` says so). numba checks a cached kernel against its own
-file only: after an edit of `drift_bounds`, whose kernels `drift`'s call, clear the cache (or
-change `drift` too). This package imports only numpy and numba.
+- a warm cache: the kernels are loaded from it now (~0.4 s here);
+- a cache entry that does not load (truncated, emptied, garbled): the kernels' cache files are
+  moved aside into the cache folder's `damaged/` (logged, naming them) and compiled once more;
+  where they cannot be moved, the process compiles in memory. Never a traceback;
+- a cold cache: with `wait` compiled now (12-15 s here, minutes on a slow flight computer);
+  without, the process plans on the numpy path while a background process
+  (`python -m art_guidance.kernels`, one per cache folder at a time) compiles into the cache,
+  and switches to the compiled path when they are loaded (`status` says which, the node on
+  /diagnostics). A flight image fills the cache at build time with that same command.
+
+The cache lives where numba puts it (`cache_note`): `NUMBA_CACHE_DIR` where numba can use it;
+else beside the modules where the package folder is writable; else
+`~/.cache/art_guidance/numba`. numba checks a cached kernel against its own file only: after
+an edit of `drift_bounds`, whose kernels `drift`'s call, clear the cache (or change `drift`
+too). This package imports only numpy and numba (and the standard library).
 """
 from __future__ import annotations
 
+import logging
 import os
+import subprocess
+import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 NUMERICS = ("compiled", "numpy")
 _HERE = Path(__file__).resolve().parent
+_LOG = logging.getLogger("art_guidance.kernels")
+# phase: "idle" (not loaded yet), "ready" (compiled path in use), "background" (numpy path
+# while the kernels compile in the background), "numpy" (the compiled path is not usable)
+_state: dict = {"mode": None, "error": None, "ready_s": None, "phase": "idle", "note": "",
+                "thread": None}
+_lock = threading.RLock()
 
 
-def _choose_cache_dir() -> str:
-    """Where numba caches compiled kernels (sets NUMBA_CACHE_DIR before numba is imported)."""
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return f"NUMBA_CACHE_DIR={os.environ['NUMBA_CACHE_DIR']}"
-    if os.access(_HERE, os.W_OK):
-        return f"beside the modules ({_HERE})"
+def _choose_cache_dir() -> None:
+    """Point numba at a writable cache folder where the package folder is read-only (before
+    numba is imported; NUMBA_CACHE_DIR as set is kept)."""
+    if os.environ.get("NUMBA_CACHE_DIR") or os.access(_HERE, os.W_OK):
+        return
     user = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "art_guidance"
     for where in (user / "numba", Path(tempfile.gettempdir()) / "art_guidance_numba"):
         try:
             where.mkdir(parents=True, exist_ok=True)
             if os.access(where, os.W_OK):
                 os.environ["NUMBA_CACHE_DIR"] = str(where)
-                return f"NUMBA_CACHE_DIR={where} (the package folder is read-only)"
+                return
         except OSError:
             continue
-    return "none: no writable cache folder, compiled in memory at every start"
-
-
-cache_note = _choose_cache_dir()
-_state = {"mode": None, "error": None, "warm_up_s": None}
 
 
 def _import_error() -> str:
     """Why numba cannot be used ("" = it can); imported once, on first need."""
     if _state["error"] is None:
         try:
+            _choose_cache_dir()
             import numba  # noqa: F401
             _state["error"] = ""
         except Exception as exc:  # numba missing or broken: the numpy path
@@ -56,8 +72,8 @@ def _import_error() -> str:
 
 
 def set_numerics(mode: str) -> str:
-    """Choose the path ("compiled" or "numpy"); returns the path taken ("numpy" where the
-    kernels cannot be used: `error` says why).
+    """Choose the path ("compiled" or "numpy"); returns the path chosen ("numpy" where numba
+    cannot be used: `error` says why). The kernels load at the first `prepare` or `compiled`.
 
     Raises:
         ValueError: an unknown mode.
@@ -69,10 +85,15 @@ def set_numerics(mode: str) -> str:
 
 
 def compiled() -> bool:
-    """Whether the compiled kernels are in use (by default where numba imports)."""
+    """Whether the compiled kernels are in use now (the first call goes through `prepare`:
+    False while they compile in the background)."""
     if _state["mode"] is None:
         set_numerics("compiled")
-    return _state["mode"] == "compiled"
+    if _state["mode"] != "compiled":
+        return False
+    if _state["phase"] == "idle":
+        prepare()
+    return _state["phase"] == "ready"
 
 
 def error() -> str:
@@ -80,22 +101,192 @@ def error() -> str:
     return _import_error()
 
 
-def warm_up() -> float | None:
-    """Compile the kernels (or load them from the cache) now; returns the time taken [s], or
-    None where the numpy path is taken (`error` says why). Idempotent."""
-    if not compiled():
-        return None
-    if _state["warm_up_s"] is not None:
-        return _state["warm_up_s"]
-    t0 = time.perf_counter()
-    try:
-        from art_guidance.kernels import drift, horizon
+def prepare(mode: str | None = None, *, wait: bool = False) -> str:
+    """The door that loads the kernels (module docstring): choose `mode` (None: as set, by
+    default "compiled"), then load them from the cache, or compile them now (`wait`) or in the
+    background (the numpy path meanwhile). Idempotent; never raises for numba or its cache.
+    Returns `status()`."""
+    with _lock:
+        if mode is not None or _state["mode"] is None:
+            set_numerics(mode or "compiled")
+        if _state["mode"] != "compiled" or _state["phase"] in ("ready", "numpy"):
+            return status()
+        if _state["phase"] == "background":
+            thread = _state["thread"]
+        else:
+            t0 = time.perf_counter()
+            try:
+                from art_guidance.kernels import cache
 
-        drift.warm_up()
-        horizon.warm_up()
-    except Exception as exc:  # a kernel that does not compile: the numpy path
-        _state["error"] = f"the compiled kernels failed ({type(exc).__name__}: {exc})"
-        _state["mode"] = "numpy"
-        return None
-    _state["warm_up_s"] = time.perf_counter() - t0
-    return _state["warm_up_s"]
+                if _load_cached(cache):
+                    return _ready(t0)
+                if wait:
+                    _compile(cache)
+                    return _ready(t0)
+                thread = _start_background(cache, t0)
+            except Exception as exc:  # a kernel that does not compile: the numpy path
+                return _unusable(exc)
+    if wait and thread is not None:
+        thread.join()
+    return status()
+
+
+def warm_up() -> float | None:
+    """`prepare` and wait for the kernels: the time they took to be ready [s], or None where
+    the numpy path is taken (`error` says why). Idempotent."""
+    prepare(wait=True)
+    return ready_s()
+
+
+def ready_s() -> float | None:
+    """How long the kernels took to be ready in this process [s] (None: not in use)."""
+    return _state["ready_s"] if _state["phase"] == "ready" else None
+
+
+def status() -> str:
+    """The numerics in use, in words (with what the door did: a damaged cache moved aside)."""
+    phase, note = _state["phase"], _state["note"]
+    if _state["mode"] == "numpy" and not error() and phase != "numpy":
+        text = "numpy (as configured)"
+    elif phase == "numpy" or error():
+        text = f"numpy, the compiled kernels are not available: {_state['error']}"
+    elif phase == "ready":
+        text = f"compiled, kernels ready in {_state['ready_s']:.2f} s (cache: {cache_note()})"
+    elif phase == "background":
+        text = ("numpy while the kernels compile in the background (a cold cache: "
+                f"{cache_note()}); compiled once they are ready")
+    else:
+        text = "compiled, not loaded yet"
+    return f"{text}; {note}" if note else text
+
+
+def cache_note() -> str:
+    """The folder numba caches the kernels in, as it really uses it."""
+    if error():
+        return "none: numba is not usable"
+    try:
+        from art_guidance.kernels import cache
+
+        where = cache.folder()
+    except Exception as exc:  # a kernel module that does not import
+        return f"unknown ({type(exc).__name__}: {exc})"
+    if where is None:
+        return "none: compiled in memory at every start"
+    asked = os.environ.get("NUMBA_CACHE_DIR", "")
+    where = where.resolve()
+    if asked and Path(asked).resolve() not in (where, *where.parents):
+        return f"{where} (NUMBA_CACHE_DIR={asked} cannot be used)"
+    return str(where)
+
+
+def cache_status() -> str:
+    """Where the kernels' cache is and whether it holds them (warm, cold or damaged), without
+    loading or compiling anything."""
+    if error():
+        return f"numba is not usable: {error()}"
+    try:
+        from art_guidance.kernels import cache
+
+        warm, damaged = cache.inspect()
+    except Exception as exc:  # a kernel module that does not import
+        return f"the kernels do not import ({type(exc).__name__}: {exc})"
+    state = ("damaged: " + ", ".join(p.name for p in damaged) + " do not load") if damaged \
+        else "warm: every kernel is there" if warm else "cold: the kernels compile at first use"
+    return f"kernel cache {cache_note()}: {state}"
+
+
+def _load_cached(cache) -> bool:
+    """Load the kernels where the cache holds them all; a damaged entry (seen in its index,
+    or failing to load) moves the kernels' cache files aside. Whether they are loaded."""
+    warm, damaged = cache.inspect()
+    if damaged:
+        _move_aside(cache, ", ".join(p.name for p in damaged[:4])
+                    + (f" and {len(damaged) - 4} more" if len(damaged) > 4 else "")
+                    + " did not load")
+        return False
+    if not warm:
+        return False
+    try:
+        cache.load()
+        return True
+    except Exception as exc:  # a data file that does not load
+        _move_aside(cache, f"loading failed ({type(exc).__name__}: {str(exc)[:200]})")
+        return False
+
+
+def _move_aside(cache, why: str) -> None:
+    """Move the kernels' cache files aside (or compile in memory where they cannot be)."""
+    moved, failed = cache.move_aside()
+    where = cache.folder()
+    if failed:
+        cache.in_memory()
+        note = (f"damaged kernel cache in {where} ({why}) could not be moved aside ({failed}): "
+                "compiled in memory")
+    else:
+        note = (f"damaged kernel cache in {where} ({why}): {len(moved)} files moved to "
+                f"{where / cache.DAMAGED_FOLDER}, compiled again")
+    _state["note"] = note
+    _LOG.warning(note)
+
+
+def _compile(cache) -> None:
+    """Compile into the cache (one process per folder at a time), or in memory where the
+    cache cannot be written or a damaged file gets in the way."""
+    where = cache.folder()
+    try:
+        if where is None:
+            cache.load()
+            return
+        with cache.fill_lock(where):
+            if not _load_cached(cache):
+                cache.load()
+    except Exception as exc:  # damage found while compiling, an unwritable folder
+        _move_aside(cache, f"compiling failed ({type(exc).__name__}: {str(exc)[:200]})")
+        cache.load()
+
+
+def _start_background(cache, t0: float) -> threading.Thread:
+    """The numpy path now; a background process compiles into the cache (this process then
+    loads from it), or this process compiles in memory in a thread where there is none."""
+    where = cache.folder()
+    child = None
+    if where is not None:
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+            [str(_HERE.parent.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}
+        try:
+            child = subprocess.Popen([sys.executable, "-m", "art_guidance.kernels", "--quiet"],
+                                     env=env, stdin=subprocess.DEVNULL,
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                     start_new_session=True)  # outlives a one-shot command
+        except OSError:
+            child = None
+
+    def finish() -> None:  # never under the lock: `compiled` keeps answering meanwhile
+        try:
+            if child is not None:
+                child.wait()
+            if not _load_cached(cache):
+                _compile(cache)
+            with _lock:
+                _ready(t0)
+        except Exception as exc:  # the numpy path stays
+            with _lock:
+                _unusable(exc)
+
+    thread = threading.Thread(target=finish, name="art_guidance_kernels", daemon=True)
+    _state.update(phase="background", thread=thread)
+    thread.start()
+    _LOG.info("kernels: %s", status())
+    return thread
+
+
+def _ready(t0: float) -> str:
+    _state.update(phase="ready", ready_s=time.perf_counter() - t0, thread=None)
+    return status()
+
+
+def _unusable(exc: Exception) -> str:
+    _state["error"] = f"the compiled kernels failed ({type(exc).__name__}: {exc})"
+    _state.update(mode="numpy", phase="numpy", thread=None)
+    _LOG.warning("kernels: %s", status())
+    return status()

@@ -130,8 +130,9 @@ def _run(job: dict, state: dict) -> tuple:
         provider = ArtWarmStart.load(path, expected_sha256=sha, threads=threads,
                                      reward_scales=scales, runtime=runtime)
         config = GuidanceConfig.from_json(job["config"])
-        kernels.set_numerics(config.planning.numerics)
-        kernels.warm_up()  # at the worker's warm-up job, before the first fix
+        # the door, at the worker's warm-up job: loaded, or the numpy path while a background
+        # process compiles them (never a compile before the first fix)
+        kernels.prepare(config.planning.numerics)
         state.update(key=key, provider=provider, config=config,
                      transfers=Transfers(config.scenario, config.uncertainty))
     if job.get("warm_up"):

@@ -41,24 +41,31 @@ def load_model(params: Any, log: Any) -> tuple[object | None, str]:
 
 
 def prepare_numerics(numerics: str, log: Any) -> str:
-    """Choose the per-step numerics (`kernels.set_numerics`) and compile or load the kernels
-    now, at configure, not at the first fix; returns the status in words (logged: the time
-    and the cache, or why the numpy path is taken)."""
+    """Choose the per-step numerics and load the kernels through their door
+    (`kernels.prepare`), never waiting for a compile: on a cold cache the node plans on the
+    numpy path (the oracle: the same decisions) while a background process compiles them, and
+    switches when they are ready (`numerics_values` tells the diagnostics). Returns the status
+    in words (logged; a warning where the numpy path is taken for want of the kernels)."""
     from art_guidance import kernels
 
-    kernels.set_numerics(numerics)
-    ready_s = None if numerics == "numpy" else kernels.warm_up()
-    if numerics == "numpy":
-        status = "numerics: numpy (as configured)"
-    elif ready_s is None:
-        status = f"numerics: numpy, the compiled kernels are not available: {kernels.error()}"
+    status = f"numerics: {kernels.prepare(numerics)}"
+    if numerics == "compiled" and kernels.error():
         log.warning(status)
-        return status
     else:
-        status = (f"numerics: compiled, kernels ready in {ready_s:.2f} s (cache: "
-                  f"{kernels.cache_note})")
-    log.info(status)
+        log.info(status)
     return status
+
+
+def numerics_values(numerics: str) -> tuple[bool, str, dict]:
+    """(OK: the numerics configured are in use, the status in words, the key-values) of the
+    `art_guidance/numerics` diagnostic; on a cold cache not OK until the kernels are ready."""
+    from art_guidance import kernels
+
+    in_use = kernels.compiled()
+    return in_use == (numerics == "compiled"), f"numerics: {kernels.status()}", {
+        "numerics": "compiled" if in_use else "numpy",
+        "kernels_ready_s": round(kernels.ready_s() or 0.0, 3),
+        "cache": kernels.cache_note()}
 
 
 def model_values(provider: Any, status: str) -> dict:

@@ -2,14 +2,18 @@
 from __future__ import annotations
 
 import ast
+import contextlib
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
+
+from art_guidance.kernels.cache import filler_pid
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -80,6 +84,12 @@ def test_installed_cli_runs_from_prefix(prefix):
                           env=env, capture_output=True, text=True, timeout=60, cwd=prefix)
     assert demo.returncode == 0, demo.stderr
     assert "free drift" in demo.stdout
+    # a fresh install's cache is cold: demo planned on the numpy path while a background process
+    # compiles the kernels beside the installed modules; not waited for here
+    pid = filler_pid(site / "art_guidance" / "kernels" / "__pycache__")
+    if pid is not None:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
 
 
 def test_package_xml_declares_runtime_dependencies():

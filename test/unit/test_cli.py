@@ -11,7 +11,7 @@ import pytest
 from art_guidance.cli import build_parser, main
 
 SUBCOMMANDS = ("demo", "plan", "bench", "node", "replay", "bag", "generate", "sim", "train",
-               "evaluate")
+               "evaluate", "kernels")
 REQUIRED_KEYS = {"chief_oe", "epochs_s", "dv_rtn_mps", "roe_m", "rtn", "cost_mps", "status",
                  "scp_iterations", "warm_start", "posthoc", "timings_ms",
                  "constraint_margin_m"}

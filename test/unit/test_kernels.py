@@ -54,6 +54,8 @@ def _both(fn):
     kernels.set_numerics("numpy")
     a = fn()
     assert kernels.set_numerics("compiled") == "compiled", kernels.error()
+    kernels.warm_up()  # loaded (or compiled) now: never the numpy path compared with itself
+    assert kernels.compiled(), kernels.status()
     return a, fn()
 
 

@@ -1,0 +1,133 @@
+"""The kernels' on-disk cache as numba really uses it: where it is (`folder`), whether it holds
+the kernels (`inspect`), moving damaged entries aside (`move_aside`), compiling in memory where
+it cannot be used (`in_memory`), and one filler at a time per folder (`fill_lock`).
+
+numba keeps one index (`<function>-<line>.pyXY.nbi`) and data files (`... .N.nbc`) per kernel,
+and reads them when a kernel is first called: a truncated or otherwise damaged file raises
+there (EOFError, UnpicklingError, ...) in whatever process plans first. These helpers use
+numba's per-function cache object (`Dispatcher._cache`: its `cache_path` and index file), which
+is private API: the pinned numba version is the one tested (`test_kernel_cache.py`).
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+from pathlib import Path
+from typing import Iterator
+
+from numba.core.caching import NullCache
+from numba.core.registry import CPUDispatcher
+
+from art_guidance.kernels import drift, drift_bounds, horizon
+
+# the kernels the numerics doors call (their warm_up compiles or loads them, and with them
+# every kernel they call)
+ENTRY_POINTS = ("drift.violated", "drift.minimum", "horizon.propagate_nonlinear")
+DAMAGED_FOLDER = "damaged"
+LOCK_NAME = ".art_guidance_fill.lock"
+
+
+def dispatchers() -> dict[str, CPUDispatcher]:
+    """Every compiled kernel of the package, by "module.name"."""
+    return {f"{m.__name__.rsplit('.', 1)[-1]}.{name}": value
+            for m in (drift, drift_bounds, horizon) for name, value in vars(m).items()
+            if isinstance(value, CPUDispatcher) and value.py_func.__module__ == m.__name__}
+
+
+def folder() -> Path | None:
+    """The folder numba caches the kernels in (None: caching is off, compiled in memory).
+    numba takes NUMBA_CACHE_DIR where it can create it, else the next place it can."""
+    cache = getattr(dispatchers()["drift.violated"], "_cache", None)
+    path = getattr(cache, "cache_path", None)
+    return None if path is None else Path(path)
+
+
+def _files(disp: CPUDispatcher) -> list[Path]:
+    """The index and data files of one kernel."""
+    index = Path(disp._cache._cache_file._index_path)
+    return sorted(index.parent.glob(index.name[:-len(".nbi")] + ".*"))
+
+
+def inspect() -> tuple[bool, list[Path]]:
+    """(whether every entry point has an entry in a loadable index, the index files that do
+    not load). A stale index (another numba or source) reads as empty, not damaged."""
+    warm, damaged = True, []
+    for name, disp in dispatchers().items():
+        cache_file = getattr(getattr(disp, "_cache", None), "_cache_file", None)
+        if cache_file is None:
+            warm = False
+            continue
+        try:
+            entries = cache_file._load_index()
+        except Exception:  # a truncated, emptied or garbled index
+            damaged.append(Path(cache_file._index_path))
+            entries = {}
+        if name in ENTRY_POINTS and not entries:
+            warm = False
+    return warm and not damaged, damaged
+
+
+def move_aside() -> tuple[list[str], str]:
+    """Move every cache file of the kernels into the cache folder's `damaged/` (replacing
+    what an earlier move left there), so that numba compiles them again; returns (the names
+    moved, "" or why they could not be)."""
+    moved = []
+    try:
+        for disp in dispatchers().values():
+            for path in _files(disp):
+                target = path.parent / DAMAGED_FOLDER / path.name
+                target.parent.mkdir(exist_ok=True)
+                os.replace(path, target)
+                moved.append(path.name)
+    except (AttributeError, OSError) as exc:
+        return moved, f"{type(exc).__name__}: {exc}"
+    return moved, ""
+
+
+def in_memory() -> None:
+    """Compile the kernels in memory from now on: numba neither reads nor writes the cache."""
+    for disp in dispatchers().values():
+        disp._cache = NullCache()
+
+
+def load() -> None:
+    """Compile the kernels, or load them from the cache (numba's own choice)."""
+    drift.warm_up()
+    horizon.warm_up()
+
+
+@contextlib.contextmanager
+def fill_lock(where: Path) -> Iterator[None]:
+    """Hold the cache folder's fill lock (one process compiles into a folder at a time; the
+    others wait, then find the kernels there)."""
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        f = open(where / LOCK_NAME, "a+b")
+    except OSError:  # a read-only folder: nothing to fill, nobody to wait for
+        yield
+        return
+    with f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            f.seek(0)
+            f.truncate()
+            f.write(str(os.getpid()).encode())  # who fills (`filler_pid`)
+            f.flush()
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def filler_pid(where: Path) -> int | None:
+    """The process filling the cache folder `where` now (None: none)."""
+    try:
+        with open(where / LOCK_NAME, "rb") as f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:  # held: its holder wrote its pid
+                return int(f.read() or 0) or None
+            fcntl.flock(f, fcntl.LOCK_UN)
+            return None
+    except (OSError, ValueError):
+        return None

@@ -1,0 +1,144 @@
+"""The one door that loads the kernels (`kernels.prepare`): a damaged cache (an index truncated,
+emptied or garbled, a data file truncated) is moved aside and compiled again, never a traceback
+and never another exit code; a cold cache plans on the numpy path while a background process
+fills it; `cache_note` names the folder numba really uses.
+
+Each test works on a copy of this run's warm cache in its own NUMBA_CACHE_DIR (numba checks a
+cached kernel against its source file, the same here), so nothing compiles but where a test
+says so; a background filler a test does not wait for is stopped."""
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from art_guidance import kernels
+from art_guidance.kernels import cache
+
+ROOT = Path(__file__).resolve().parents[2]
+DAMAGES = ("truncated", "emptied", "garbled", "data")
+
+
+def _env(cache_dir: Path) -> dict[str, str]:
+    return {**os.environ, "NUMBA_CACHE_DIR": str(cache_dir),
+            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+
+
+def _python(code: str, cache_dir: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], env=_env(cache_dir),
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def template(tmp_path_factory) -> tuple[Path, str]:
+    """(a NUMBA_CACHE_DIR holding this run's warm kernels, the sub-folder numba uses there)."""
+    kernels.warm_up()
+    source = cache.folder()
+    root = tmp_path_factory.mktemp("numba_cache")
+    out = _python("from art_guidance.kernels import cache; print(cache.folder())", root)
+    where = Path(out.stdout.strip().splitlines()[-1])
+    assert where.is_relative_to(root), out
+    where.mkdir(parents=True, exist_ok=True)
+    for f in source.glob("*.nb[ic]"):
+        shutil.copy2(f, where / f.name)
+    return root, where.name
+
+
+def _cache_copy(template, tmp_path: Path, damage: str | None) -> tuple[Path, Path]:
+    """(NUMBA_CACHE_DIR, its kernel folder): a copy of the warm cache with `damage` done."""
+    root, sub = template
+    cache_dir = tmp_path / "numba"
+    shutil.copytree(root, cache_dir)
+    where = cache_dir / sub
+    for f in sorted(where.glob("*.nbi" if damage != "data" else "*.nbc")):
+        data = f.read_bytes()
+        if damage in ("truncated", "data"):
+            f.write_bytes(data[:len(data) // 2])
+        elif damage == "emptied":
+            f.write_bytes(b"")
+        elif damage == "garbled":
+            noise = np.random.default_rng(0).integers(1, 256, len(data) - 40, dtype=np.uint8)
+            f.write_bytes(data[:40] + (np.frombuffer(data[40:], np.uint8) ^ noise).tobytes())
+    return cache_dir, where
+
+
+def _stop_filler(where: Path, wait_s: float = 0.0) -> None:
+    """Wait up to `wait_s` for the background filler of `where`, then stop it."""
+    end = time.monotonic() + wait_s
+    while (pid := cache.filler_pid(where)) is not None and time.monotonic() < end:
+        time.sleep(0.2)
+    if pid is not None:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.parametrize("damage", DAMAGES)
+def test_a_damaged_cache_is_moved_aside_and_compiled_again(template, tmp_path, damage):
+    """The door finds the damage (an index that does not load, or a data file failing to
+    load), moves the kernels' files into damaged/, names them in the log, and plans on."""
+    cache_dir, where = _cache_copy(template, tmp_path, damage)
+    code = ("from art_guidance import kernels\n"
+            "print('STATUS', kernels.prepare('compiled'))\n"
+            "print('COMPILED', kernels.compiled())\n")
+    out = _python(code, cache_dir)
+    _stop_filler(where)
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+    assert "damaged kernel cache" in out.stderr and "moved to" in out.stderr, out.stderr
+    assert (where / cache.DAMAGED_FOLDER).is_dir()
+    assert "COMPILED False" in out.stdout  # the numpy path while they compile again
+    if damage != "data":
+        assert ".nbi" in out.stderr  # the files that did not load, named
+
+
+def test_a_truncated_cache_under_plan_exits_as_without_damage_and_is_compiled_again(
+        template, tmp_path):
+    """`art-guidance plan` on a cache whose indexes are truncated (it was EOFError, exit 1):
+    exit 0, the same plan, the damage named, a background filler compiling them again."""
+    args = [sys.executable, "-m", "art_guidance.cli", "plan", "--seed", "3", "--warm-start",
+            "cvx", "--json"]
+    clean_dir, _ = _cache_copy(template, tmp_path / "clean", None)
+    clean = subprocess.run(args + [str(tmp_path / "clean.json")], env=_env(clean_dir),
+                           capture_output=True, text=True, timeout=300)
+    cache_dir, where = _cache_copy(template, tmp_path, "truncated")
+    damaged = subprocess.run(args + [str(tmp_path / "damaged.json")], env=_env(cache_dir),
+                             capture_output=True, text=True, timeout=300)
+    assert clean.returncode == damaged.returncode == 0, damaged.stderr
+    assert "Traceback" not in damaged.stderr and "moved to" in damaged.stderr
+    assert (tmp_path / "clean.json").read_text().count("dv_rtn_mps") == 1
+    strip = [line.split(", margin")[0] for line in (clean.stdout, damaged.stdout)]
+    assert strip[0] == strip[1], (clean.stdout, damaged.stdout)
+    end = time.monotonic() + 30.0  # the filler compiling them again (~15 s; not waited for)
+    while cache.filler_pid(where) is None and time.monotonic() < end:
+        time.sleep(0.1)
+    assert cache.filler_pid(where) is not None
+    _stop_filler(where)
+
+
+@pytest.mark.parametrize("damage", ["emptied", "garbled"])
+def test_demo_offline_on_a_damaged_cache_exits_as_without_damage(template, tmp_path, damage):
+    cache_dir, where = _cache_copy(template, tmp_path, damage)
+    out = subprocess.run([sys.executable, "-m", "art_guidance.cli", "demo", "--offline"],
+                         env=_env(cache_dir), capture_output=True, text=True, timeout=300)
+    _stop_filler(where)
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+    assert "free drift" in out.stdout and "moved to" in out.stderr
+
+
+def test_cache_note_names_the_folder_numba_really_uses(tmp_path):
+    """NUMBA_CACHE_DIR naming a regular file: numba falls back to another folder, and the
+    note says which, and that the variable cannot be used."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    out = subprocess.run([sys.executable, "-m", "art_guidance.kernels", "--status"],
+                         env=_env(blocker), capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert f"NUMBA_CACHE_DIR={blocker} cannot be used" in out.stdout, out.stdout
+    assert str(cache.folder()) in out.stdout or "kernel cache /" in out.stdout
