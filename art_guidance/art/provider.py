@@ -23,12 +23,13 @@ on `threads` threads, default 1: at batch 1 that is the fastest, and the result 
 on the machine's core count, so a replay on another machine reproduces it) or "onnx" (the
 exported file beside it, `onnx_art.ExportedArt`, on ONNX Runtime with one thread, without
 torch). "auto" takes "onnx" where ONNX Runtime is installed and the checkpoint's exported file
-is there, else "torch" (`resolve_runtime`).
+is there, else "torch" (`resolve_runtime`). With "auto" the checkpoint and its exported file
+are a pair, whichever of them is named: a refused exported file gives way to the checkpoint on
+torch, and a refused checkpoint beside an exported file that flies is named (`note`).
 """
 from __future__ import annotations
 
 import contextlib
-import json
 import threading
 import time
 from dataclasses import dataclass
@@ -37,6 +38,10 @@ from pathlib import Path
 import numpy as np
 
 from art_guidance.art.checkpoint_header import header_sha256
+from art_guidance.art.model_files import (  # noqa: F401 (the models.json readers, as before)
+    DEFAULTS_KEY, checkpoint_beside, checkpoint_problem, models_dir, pinned_sha256,
+    shipped_defaults, shipped_model_with_sha256, shipped_models,
+)
 from art_guidance.art.onnx_art import (
     ONNX_SUFFIX, RUNTIMES, exported_path, installed, load_exported,
 )
@@ -61,14 +66,8 @@ from art_guidance.safety import PassiveSafety
 DEFAULT_MODEL = "art_slim1e40_chance_rtn.pt"
 DEFAULT_MODELS = {"chance": DEFAULT_MODEL, "deterministic": "art_slim1e40_det_roe.pt"}
 TEACHERS = {"chance": "art_small_chance_rtn.pt", "deterministic": "art_small_det_roe.pt"}
-DEFAULTS_KEY = "defaults"  # models.json: the default per mode and why (not a model entry)
 SPACING_REL_TOL = 0.01  # node spacing of a request vs the training horizon's [-]
 DEFAULT_REWARD_SCALES = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.2)  # R(t_1) = -s J_CVX
-
-
-def models_dir() -> Path:
-    """The packaged model directory (`art_guidance/models`)."""
-    return Path(__file__).resolve().parent.parent / "models"
 
 
 def default_model_path(mode: str = "chance") -> Path:
@@ -83,56 +82,6 @@ def default_model_path(mode: str = "chance") -> Path:
         raise ValueError(f"unknown passive-safety mode {mode!r}; choose from "
                          f"{sorted(DEFAULT_MODELS)}")
     return models_dir() / DEFAULT_MODELS[mode]
-
-
-def shipped_model_with_sha256(sha256: str) -> Path | None:
-    """The shipped model whose pinned checksum is `sha256` (None: no shipped model has it)."""
-    for name, entry in shipped_models().items():
-        if isinstance(entry, dict) and entry.get("sha256") == sha256:
-            return models_dir() / name
-    return None
-
-
-def _models_json() -> dict:
-    """`models/models.json` as a dict ({} if missing or unreadable)."""
-    path = models_dir() / "models.json"
-    if not path.is_file():
-        return {}
-    try:
-        return dict(json.loads(path.read_text()))
-    except (OSError, ValueError, TypeError):
-        return {}
-
-
-def shipped_models() -> dict[str, dict]:
-    """`models/models.json`: file name -> {"sha256", provenance} of every shipped model (its
-    "defaults" statement left out: `shipped_defaults`)."""
-    return {name: entry for name, entry in _models_json().items()
-            if name != DEFAULTS_KEY and isinstance(entry, dict) and "sha256" in entry}
-
-
-def shipped_defaults() -> dict:
-    """What models.json says of the defaults: {"rule": ..., mode: {"model", "why"}}."""
-    defaults = _models_json().get(DEFAULTS_KEY)
-    return dict(defaults) if isinstance(defaults, dict) else {}
-
-
-def pinned_sha256(path: str | Path) -> str | None:
-    """The checksum a shipped model must have (None for a file that is not a shipped model):
-    a checkpoint's payload sha256, or an exported file's sha256 (its checkpoint's entry in
-    models.json lists it under "export")."""
-    path = Path(path).resolve()
-    if path.parent != models_dir():
-        return None
-    for name, entry in shipped_models().items():
-        if not isinstance(entry, dict):
-            continue
-        if name == path.name:
-            return entry.get("sha256")
-        export = entry.get("export")
-        if isinstance(export, dict) and export.get("file") == path.name:
-            return export.get("sha256")
-    return None
 
 
 def resolve_model_path(spec: str | None, chance_constrained: bool = True) -> Path | None:
@@ -173,9 +122,16 @@ def resolve_runtime(runtime: str, path: str | Path) -> str:
     return runtime
 
 
-def _load_onnx(path: Path, expected: str | None):
-    """The exported model of checkpoint `path` (or the .onnx `path` itself), checked against
-    `expected` (else the checkpoint header's checksum)."""
+def _load_file(path: Path, runtime: str, expected: str | None):
+    """The model of file `path` on `runtime`: on "onnx" the .onnx `path` itself or the exported
+    file beside checkpoint `path`, checked against `expected` (else the checkpoint header's
+    checksum); on "torch" the checkpoint."""
+    if runtime == "torch":
+        from art_guidance.art.checkpoint import load as load_checkpoint
+
+        art = load_checkpoint(path, expected_sha256=expected)
+        art.decoder  # pack the cached decoder now, not in the first plan
+        return art
     if path.suffix != ONNX_SUFFIX:
         expected = expected or header_sha256(path)
         path = exported_path(path)
@@ -183,6 +139,48 @@ def _load_onnx(path: Path, expected: str | None):
             raise CheckpointError(path, "no exported model here: run `art-guidance export` on "
                                         "the checkpoint")
     return load_exported(path, expected, pinned_sha256(path))
+
+
+def _load_pair(path: Path, expected: str | None) -> tuple[object, str]:
+    """"auto" where ONNX Runtime and an exported file are there: the pair of the checkpoint and
+    its exported file beside it, whichever of them `path` names. The exported model flies on
+    onnx; where it is refused, the checkpoint on torch (where it is intact and torch is
+    installed). Returns (model, note): the note names a refused file of the pair and why
+    ("" = none was).
+
+    Raises:
+        CheckpointError: neither file loads (the message names both and why).
+    """
+    if path.suffix == ONNX_SUFFIX:
+        checkpoint, exported = checkpoint_beside(path), path
+    else:
+        checkpoint, exported = path, exported_path(path)
+    # the checkpoint named is checked whole, one beside the export given where there is one
+    damage = (checkpoint_problem(checkpoint, expected)
+              if checkpoint == path or checkpoint.is_file() else None)
+    source = expected
+    if source is None and checkpoint == path:
+        with contextlib.suppress(CheckpointError):
+            source = header_sha256(checkpoint)  # the export must come from this checkpoint
+    try:
+        art = load_exported(exported, source, pinned_sha256(exported))
+    except CheckpointError as exc:
+        if damage is not None:
+            raise CheckpointError(exc.path, f"{exc.reason}; and {checkpoint}: {damage}") from exc
+        if not (checkpoint.is_file() and installed("torch")):
+            raise
+        try:
+            art = _load_file(checkpoint, "torch", expected)
+        except CheckpointError as torch_exc:
+            raise CheckpointError(exc.path, f"{exc.reason}; and {torch_exc}") from exc
+        return art, (f"the exported model was refused ({exc}); flying the checkpoint on "
+                     f"torch instead: {checkpoint}")
+    if damage is None:
+        return art, ""
+    unchecked = (" (not checked against it: its checksum is unreadable)"
+                 if checkpoint == path and source is None else "")
+    return art, (f"the checkpoint was refused ({checkpoint}: {damage}); flying its exported "
+                 f"model on onnx{unchecked}, without a torch fallback: {exported}")
 
 
 class ArtWarmStart:
@@ -216,7 +214,7 @@ class ArtWarmStart:
         self.load_ms = float(load_ms)
         self.threads = int(threads)
         self._lock = threading.Lock()  # one KV cache per model: one rollout at a time
-        self.note = ""  # how `load` departed from the runtime asked ("" = it did not)
+        self.note = ""  # a file of the pair "auto" refused, and what flies ("" = none)
         self.node_spacing_s = _training_spacing_s(art)
 
     @classmethod
@@ -228,34 +226,28 @@ class ArtWarmStart:
         `models/models.json`, so a swapped or damaged file is refused. On "onnx" the exported
         file (the .onnx given, or the one beside the checkpoint) must have been exported from
         the checkpoint (`expected_sha256`, else the pinned or the checkpoint header's checksum).
+        On "auto" with an exported file (the .onnx given, or the one beside the checkpoint
+        given) each file of the pair stands in for the other (`_load_pair`): a refused
+        exported file gives way to the intact checkpoint beside it on torch, and an exported
+        file flies beside a refused checkpoint; `note` names the refused file and why.
 
         Raises:
             InputError: an unknown runtime, or torch asked of an exported file.
             ModelError: the runtime is not installed.
             CheckpointError: missing, corrupt, truncated, tampered, wrong-version or
                 wrong-shape file, or an exported file of another checkpoint (the message names
-                the file and the reason).
+                the file and the reason; on "auto", both files of a pair neither of which
+                loads).
         """
         t0 = time.perf_counter()
         path = Path(path or default_model_path())
         asked, runtime = runtime, resolve_runtime(runtime, path)
-        expected = expected_sha256 or pinned_sha256(path)
-        note = ""
-        if runtime == "onnx":
-            try:
-                art = _load_onnx(path, expected)
-            except CheckpointError as exc:
-                if not (asked == "auto" and path.suffix != ONNX_SUFFIX and installed("torch")):
-                    raise
-                # "auto" with a refused export beside the checkpoint: fly the checkpoint
-                note = (f"the exported model was refused ({exc}); flying the checkpoint on "
-                        "torch instead")
-                runtime = "torch"
-        if runtime == "torch":
-            from art_guidance.art.checkpoint import load as load_checkpoint
-
-            art = load_checkpoint(path, expected_sha256=expected)
-            art.decoder  # pack the cached decoder now, not in the first plan
+        expected = expected_sha256 or pinned_sha256(
+            checkpoint_beside(path) if path.suffix == ONNX_SUFFIX else path)
+        if asked == "auto" and runtime == "onnx":
+            art, note = _load_pair(path, expected)
+        else:
+            art, note = _load_file(path, runtime, expected), ""
         provider = cls(art, 1e3 * (time.perf_counter() - t0), threads, reward_scales)
         provider.note = note
         return provider

@@ -27,6 +27,7 @@ from art_guidance.planning.config_record import recorded_config_problem
 from art_guidance.record.bag_metadata import bag_files
 from art_guidance.record.loss import account
 from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE
+from art_guidance.record.replay_rows import ROLLOUT_ABS_TOL_MPS, art_rows, window_rows
 from art_guidance.record.scan import Damage, FileScan, lend_channels, scan_file
 from art_guidance.record.seal import (
     SEAL_KEY, SEALING_LIBRARY, seal_problems, shown, shown_name, unknown_fields,
@@ -34,7 +35,6 @@ from art_guidance.record.seal import (
 
 COST_REL_TOL = 1e-6     # relative cost agreement of a re-solve
 DV_ABS_TOL_MPS = 1e-5   # largest delta-v component difference [m/s]
-ROLLOUT_ABS_TOL_MPS = 1e-6  # largest ART rollout control difference [m/s] (same model, CPU)
 EXIT_OK = 0        # every compared solve matches, nothing lost or damaged
 EXIT_MISMATCH = 1  # a compared solve does not match (whatever else)
 EXIT_LOST = 3      # all compared solves match, but data was lost
@@ -261,43 +261,6 @@ def _replay_provider(log: RecordedLog, model: str | Path | None) -> tuple[object
                       "(sha256 matches)")
 
 
-def _window_rows(record: object, result: object) -> dict:
-    """The window of one solve (recorded vs replayed): the same end node and target source
-    (a record from before windows, or not windowed, has none)."""
-    text = str(getattr(record, "window_json", "") or "")
-    recorded = json.loads(text) if text else None
-    replayed = None if result.window is None else result.window.to_json()
-    same = (recorded is None) == (replayed is None) and (recorded is None or all(
-        recorded.get(k) == replayed[k] for k in ("window_nodes", "end_node", "target_source")))
-    return {"window_target": None if recorded is None else recorded.get("target_source"),
-            "replayed_window_target": None if replayed is None else replayed["target_source"],
-            "window_match": bool(same)}
-
-
-def _art_rows(record: object, result: object) -> dict:
-    """Rollout and decision comparison of one solve (recorded vs replayed)."""
-    rec_dv = np.asarray(getattr(record, "warm_start_art_dv_rtn_mps", []), float)
-    rep_dv = (np.asarray(result.art_dv_rtn_mps, float).reshape(-1)
-              if result.art_dv_rtn_mps is not None else np.zeros(0))
-    row = {"warm_start": getattr(record, "warm_start", ""),
-           "replayed_warm_start": result.warm_start.value,
-           "replayed_warm_start_reason": result.warm_start_reason}
-    ok = not row["warm_start"] or row["warm_start"] == result.warm_start.value
-    if rec_dv.size or rep_dv.size:
-        d_roll = (float(np.max(np.abs(rec_dv - rep_dv))) if rec_dv.shape == rep_dv.shape
-                  else float("inf"))
-        ph = result.posthoc
-        rec_ph = int(getattr(record, "posthoc", 0))
-        rep_ph = 0 if ph is None else (1 if ph.accepted else 2)
-        d_er = (abs(float(getattr(record, "posthoc_e_r", np.nan)) - ph.e_r)
-                if ph is not None else float("nan"))
-        row.update(rollout_max_abs_diff_mps=d_roll, posthoc=rec_ph, replayed_posthoc=rep_ph,
-                   e_r_abs_diff=d_er)
-        ok = ok and d_roll <= ROLLOUT_ABS_TOL_MPS and rec_ph == rep_ph
-    row["decision_match"] = bool(ok)
-    return row
-
-
 def advice(path: str | Path, log: RecordedLog) -> list[str]:
     """What to do about what `read_log` found; `bag reindex` only where it helps."""
     out, folder = [], Path(path).is_dir()
@@ -427,8 +390,8 @@ def replay(path: str | Path, model: str | Path | None = None,
                 if result.dv_rtn_mps.shape == dv.shape else float("inf"))
         row.update(replayed_cost_mps=result.cost_mps, cost_rel_diff=d_cost,
                    dv_max_abs_diff_mps=d_dv, replayed_status=result.status.name,
-                   **_art_rows(record, result))
-        row.update(_window_rows(record, result))
+                   **art_rows(record, result))
+        row.update(window_rows(record, result))
         row["match"] = bool(d_cost <= COST_REL_TOL and d_dv <= DV_ABS_TOL_MPS
                             and row["decision_match"] and row["window_match"])
         rows.append(row)

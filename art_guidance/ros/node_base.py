@@ -9,15 +9,16 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import rclpy
 from art_guidance_msgs.msg import ManeuverPlan, RelativeNavState, ReplanRequest
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from art_guidance import kernels, topics
+from art_guidance import topics
 from art_guidance.config import GuidanceConfig, ScenarioConfig, node_parameter_defaults
 from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, GuidanceError
@@ -29,9 +30,11 @@ from art_guidance.ros.adapters import (
 )
 from art_guidance.ros.node_outputs import ERROR, OK, WARN, NodeOutputs
 from art_guidance.ros.parameters import (
-    PLANNING_PARAMETERS, SPECS, NodeParameters, check_table, descriptor,
+    PLANNING_PARAMETERS, SPECS, NodeParameters, check_table, descriptor, shown_value,
 )
-from art_guidance.ros.node_status import fix_counts, load_model, model_values, prepare_numerics
+from art_guidance.ros.node_status import (
+    fix_counts, load_model, model_values, numerics_values, prepare_numerics,
+)
 from art_guidance.ros.solve_recording import SolveRecording
 
 STATS_PERIOD_S = 1.0  # "art_guidance/stats" is published this often while planning [s]
@@ -62,10 +65,10 @@ class GuidanceNodeBase:
         super().__init__("guidance_node", **kwargs)
         check_table(PARAMETERS)
         for name, default in PARAMETERS.items():
-            self.declare_parameter(name, default, descriptor(name))
+            self._declare(name, default)
         config = GuidanceConfig.load(self.get_parameter("config_dir").value or None)
         for name in PLANNING_PARAMETERS:
-            self.declare_parameter(name, getattr(config.planning, name), descriptor(name))
+            self._declare(name, getattr(config.planning, name))
         self.params = NodeParameters.from_values(
             {name: self.get_parameter(name).value for name in SPECS})
         # built by _configure (None: not configured)
@@ -86,6 +89,20 @@ class GuidanceNodeBase:
         self._worker_deaths = 0  # proposal worker deaths logged so far
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
+    def _declare(self, name: str, default: Any) -> None:
+        """Declare a parameter. A start-up value of another type than its default's
+        (`-p numerics:=7`), which rclpy refuses with InvalidParameterTypeException, is refused
+        as an invalid value is: a ConfigError naming the parameter, the type it must have and
+        the value given (`ParamSpec.type_refusal`)."""
+        try:
+            self.declare_parameter(name, default, descriptor(name))
+        except InvalidParameterTypeException:
+            # declared once more, untyped, only to read the value as given: the node stops
+            loose = descriptor(name)
+            loose.dynamic_typing = True
+            given = self.declare_parameter(name, default, loose).value
+            raise SPECS[name].type_refusal(name, given) from None
+
     def _configure(self) -> None:
         """Load the configuration (and, with the learned warm start, the model); build the
         pipeline, the replan policy and the recorder. Raises GuidanceError on bad config."""
@@ -97,7 +114,7 @@ class GuidanceNodeBase:
             replan_warm_start=p.replan_warm_start))
         self.scenario = config.scenario
         if p.default_waypoint not in self.scenario.waypoints_rtn:
-            raise ConfigError(f"default_waypoint {p.default_waypoint!r} is not one of "
+            raise ConfigError(f"default_waypoint {shown_value(p.default_waypoint)} is not one of "
                               f"{sorted(self.scenario.waypoints_rtn)}")
         settings = p.replan_settings(ae_to_koz_node=self.scenario.ae_to_koz_node,
                                      horizon_nodes=self.scenario.n_nodes)  # checked first
@@ -157,10 +174,8 @@ class GuidanceNodeBase:
                                f"{self.params.warm_start}, {self.model_status})")
         self.out.diag("art_guidance/model", OK if self.provider is not None else WARN,
                       self.model_status, self._model_values())
-        self.out.diag("art_guidance/numerics", OK if kernels.compiled() == (
-            self.params.numerics == "compiled") else WARN, self.numerics_status,
-            {"numerics": "compiled" if kernels.compiled() else "numpy",
-             "kernels_ready_s": kernels.warm_up() or 0.0, "cache": kernels.cache_note})
+        self._numerics_shown = None
+        self._publish_numerics()
         where = self.recording.directory
         self.out.diag("art_guidance/recording", OK,
                       f"recording to {where}" if where else "not recording",
@@ -320,9 +335,22 @@ class GuidanceNodeBase:
         self.out.nav_diag(stamp_ns, WARN, "rejected", {"reason": reason,
                                                        **fix_counts(self.core)})
 
+    def _publish_numerics(self) -> None:
+        """The "art_guidance/numerics" status, when it changed (the kernels ready after a
+        background compile: logged too)."""
+        ok, text, values = numerics_values(self.params.numerics)
+        if text == self._numerics_shown:
+            return
+        if self._numerics_shown is not None:
+            self._log().info(text)
+        self._numerics_shown = text
+        self.out.diag("art_guidance/numerics", OK if ok else WARN, text, values)
+
     def _publish_stats(self) -> None:
-        """The "art_guidance/stats" status (timer callback: nothing escapes it)."""
+        """The "art_guidance/stats" status, and the numerics' when they changed (timer
+        callback: nothing escapes it)."""
         try:
+            self._publish_numerics()
             counts = fix_counts(self.core)
             self.out.diag("art_guidance/stats", OK, ", ".join(
                 f"{k.replace('_', ' ')} {v}" for k, v in counts.items()), counts)

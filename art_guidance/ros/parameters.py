@@ -20,8 +20,31 @@ from art_guidance.errors import ConfigError
 from art_guidance.planning import WARM_STARTS
 from art_guidance.planning.replan import STAMP_CHECKS, ReplanSettings
 from art_guidance.planning.types import TERMINAL_TARGETS
+from art_guidance.record.seal import SHOWN_CHARS, shown
 
 NAV_QOS = ("best_effort", "reliable")
+KINDS = {"float": "a number", "int": "an integer", "bool": "a boolean (true or false)",
+         "str": "a string"}  # a kind in words, as a refusal names it
+VALUE_TYPES = ((bool, "a boolean"), (int, "an integer"), (float, "a floating-point number"),
+               (str, "a string"), (bytes, "a byte array"))  # bool first: a bool is an int
+
+
+def shown_value(value: Any) -> str:
+    """A parameter value for a message: a string as `record.seal.shown` shows it, any other
+    value as Python writes it, likewise cut to SHOWN_CHARS characters (with its length)."""
+    if isinstance(value, str):
+        return shown(value)
+    text = repr(value)
+    return text if len(text) <= SHOWN_CHARS else (
+        f"{text[:SHOWN_CHARS]}... ({len(text)} characters)")
+
+
+def type_of(value: Any) -> str:
+    """The type of a parameter value in words ("an integer", "a string", ...)."""
+    for cls, words in VALUE_TYPES:
+        if isinstance(value, cls):
+            return words
+    return "an array"
 
 
 @dataclass(frozen=True)
@@ -57,13 +80,14 @@ class ParamSpec:
         """The value as this parameter's type, validated.
 
         Raises:
-            ConfigError: naming the parameter, the constraint and the value.
+            ConfigError: naming the parameter, the constraint and the value (`shown_value`).
         """
+        got = shown_value(value)
         if self.kind in ("float", "int"):
             if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ConfigError(f"{name} must be a number, got {value!r}")
+                raise ConfigError(f"{name} must be a number, got {got}")
             if self.kind == "int" and float(value) != int(value):
-                raise ConfigError(f"{name} must be a whole number, got {value!r}")
+                raise ConfigError(f"{name} must be a whole number, got {got}")
             value = float(value) if self.kind == "float" else int(value)
             low = self.minimum
             if low is not None and (value <= low if self.exclusive_minimum else value < low) \
@@ -72,13 +96,27 @@ class ParamSpec:
             return value
         if self.kind == "bool":
             if not isinstance(value, bool):
-                raise ConfigError(f"{name} must be true or false, got {value!r}")
+                raise ConfigError(f"{name} must be true or false, got {got}")
             return value
         if not isinstance(value, str):
-            raise ConfigError(f"{name} must be a string, got {value!r}")
+            raise ConfigError(f"{name} must be a string, got {got}")
         if self.choices is not None and value not in self.choices:
-            raise ConfigError(f"{name} must be {self.constraints}, got {value!r}")
+            raise ConfigError(f"{name} must be {self.constraints}, got {got}")
         return value
+
+    def type_refusal(self, name: str, value: Any) -> ConfigError:
+        """The refusal of a value of another type than this parameter's (rclpy refuses it at
+        declaration: `InvalidParameterTypeException`): the parameter, the type it must have
+        (with its constraints) and the value given, with its type. YAML, which reads a
+        command line's values, takes an unquoted true/false, yes/no or on/off for a boolean:
+        for a string parameter the refusal says how to quote one."""
+        limits = f" ({self.constraints})" if self.constraints else ""
+        text = (f"{name} must be {KINDS[self.kind]}{limits}, got {shown_value(value)} "
+                f"({type_of(value)})")
+        if self.kind == "str" and isinstance(value, bool):
+            text += (f"; YAML reads an unquoted true/false, yes/no or on/off as a boolean: "
+                     f"quote the string, -p {name}:=\"'...'\"")
+        return ConfigError(text)
 
 
 SPECS: dict[str, ParamSpec] = {
@@ -97,8 +135,10 @@ SPECS: dict[str, ParamSpec] = {
     "art_runtime": ParamSpec("what runs the model: 'torch' (the checkpoint), 'onnx' (its "
                              "exported .onnx file beside it or given as model_path, on ONNX "
                              "Runtime, no torch needed) or 'auto' (onnx where ONNX Runtime and "
-                             "the exported file are there, else torch); an unknown or missing "
-                             "runtime leaves the node in CVX-only mode with a warning", "str"),
+                             "the exported file are there, else torch; where one file of that "
+                             "pair is damaged the other flies, with a warning naming it); an "
+                             "unknown or missing runtime leaves the node in CVX-only mode with "
+                             "a warning", "str"),
     "replan_sigma_threshold": ParamSpec("replan when any ROE axis deviates from the plan by "
                                         "more than this [navigation sigma]", "float",
                                         minimum=0.0, exclusive_minimum=True, dynamic=True),
@@ -159,10 +199,11 @@ SPECS: dict[str, ParamSpec] = {
                                         "3 * record_max_bytes", "int", minimum=0),
     "samples_per_node": ParamSpec("drift samples linearised per node in SCP (default: "
                                   "planning.yaml)", "int", minimum=1),
-    "numerics": ParamSpec("the per-step numerics: 'compiled' (numba kernels, compiled or "
-                          "loaded from their cache at configure) or 'numpy' (their oracles); "
-                          "numba missing or failing to compile is said at configure and the "
-                          "numpy path taken (default: planning.yaml)", "str", NUMERICS),
+    "numerics": ParamSpec("the per-step numerics: 'compiled' (numba kernels, loaded from "
+                          "their cache at configure; on a cold cache the numpy path while a "
+                          "background process compiles them) or 'numpy' (their oracles); numba "
+                          "missing or failing is said at configure and the numpy path taken "
+                          "(default: planning.yaml)", "str", NUMERICS),
     "replan_warm_start": ParamSpec("a replan with a plan in force: 'carry' starts SCVx* from "
                                    "that plan's burns (the fresh solve, from CVX and with "
                                    "warm_start auto from the learned proposal, runs where "

@@ -8,6 +8,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -86,7 +87,10 @@ def test_installed_cli_runs_from_prefix(prefix):
     assert "free drift" in demo.stdout
     # a fresh install's cache is cold: demo planned on the numpy path while a background process
     # compiles the kernels beside the installed modules; not waited for here
-    pid = filler_pid(site / "art_guidance" / "kernels" / "__pycache__")
+    end = time.monotonic() + 30.0  # it takes the folder's lock as demo ends
+    while (pid := filler_pid(site / "art_guidance" / "kernels" / "__pycache__")) is None \
+            and time.monotonic() < end:
+        time.sleep(0.1)
     if pid is not None:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)

@@ -242,3 +242,40 @@ def test_bad_parameter_refuses_to_start(ros_env, python_exe):
                          text=True, timeout=60)
     assert out.returncode == 2
     assert "stamp_check" in out.stderr
+
+
+@pytest.mark.parametrize("form, value, reason", [
+    ("plain", "numerics:=7", "numerics must be a string (one of: compiled, numpy), got 7 "
+     "(an integer)"),
+    ("plain", "replan_window_nodes:=abc", "replan_window_nodes must be an integer (>= 0), got "
+     "'abc' (a string)"),
+    ("plain", "terminal_target:=7", "terminal_target must be a string"),
+    ("plain", "stamp_check:=off", "stamp_check must be a string (one of: wallclock, order, "
+     "off), got False (a boolean); YAML reads an unquoted"),
+    ("managed", "art_context:=maybe", "art_context must be a boolean (true or false), got "
+     "'maybe' (a string)"),
+])
+def test_a_wrongly_typed_parameter_refuses_to_start(ros_env, python_exe, form, value, reason):
+    """A start-up value of another type than the parameter's (which rclpy refuses at
+    declaration) is refused as an invalid value is: one line naming the parameter, the type it
+    must have and the value given, exit 2, no traceback; the managed node (through
+    `art-guidance node --managed`) alike."""
+    entry = (["-m", "art_guidance.ros.guidance_node"] if form == "plain"
+             else ["-m", "art_guidance.cli", "node", "--managed"])
+    out = subprocess.run([python_exe, *entry, "--ros-args", "-p", value], env=ros_env,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "Traceback" not in out.stdout + out.stderr, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"guidance_node: {reason}"), out.stderr
+
+
+def test_a_long_refused_value_is_cut(ros_env, python_exe):
+    """A 100,000-character value is refused with a short reason: the value cut, with its
+    length."""
+    out = subprocess.run([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
+                          "-p", f"terminal_target:={'x' * 100_000}"], env=ros_env,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert len(out.stderr) < 300 and "(100000 characters)" in out.stderr, out.stderr[-2000:]
+    assert out.stderr.startswith("guidance_node: terminal_target must be one of")

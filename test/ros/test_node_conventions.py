@@ -112,6 +112,33 @@ def test_a_replan_window_is_set_at_run_time_and_bad_ones_are_refused(client):
             [Parameter("replan_window_nodes", Parameter.Type.INTEGER, 0)])).results[0].successful
 
 
+def test_wrongly_typed_and_long_values_are_refused_at_run_time(client, node_proc):
+    """`ros2 param set` of a value of another type than the parameter's is refused (by rclpy,
+    before the node's validation: the reason names the type expected and the type given), a
+    100,000-character value with a short reason (the value cut, with its length); nothing
+    changes and the node keeps serving."""
+    names = ["terminal_target", "replan_window_nodes", "art_context", "stamp_check"]
+    before = _result(client.params.get_parameters(names)).values
+    for name, kind, value, expected in [
+            ("terminal_target", Parameter.Type.INTEGER, 7, "STRING"),
+            ("replan_window_nodes", Parameter.Type.STRING, "abc", "INTEGER"),
+            ("art_context", Parameter.Type.STRING, "maybe", "BOOL"),
+            ("stamp_check", Parameter.Type.BOOL, False, "STRING")]:
+        bad = _result(client.params.set_parameters([Parameter(name, kind, value)])).results[0]
+        assert not bad.successful and "Wrong parameter type" in bad.reason, bad.reason
+        assert f"expected 'Type.{expected}'" in bad.reason, bad.reason
+    long = _result(client.params.set_parameters(
+        [Parameter("terminal_target", Parameter.Type.STRING, "x" * 100_000)])).results[0]
+    assert not long.successful and len(long.reason) < 300, len(long.reason)
+    assert long.reason.startswith("terminal_target must be one of: art, cvx, carry, got 'xxx")
+    assert long.reason.endswith("... (100000 characters)"), long.reason
+    assert node_proc.poll() is None
+    assert _result(client.params.get_parameters(names)).values == before
+    ok = _result(client.params.set_parameters(
+        [Parameter("terminal_target", Parameter.Type.STRING, "cvx")])).results[0]
+    assert ok.successful, ok.reason
+
+
 def test_plans_say_what_they_are(client):
     assert ManeuverPlan().status == ManeuverPlan.STATUS_UNKNOWN  # unset never reads as success
     stamp, decision = client.send_nav(NOMINAL_RTN + [0.0, 400.0, 0, 0, 0, 0])
@@ -158,3 +185,5 @@ def test_sigint_shuts_down_without_errors(client, node_proc):
     assert node_proc.returncode == 0, out
     assert "Failed to publish" not in out and "Traceback" not in out, out
     assert "FASTRTPS_DEFAULT_PROFILES_FILE" not in out
+    # the refusal of a 100,000-character value is logged as short as it is answered
+    assert max(len(line) for line in out.splitlines()) < 1000

@@ -70,14 +70,16 @@ def _cache_copy(template, tmp_path: Path, damage: str | None) -> tuple[Path, Pat
     return cache_dir, where
 
 
-def _stop_filler(where: Path, wait_s: float = 0.0) -> None:
-    """Wait up to `wait_s` for the background filler of `where`, then stop it."""
-    end = time.monotonic() + wait_s
-    while (pid := cache.filler_pid(where)) is not None and time.monotonic() < end:
-        time.sleep(0.2)
-    if pid is not None:
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGKILL)
+def _stop_filler(where: Path) -> None:
+    """Stop the background filler of `where` (waiting up to 30 s for it to take the folder's
+    lock: it starts as the command under test ends), so that it does not compile on beside
+    the other tests."""
+    end = time.monotonic() + 30.0
+    while (pid := cache.filler_pid(where)) is None and time.monotonic() < end:
+        time.sleep(0.1)
+    assert pid is not None, "no background filler started"
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGKILL)
 
 
 @pytest.mark.parametrize("damage", DAMAGES)
@@ -115,11 +117,7 @@ def test_a_truncated_cache_under_plan_exits_as_without_damage_and_is_compiled_ag
     assert (tmp_path / "clean.json").read_text().count("dv_rtn_mps") == 1
     strip = [line.split(", margin")[0] for line in (clean.stdout, damaged.stdout)]
     assert strip[0] == strip[1], (clean.stdout, damaged.stdout)
-    end = time.monotonic() + 30.0  # the filler compiling them again (~15 s; not waited for)
-    while cache.filler_pid(where) is None and time.monotonic() < end:
-        time.sleep(0.1)
-    assert cache.filler_pid(where) is not None
-    _stop_filler(where)
+    _stop_filler(where)  # the filler compiling them again (~15 s; not waited for)
 
 
 @pytest.mark.parametrize("damage", ["emptied", "garbled"])

@@ -22,7 +22,8 @@ from helpers.shipped import heldout_requests, runtimes_agree
 
 from art_guidance.art.onnx_art import METADATA_KEY, load_exported
 from art_guidance.art.provider import (
-    DEFAULT_MODELS, ArtWarmStart, default_model_path, pinned_sha256, resolve_runtime,
+    DEFAULT_MODELS, ArtWarmStart, default_model_path, models_dir, pinned_sha256,
+    resolve_runtime,
 )
 from art_guidance.cli import main as cli_main
 from art_guidance.errors import CheckpointError, InputError
@@ -145,6 +146,67 @@ def test_auto_flies_the_checkpoint_on_torch_beside_a_damaged_export(tmp_path, ch
     assert "exported model was refused" in status and "on torch" in status, status
     assert len(warnings) == 1 and "flying the checkpoint on torch" in warnings[0]
     _refused(tmp_path / checkpoint.name, "weights are not those recorded|corrupt, truncated")
+
+
+TEACHER = "art_small_chance_rtn"  # a small shipped pair (checkpoint and exported file)
+
+
+def _pair(tmp_path: Path, damaged: str) -> dict[str, Path]:
+    """The shipped TEACHER pair copied into `tmp_path`, the `damaged` one (".pt" or ".onnx")
+    cut to half its length (not shipped there: nothing pins the copies)."""
+    files = {}
+    for suffix in (".pt", ".onnx"):
+        blob = (models_dir() / (TEACHER + suffix)).read_bytes()
+        files[suffix] = tmp_path / (TEACHER + suffix)
+        files[suffix].write_bytes(blob[:len(blob) // 2] if suffix == damaged else blob)
+    return files
+
+
+@pytest.mark.parametrize("given", [".onnx", ".pt"], ids=["onnx_given", "pt_given"])
+@pytest.mark.parametrize("damaged, flies, why", [
+    (".onnx", "torch", "not an exported art_guidance model (corrupt, truncated"),
+    (".pt", "onnx", "truncated or padded"),
+], ids=["onnx_damaged", "pt_damaged"])
+def test_auto_flies_the_intact_file_of_a_damaged_pair(tmp_path, given, damaged, flies, why):
+    """`art_runtime: auto` treats a checkpoint and its exported file as a pair, whichever of
+    them model_path names: a truncated exported file gives way to the checkpoint on torch, a
+    truncated checkpoint beside an intact exported file leaves that flying on onnx; either way
+    the note names the damaged file and why, and the model is the shipped one."""
+    files = _pair(tmp_path, damaged)
+    provider = ArtWarmStart.load(files[given], runtime="auto")
+    intact = ".pt" if damaged == ".onnx" else ".onnx"
+    assert provider.runtime == flies and provider.path == str(files[intact]), provider.note
+    assert provider.sha256 == pinned_sha256(models_dir() / (TEACHER + ".pt"))
+    assert f"{files[damaged]}: {why}" in provider.note, provider.note
+    assert f"on {flies}" in provider.note and str(files[intact]) in provider.note
+    if damaged == ".pt" and given == ".pt":  # checked against the header it still has
+        assert "not checked" not in provider.note
+
+
+def test_auto_names_both_files_of_a_pair_neither_of_which_loads(tmp_path):
+    """Both files damaged: refused (CVX only in the node) with both named, whichever is
+    given; asked for one runtime, the file of the other is not looked at."""
+    for given in (".pt", ".onnx"):
+        files = _pair(tmp_path, ".pt")
+        files[".onnx"].write_bytes(files[".onnx"].read_bytes()[:1000])
+        with pytest.raises(CheckpointError) as refused:
+            ArtWarmStart.load(files[given], runtime="auto")
+        text = str(refused.value)
+        assert f"{files['.onnx']}: not an exported" in text, text
+        assert f"{files['.pt']}: truncated or padded" in text, text
+    files = _pair(tmp_path, ".pt")
+    assert ArtWarmStart.load(files[".onnx"], runtime="onnx").note == ""
+
+
+def test_a_shipped_exported_file_given_as_model_path_loads():
+    """A shipped .onnx named itself is checked against its checkpoint's pinned checksum (and
+    its own), not refused as another checkpoint's."""
+    onnx = models_dir() / (TEACHER + ".onnx")
+    for runtime in ("auto", "onnx"):
+        provider = ArtWarmStart.load(onnx, runtime=runtime)
+        assert provider.runtime == "onnx" and provider.note == ""
+        assert provider.sha256 == pinned_sha256(onnx.with_suffix(".pt"))
+        assert provider.runtime_sha256 == pinned_sha256(onnx)
 
 
 def test_the_node_and_plan_fly_cvx_when_the_runtime_cannot_be_used(tmp_path, capsys):
