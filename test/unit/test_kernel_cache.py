@@ -140,3 +140,41 @@ def test_cache_note_names_the_folder_numba_really_uses(tmp_path):
     assert out.returncode == 0, out.stderr
     assert f"NUMBA_CACHE_DIR={blocker} cannot be used" in out.stdout, out.stdout
     assert str(cache.folder()) in out.stdout or "kernel cache /" in out.stdout
+
+
+def _bag(tmp_path: Path) -> Path:
+    """A recorded bag of two real plans (the recorder as the node drives it)."""
+    pytest.importorskip("rclpy")
+    from helpers.plans import seed_plans
+    from helpers.ros_client import nav_msg
+
+    from art_guidance.record.recorder import McapRecorder
+    from art_guidance.ros.adapters import plan_to_msg, solve_record_msg
+
+    pipeline, results = seed_plans(range(2))
+    rec = McapRecorder(tmp_path / "bag", {"config": pipeline.config_json()}, 1 << 26)
+    for k, (s, result) in enumerate(results):
+        stamp = 1_800_000_000_000_000_000 + k * 1_000_000_000
+        assert rec.record_solve([
+            ("/nav/relative_state", nav_msg(stamp, s.rtn0)),
+            ("/guidance/solve_record", solve_record_msg(result, stamp, f"plan-{k}", "test")),
+            ("/guidance/maneuver_plan", plan_to_msg(result, stamp, f"plan-{k}"))], stamp)
+    rec.finish()
+    return tmp_path / "bag"
+
+
+def test_replay_on_a_truncated_cache_exits_as_without_damage(template, tmp_path):
+    """`replay` died in numba's _load_index with exit 1, its code for a solve that does not
+    reproduce: now exit 0 as on an intact cache, every solve compared and matching."""
+    bag = _bag(tmp_path)
+    codes = []
+    for damage in (None, "truncated"):
+        cache_dir, where = _cache_copy(template, tmp_path / str(damage), damage)
+        out = subprocess.run([sys.executable, "-m", "art_guidance.cli", "replay", str(bag)],
+                             env=_env(cache_dir), capture_output=True, text=True, timeout=300)
+        assert "Traceback" not in out.stderr, out.stderr
+        codes.append(out.returncode)
+        if damage:
+            assert "moved to" in out.stderr, out.stderr
+            _stop_filler(where)
+    assert codes == [0, 0], codes
