@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import subprocess
 import time
@@ -190,3 +191,36 @@ def test_configure_after_cleanup_records_a_new_bag_beside_the_first(ros_env, pyt
         assert not log.data_lost and not log.truncated, where
         assert not any(log.unmatched().values()), where
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "bag_2"]
+
+
+def test_configure_on_a_cold_kernel_cache_does_not_wait_for_the_compile(
+        ros_env, python_exe, tmp_path):
+    """A cold kernel cache (a fresh install, a cache in RAM at every boot): configure returns
+    while a background process compiles the kernels (it held the transition for 12-46 s, past a
+    lifecycle manager's timeout); the node plans on the numpy path meanwhile and says so."""
+    from art_guidance.kernels.cache import filler_pid
+
+    env = {**ros_env, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    proc = _start(python_exe, env, "record:=false")
+    with _running(proc) as client:
+        node = Lifecycle(client)
+        assert node.transition(Transition.TRANSITION_CONFIGURE)
+        assert node.transition(Transition.TRANSITION_ACTIVATE)
+        assert client.wait_matched(60.0)
+        stamp, decision = client.send_nav(NOMINAL_RTN)
+        assert decision == "replanning" and client.plan_for(stamp, 60.0) is not None
+    out = _stop(proc)
+    configured = out.index("guidance_node planning")
+    assert out.index("numerics: numpy while the kernels compile in the background") < configured
+    ready = out.find("kernels ready in")
+    assert ready == -1 or ready > configured, out  # never inside configure
+    end = time.monotonic() + 30.0  # the background compile, not waited for
+    while time.monotonic() < end:
+        pids = [filler_pid(f.parent) for f in (tmp_path / "numba").rglob("*.lock")]
+        if any(pids):
+            for pid in filter(None, pids):
+                os.kill(pid, signal.SIGKILL)
+            break
+        if ready != -1:  # it finished before the node stopped
+            break
+        time.sleep(0.1)
