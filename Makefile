@@ -19,7 +19,7 @@ TEST_JOBS ?= 2
 # one BLAS and torch thread per process (unless OMP_NUM_THREADS is set): the workers share the cores
 XDIST := $(if $(filter 0,$(TEST_JOBS)),,-n $(TEST_JOBS) --dist loadgroup)
 
-.PHONY: all setup test test-fast demo lint bench lock clean distclean
+.PHONY: all setup test test-fast coverage demo lint bench lock clean distclean
 
 all: setup
 
@@ -61,6 +61,20 @@ test: setup
 
 test-fast: setup
 	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q -m "not slow" $(XDIST) $(PYTEST_ARGS)
+
+# The suite as `make test` runs it (pytest-xdist), under coverage: lines and branches of the whole
+# package, in the pytest processes and in every Python process the tests start (setup.cfg
+# [coverage:run] says how), then the per-package table of docs/reliability.md ("Coverage"). The
+# table is written even when a test fails; the exit status is the suite's. `make test` runs
+# without coverage.
+COVERAGE_DIR := $(BUILD)/coverage
+coverage: setup
+	rm -rf $(COVERAGE_DIR) && mkdir -p $(COVERAGE_DIR)
+	status=0; OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q $(XDIST) --cov \
+		--cov-report= $(PYTEST_ARGS) || status=$$?; \
+	$(PY) -m coverage json -q; \
+	$(PY) .ci/coverage_table.py $(COVERAGE_DIR)/coverage.json docs/reliability.md; \
+	exit $$status
 
 lint: setup
 	$(PY) -m flake8 art_guidance test benchmarks launch .ci setup.py

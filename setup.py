@@ -42,7 +42,9 @@ setup(
         # train, export, distill, dagger (and the torch runtime of checkpoints); the commands
         # name this extra when it is missing (art_guidance.extras)
         "train": ["torch==2.13.0", "onnx==1.23.1"],
-        "test": ["pytest>=8", "pytest-xdist>=3.6", "cvxpy>=1.5", "rosbags>=0.10", "flake8>=7"],
+        # pytest-cov 7 and coverage 7.10+ for `make coverage` (coverage's own subprocess patch)
+        "test": ["pytest>=8", "pytest-xdist>=3.6", "pytest-cov>=7", "coverage>=7.10",
+                 "cvxpy>=1.5", "rosbags>=0.10", "flake8>=7"],
         "distributed": ["ray[default]>=2.9"],
     },
     zip_safe=True,

@@ -91,9 +91,11 @@ def check_cap(max_total_bytes: int, max_bytes: int) -> None:
 def take_over_cap(closed: list[ClosedFile], max_bytes: int,
                   max_total_bytes: int) -> list[ClosedFile]:
     """Take the oldest files out of `closed` (in place, oldest first) until the rest plus a
-    full new file of `max_bytes` fit under `max_total_bytes` [bytes]; returns those taken."""
+    full new file of `max_bytes` fit under `max_total_bytes` [bytes]; returns those taken.
+    The newest closed file is never taken: where one solve and a summary exceed `max_bytes`
+    (small files), the bag then exceeds the cap by that much rather than hold nothing."""
     dropped = []
-    while closed and sum(f.size for f in closed) + max_bytes > max_total_bytes:
+    while len(closed) > 1 and sum(f.size for f in closed) + max_bytes > max_total_bytes:
         dropped.append(closed.pop(0))
     return dropped
 

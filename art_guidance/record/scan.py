@@ -399,7 +399,9 @@ def lend_channels(scans: list[FileScan]) -> None:
         known = [m for m in scan.messages if m.channel_id in scan.channels]
         scan.orphans = len(scan.messages) - len(known)
         if scan.orphans:
+            unknown = Counter(f"channel {m.channel_id}" for m in scan.messages
+                              if m.channel_id not in scan.channels)
             scan.damaged.append(Damage(scan.path.name, None, -1, 0, f"{scan.orphans} intact "
                                        "message(s) of channels defined only in a lost chunk "
-                                       "cannot be decoded", scan.orphans))
+                                       "cannot be decoded", scan.orphans, dict(unknown)))
         scan.messages = known
