@@ -23,7 +23,7 @@ from typing import Any
 import torch
 
 from art_guidance.art.checkpoint_header import (
-    FORMAT_VERSION, MAGIC, match_header,
+    FORMAT_VERSION, MAGIC, match_header, verified_payload,
 )
 from art_guidance.art.config import ArtConfig
 from art_guidance.art.kv_cache import CachedDecoder
@@ -99,26 +99,7 @@ def read_payload(path: str | Path, expected_sha256: str | None = None
             mismatch (or not the pinned `expected_sha256`), or a payload that is not plain
             data and tensors.
     """
-    try:
-        blob = Path(path).read_bytes()
-    except OSError as exc:
-        raise CheckpointError(path, f"cannot read the checkpoint ({exc.strerror or exc})") from exc
-    match = match_header(path, blob)
-    version, digest, size = int(match.group(1)), match.group(2).decode(), int(match.group(3))
-    if version != FORMAT_VERSION:
-        raise CheckpointError(path, f"unsupported checkpoint format version {version} (this "
-                                    f"build reads version {FORMAT_VERSION})")
-    data = blob[match.end():]
-    if len(data) != size:
-        raise CheckpointError(path, f"truncated or padded: the header announces {size} payload "
-                                    f"bytes, the file holds {len(data)}")
-    actual = hashlib.sha256(data).hexdigest()
-    if actual != digest:
-        raise CheckpointError(path, f"corrupt: payload sha256 {actual[:16]}... differs from "
-                                    f"the header's {digest[:16]}...")
-    if expected_sha256 is not None and actual != expected_sha256:
-        raise CheckpointError(path, f"not the expected model: sha256 {actual[:16]}..., "
-                                    f"expected {expected_sha256[:16]}...")
+    data, actual = verified_payload(path, expected_sha256)
     try:
         payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:  # UnpicklingError, RuntimeError, zip errors: all a refusal

@@ -6,6 +6,7 @@ the checkpoint it came from by that sha256, which a flight computer without torc
 """
 from __future__ import annotations
 
+import hashlib
 import re
 from pathlib import Path
 
@@ -43,3 +44,34 @@ def header_sha256(path: str | Path) -> str:
     except OSError as exc:
         raise CheckpointError(path, f"cannot read the checkpoint ({exc.strerror or exc})") from exc
     return match_header(path, head).group(2).decode()
+
+
+def verified_payload(path: str | Path, expected_sha256: str | None = None) -> tuple[bytes, str]:
+    """A checkpoint file's payload bytes and their sha256, checked as far as it can be without
+    torch: readable, header, format version, payload length, payload sha256, and
+    `expected_sha256` when given (the payload itself is `checkpoint.read_payload`'s).
+
+    Raises:
+        CheckpointError: the first check that fails, in words.
+    """
+    try:
+        blob = Path(path).read_bytes()
+    except OSError as exc:
+        raise CheckpointError(path, f"cannot read the checkpoint ({exc.strerror or exc})") from exc
+    match = match_header(path, blob)
+    version, digest, size = int(match.group(1)), match.group(2).decode(), int(match.group(3))
+    if version != FORMAT_VERSION:
+        raise CheckpointError(path, f"unsupported checkpoint format version {version} (this "
+                                    f"build reads version {FORMAT_VERSION})")
+    data = blob[match.end():]
+    if len(data) != size:
+        raise CheckpointError(path, f"truncated or padded: the header announces {size} payload "
+                                    f"bytes, the file holds {len(data)}")
+    actual = hashlib.sha256(data).hexdigest()
+    if actual != digest:
+        raise CheckpointError(path, f"corrupt: payload sha256 {actual[:16]}... differs from "
+                                    f"the header's {digest[:16]}...")
+    if expected_sha256 is not None and actual != expected_sha256:
+        raise CheckpointError(path, f"not the expected model: sha256 {actual[:16]}..., "
+                                    f"expected {expected_sha256[:16]}...")
+    return data, actual

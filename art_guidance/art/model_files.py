@@ -6,11 +6,10 @@
 """
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
-from art_guidance.art.checkpoint_header import FORMAT_VERSION, match_header
+from art_guidance.art.checkpoint_header import verified_payload
 from art_guidance.errors import CheckpointError
 
 DEFAULTS_KEY = "defaults"  # models.json: the default per mode and why (not a model entry)
@@ -80,29 +79,11 @@ def checkpoint_beside(exported: str | Path) -> Path:
 
 def checkpoint_problem(path: str | Path, expected_sha256: str | None = None) -> str | None:
     """Why a checkpoint file would be refused before its payload is unpickled, or None where it
-    passes: the checks `checkpoint.read_payload` makes of the file (readable, header, format
-    version, payload length, payload sha256, `expected_sha256` when given), made without torch.
-    A file that passes may still hold a payload torch refuses."""
+    passes: `checkpoint_header.verified_payload`, the checks `checkpoint.read_payload` makes of
+    the file before torch reads it (a file that passes may still hold a payload torch
+    refuses)."""
     try:
-        blob = Path(path).read_bytes()
-    except OSError as exc:
-        return f"cannot read the checkpoint ({exc.strerror or exc})"
-    try:
-        match = match_header(path, blob)
+        verified_payload(path, expected_sha256)
     except CheckpointError as exc:
         return exc.reason
-    version, digest, size = int(match.group(1)), match.group(2).decode(), int(match.group(3))
-    if version != FORMAT_VERSION:
-        return f"unsupported checkpoint format version {version}"
-    data = blob[match.end():]
-    if len(data) != size:
-        return (f"truncated or padded: the header announces {size} payload bytes, the file "
-                f"holds {len(data)}")
-    actual = hashlib.sha256(data).hexdigest()
-    if actual != digest:
-        return (f"corrupt: payload sha256 {actual[:16]}... differs from the header's "
-                f"{digest[:16]}...")
-    if expected_sha256 is not None and actual != expected_sha256:
-        return (f"not the expected model: sha256 {actual[:16]}..., expected "
-                f"{expected_sha256[:16]}...")
     return None

@@ -77,7 +77,6 @@ class GuidanceNodeBase:
         self.scenario: ScenarioConfig | None = None
         self.provider: object | None = None
         self.model_status = ""
-        self.numerics_status = ""
         self.budget = ReplanBudget()
         self.recording: SolveRecording | None = None
         self._recorded_before = False  # a configure of this node run has opened a recorder
@@ -121,7 +120,7 @@ class GuidanceNodeBase:
         self.provider, self.model_status = load_model(self.params, self.get_logger())
         self.pipeline = GuidancePipeline(config, provider=self.provider,
                                          deadline_s=p.solve_deadline_s)
-        self.numerics_status = prepare_numerics(p.numerics, self.get_logger())
+        prepare_numerics(p.numerics, self.get_logger())  # /diagnostics: _publish_numerics
         if config.planning.propose_concurrently and self.provider is not None:
             if self.pipeline.start_proposal_worker():
                 self.get_logger().info("learned proposals are made in a worker process")

@@ -2,19 +2,16 @@
 from __future__ import annotations
 
 import ast
-import contextlib
 import os
 import shutil
-import signal
 import subprocess
 import sys
-import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
+from helpers.processes import stop_kernel_filler
 
-from art_guidance.kernels.cache import filler_pid
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -87,13 +84,7 @@ def test_installed_cli_runs_from_prefix(prefix):
     assert "free drift" in demo.stdout
     # a fresh install's cache is cold: demo planned on the numpy path while a background process
     # compiles the kernels beside the installed modules; not waited for here
-    end = time.monotonic() + 30.0  # it takes the folder's lock as demo ends
-    while (pid := filler_pid(site / "art_guidance" / "kernels" / "__pycache__")) is None \
-            and time.monotonic() < end:
-        time.sleep(0.1)
-    if pid is not None:
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGKILL)
+    stop_kernel_filler(site / "art_guidance" / "kernels" / "__pycache__")
 
 
 def test_package_xml_declares_runtime_dependencies():

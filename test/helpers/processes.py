@@ -1,9 +1,12 @@
 """Child processes of the tests and benchmarks: stop a node as Ctrl-C would, read its size."""
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
+import time
+from pathlib import Path
 
 
 def interrupt(proc: subprocess.Popen, timeout_s: float) -> None:
@@ -38,3 +41,22 @@ def process_stats(pid: int) -> tuple[float, int, int]:
             elif line.startswith("Threads:"):
                 threads = int(line.split()[1])
     return rss, len(os.listdir(f"/proc/{pid}/fd")), threads
+
+
+def stop_kernel_filler(root: Path, wait_s: float = 30.0) -> int | None:
+    """Stop the background process compiling the kernels into a cache folder under `root`
+    (`python -m art_guidance.kernels`, detached from the command that started it), waiting up
+    to `wait_s` for it to take the folder's lock (it does as that command ends); returns its
+    pid, or None where none came."""
+    from art_guidance.kernels.cache import LOCK_NAME, filler_pid
+
+    end = time.monotonic() + wait_s
+    while True:
+        pid = next((p for f in root.rglob(LOCK_NAME) if (p := filler_pid(f.parent))), None)
+        if pid is not None or time.monotonic() >= end:
+            break
+        time.sleep(0.1)
+    if pid is not None:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    return pid

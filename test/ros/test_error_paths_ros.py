@@ -16,10 +16,10 @@ import pytest
 pytest.importorskip("rclpy")
 import rclpy  # noqa: E402
 from art_guidance_msgs.msg import RelativeNavState, ReplanRequest  # noqa: E402
+from helpers.lifecycle import Lifecycle, start_managed  # noqa: E402
 from helpers.processes import stop_cleanly  # noqa: E402
 from helpers.ros_client import nav_msg  # noqa: E402
 from lifecycle_msgs.msg import State, Transition  # noqa: E402
-from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
 
 from art_guidance import topics  # noqa: E402
 from art_guidance.config import GuidanceConfig, ScenarioConfig  # noqa: E402
@@ -121,15 +121,6 @@ def test_lifecycle_helpers_outside_a_lifecycle_node():
 
 
 # --------------------------------------------------------------------------- processes
-def _call(srv, request, timeout_s: float = 60.0):
-    future = srv.call_async(request)
-    end = time.monotonic() + timeout_s
-    while not future.done() and time.monotonic() < end:
-        time.sleep(0.02)
-    assert future.done(), f"no answer from {srv.srv_name}"
-    return future.result()
-
-
 def test_a_managed_node_whose_configure_fails_stays_unconfigured(ros_env, python_exe,
                                                                  tmp_path):
     """record_dir is a file: configure fails (success False, the cause logged), the node is
@@ -139,21 +130,14 @@ def test_a_managed_node_whose_configure_fails_stays_unconfigured(ros_env, python
 
     blocker = tmp_path / "bag"
     blocker.write_text("not a folder")
-    proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--managed",
-                             "--ros-args", "-p", f"record_dir:={blocker}"], env=ros_env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = start_managed(python_exe, ros_env, f"record_dir:={blocker}")
     client = Client("configure_failure_client")
     try:
-        change = client.node.create_client(ChangeState, "/guidance_node/change_state")
-        get = client.node.create_client(GetState, "/guidance_node/get_state")
-        assert change.wait_for_service(timeout_sec=60.0) and get.wait_for_service(20.0)
+        node = Lifecycle(client, wait_s=(60.0, 20.0))
+        state = node.state
 
         def configure() -> bool:
-            return _call(change, ChangeState.Request(
-                transition=Transition(id=Transition.TRANSITION_CONFIGURE))).success
-
-        def state() -> int:
-            return _call(get, GetState.Request()).current_state.id
+            return node.transition(Transition.TRANSITION_CONFIGURE)
 
         assert not configure()
         assert state() == State.PRIMARY_STATE_UNCONFIGURED

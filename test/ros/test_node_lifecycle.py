@@ -2,61 +2,24 @@
 from __future__ import annotations
 
 import contextlib
-import os
 import signal
 import subprocess
-import time
 from typing import Iterator
 
 import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
-from helpers.processes import stop_cleanly  # noqa: E402
+from helpers.lifecycle import Lifecycle, start_managed  # noqa: E402
+from helpers.processes import stop_cleanly, stop_kernel_filler  # noqa: E402
 from helpers.ros_client import Client  # noqa: E402
 from lifecycle_msgs.msg import State, Transition  # noqa: E402
-from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
 from art_guidance.record.replay import read_log  # noqa: E402
 
 pytestmark = pytest.mark.ros
 NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
-
-
-def _call(client, srv, request, timeout_s: float = 60.0):
-    future = srv.call_async(request)
-    end = time.monotonic() + timeout_s
-    while not future.done() and time.monotonic() < end:
-        time.sleep(0.02)
-    assert future.done(), f"no answer from {srv.srv_name}"
-    return future.result()
-
-
-def _start(python_exe: str, env: dict, *params: str) -> subprocess.Popen:
-    """The managed node in its own process, with `-p` parameters."""
-    args = [arg for param in params for arg in ("-p", param)]
-    return subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--managed",
-                             "--ros-args", *args], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-
-
-class Lifecycle:
-    """The managed node's change_state / get_state services, from the test client."""
-
-    def __init__(self, client: Client) -> None:
-        self.client = client
-        self.change = client.node.create_client(ChangeState, "/guidance_node/change_state")
-        self.get = client.node.create_client(GetState, "/guidance_node/get_state")
-        assert self.change.wait_for_service(timeout_sec=20.0)
-        assert self.get.wait_for_service(timeout_sec=5.0)
-
-    def state(self) -> int:
-        return _call(self.client, self.get, GetState.Request()).current_state.id
-
-    def transition(self, tid: int = 0, label: str = "") -> bool:
-        return _call(self.client, self.change, ChangeState.Request(
-            transition=Transition(id=tid, label=label))).success
 
 
 @contextlib.contextmanager
@@ -82,22 +45,11 @@ def _stop(proc: subprocess.Popen) -> str:
 
 
 def test_transitions_gate_planning(ros_env, python_exe, tmp_path):
-    proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--managed",
-                             "--ros-args", "-p", f"record_dir:={tmp_path / 'bag'}"],
-                            env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+    proc = start_managed(python_exe, ros_env, f"record_dir:={tmp_path / 'bag'}")
     client = Client("lifecycle_client")
     try:
-        change = client.node.create_client(ChangeState, "/guidance_node/change_state")
-        get = client.node.create_client(GetState, "/guidance_node/get_state")
-        assert change.wait_for_service(timeout_sec=60.0) and get.wait_for_service(20.0)
-
-        def state() -> int:
-            return _call(client, get, GetState.Request()).current_state.id
-
-        def transition(tid: int) -> bool:
-            return _call(client, change, ChangeState.Request(
-                transition=Transition(id=tid))).success
+        node = Lifecycle(client, wait_s=(60.0, 20.0))
+        state, transition = node.state, node.transition
 
         assert state() == State.PRIMARY_STATE_UNCONFIGURED
         assert transition(Transition.TRANSITION_CONFIGURE)
@@ -131,7 +83,7 @@ def test_transitions_gate_planning(ros_env, python_exe, tmp_path):
 def test_invalid_transitions_are_refused_and_node_keeps_serving(ros_env, python_exe):
     """A transition the state does not offer is answered success=False (rclpy's own handler
     raises out of spin): unknown ids, labels and transitions after shutdown included."""
-    proc = _start(python_exe, ros_env, "record:=false")
+    proc = start_managed(python_exe, ros_env, "record:=false")
     with _running(proc) as client:
         node = Lifecycle(client)
         assert not node.transition(Transition.TRANSITION_DEACTIVATE)  # while unconfigured
@@ -162,7 +114,7 @@ def test_configure_after_cleanup_records_a_new_bag_beside_the_first(ros_env, pyt
     second configuration records to <record_dir>_2 (the first bag is never written again),
     and says so in the log and on /diagnostics."""
     bag, bag2 = tmp_path / "bag", tmp_path / "bag_2"
-    proc = _start(python_exe, ros_env, f"record_dir:={bag}")
+    proc = start_managed(python_exe, ros_env, f"record_dir:={bag}")
     plans = []
     with _running(proc) as client:
         node = Lifecycle(client)
@@ -198,10 +150,8 @@ def test_configure_on_a_cold_kernel_cache_does_not_wait_for_the_compile(
     """A cold kernel cache (a fresh install, a cache in RAM at every boot): configure returns
     while a background process compiles the kernels (it held the transition for 12-46 s, past a
     lifecycle manager's timeout); the node plans on the numpy path meanwhile and says so."""
-    from art_guidance.kernels.cache import filler_pid
-
     env = {**ros_env, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
-    proc = _start(python_exe, env, "record:=false")
+    proc = start_managed(python_exe, env, "record:=false")
     with _running(proc) as client:
         node = Lifecycle(client)
         assert node.transition(Transition.TRANSITION_CONFIGURE)
@@ -214,13 +164,5 @@ def test_configure_on_a_cold_kernel_cache_does_not_wait_for_the_compile(
     assert out.index("numerics: numpy while the kernels compile in the background") < configured
     ready = out.find("kernels ready in")
     assert ready == -1 or ready > configured, out  # never inside configure
-    end = time.monotonic() + 30.0  # the background compile, not waited for
-    while time.monotonic() < end:
-        pids = [filler_pid(f.parent) for f in (tmp_path / "numba").rglob("*.lock")]
-        if any(pids):
-            for pid in filter(None, pids):
-                os.kill(pid, signal.SIGKILL)
-            break
-        if ready != -1:  # it finished before the node stopped
-            break
-        time.sleep(0.1)
+    # the background compile, not waited for (unless it finished before the node stopped)
+    stop_kernel_filler(tmp_path / "numba", wait_s=30.0 if ready == -1 else 0.0)

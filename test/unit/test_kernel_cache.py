@@ -8,17 +8,16 @@ cached kernel against its source file, the same here), so nothing compiles but w
 says so; a background filler a test does not wait for is stopped."""
 from __future__ import annotations
 
-import contextlib
 import os
 import shutil
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from helpers.processes import stop_kernel_filler
 
 from art_guidance import kernels
 from art_guidance.kernels import cache
@@ -71,15 +70,9 @@ def _cache_copy(template, tmp_path: Path, damage: str | None) -> tuple[Path, Pat
 
 
 def _stop_filler(where: Path) -> None:
-    """Stop the background filler of `where` (waiting up to 30 s for it to take the folder's
-    lock: it starts as the command under test ends), so that it does not compile on beside
-    the other tests."""
-    end = time.monotonic() + 30.0
-    while (pid := cache.filler_pid(where)) is None and time.monotonic() < end:
-        time.sleep(0.1)
-    assert pid is not None, "no background filler started"
-    with contextlib.suppress(ProcessLookupError):
-        os.kill(pid, signal.SIGKILL)
+    """Stop the background filler of `where`, which must have started, so that it does not
+    compile on beside the other tests."""
+    assert stop_kernel_filler(where) is not None, "no background filler started"
 
 
 @pytest.mark.parametrize("damage", DAMAGES)
