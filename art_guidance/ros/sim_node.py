@@ -39,6 +39,7 @@ if the run reached the final epoch within `miss_tolerance_m` of the waypoint, 1 
 from __future__ import annotations
 
 import json
+import signal
 import sys
 import threading
 import time
@@ -65,6 +66,8 @@ from art_guidance.sim.link import LinkPlan
 
 DIAG_NAME = "art_guidance/nav"
 POLL_S = 0.1               # wait granularity for shutdown checks [s]
+
+STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}  # held while the run is set up (`main`)
 
 
 class SimNode(Node):
@@ -217,15 +220,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     executor = SingleThreadedExecutor()
     thread: threading.Thread | None = None
     code = 1
+    # a SIGINT/SIGTERM while the run is set up (the node's topics are up before its loop
+    # exists) is held until the run starts, so that it too ends with the partial summary
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)  # the mask as it was
     try:
         node = SimNode()
         loop = ClosedLoop(node, node.p, node.get_logger())
         executor.add_node(node)
         thread = threading.Thread(target=_spin, args=(executor,), name="sim_executor",
                                   daemon=True)
-        thread.start()
+        thread.start()  # born with the signals blocked: they come to this thread
         start = time.monotonic()
         try:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)  # one held now arrives here
             outcome = loop.run()
         except KeyboardInterrupt:
             outcome = "interrupted"
@@ -243,6 +250,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(json.dumps({"error": type(exc).__name__, "message": str(exc)}), file=sys.stderr)
         code = 2
     finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
         executor.shutdown()
         if thread is not None:
             thread.join(timeout=5.0)

@@ -80,7 +80,9 @@ def _rosbags_plans(bag) -> list:
 
 def test_kill9_keeps_every_published_plan_and_replays(ros_env, python_exe, tmp_path, capsys):
     bag = tmp_path / "bag"
-    with _node_with_client(ros_env, python_exe, bag, "recording_client") as (proc, client):
+    # a deadline no busy machine reaches: a solve that hit its deadline is not compared
+    with _node_with_client(ros_env, python_exe, bag, "recording_client",
+                           params=("solve_deadline_s:=120.0",)) as (proc, client):
         published = _plan_ids(client, 4, np.random.default_rng(5))
         # a solve in flight (solves take hundreds of ms): the kill lands between two writes
         client.nav_pub.publish(nav_msg(time.time_ns(), NOMINAL_RTN))
