@@ -34,12 +34,13 @@ sent (e.g. a node replanning an earlier run's last fix on our request) are ignor
 rejection notices (STATUS_REJECTED_INPUT) do not count as replans. At the end one JSON line
 (`run_outcome` plus run fields) goes to stdout and `summary_path`, the PNG to `png_path`; exit 0
 if the run reached the final epoch within `miss_tolerance_m` of the waypoint, 1 otherwise
-(also on timeouts, SIGINT/SIGTERM: a partial summary is still written), 2 on bad parameters.
+(also on timeouts, SIGINT/SIGTERM: a partial summary is still written once the run is under
+way, from its "waiting for a guidance node" log line; a stop while it is set up ends with exit
+1 and no run), 2 on bad parameters.
 """
 from __future__ import annotations
 
 import json
-import signal
 import sys
 import threading
 import time
@@ -66,8 +67,6 @@ from art_guidance.sim.link import LinkPlan
 
 DIAG_NAME = "art_guidance/nav"
 POLL_S = 0.1               # wait granularity for shutdown checks [s]
-
-STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}  # held while the run is set up (`main`)
 
 
 class SimNode(Node):
@@ -220,19 +219,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     executor = SingleThreadedExecutor()
     thread: threading.Thread | None = None
     code = 1
-    # a SIGINT/SIGTERM while the run is set up (the node's topics are up before its loop
-    # exists) is held until the run starts, so that it too ends with the partial summary
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)  # the mask as it was
     try:
         node = SimNode()
         loop = ClosedLoop(node, node.p, node.get_logger())
         executor.add_node(node)
         thread = threading.Thread(target=_spin, args=(executor,), name="sim_executor",
                                   daemon=True)
-        thread.start()  # born with the signals blocked: they come to this thread
+        thread.start()
         start = time.monotonic()
         try:
-            signal.pthread_sigmask(signal.SIG_SETMASK, held)  # one held now arrives here
             outcome = loop.run()
         except KeyboardInterrupt:
             outcome = "interrupted"
@@ -250,7 +245,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(json.dumps({"error": type(exc).__name__, "message": str(exc)}), file=sys.stderr)
         code = 2
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, held)
         executor.shutdown()
         if thread is not None:
             thread.join(timeout=5.0)

@@ -57,6 +57,7 @@ PARAMETERS: dict[str, object] = {
     "fault_node": 1,         # K: the burn opportunity the fault hits (0 = the first)
 }
 FLOAT_PARAMETERS = ("step_timeout_s", "miss_tolerance_m")
+WAITING_LINE = "waiting for a guidance node"  # logged as a run starts (`ClosedLoop.run`)
 
 
 @dataclass(frozen=True)
@@ -201,6 +202,7 @@ class ClosedLoop:
         """Run to the end; returns the outcome (final_epoch, max_steps, no_guidance, ...)."""
         p = self.p
         timeout = p["step_timeout_s"]
+        self.log.info(f"{WAITING_LINE} (up to {timeout:g} s)")
         if not self.link.wait_matched(timeout):
             self.log.error("no guidance node matched (nav/relative_state, "
                            "guidance/maneuver_plan, /diagnostics)")

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
+import threading
 import time
 
 import numpy as np
@@ -21,7 +22,6 @@ from helpers.processes import stop_cleanly  # noqa: E402
 from helpers.ros_client import nav_msg  # noqa: E402
 from lifecycle_msgs.msg import State, Transition  # noqa: E402
 
-from art_guidance import topics  # noqa: E402
 from art_guidance.config import GuidanceConfig, ScenarioConfig  # noqa: E402
 from art_guidance.errors import ConfigError, InputError  # noqa: E402
 from art_guidance.planning import (  # noqa: E402
@@ -30,6 +30,7 @@ from art_guidance.planning import (  # noqa: E402
 from art_guidance.ros.adapters import nav_from_msg, solve_record_msg, target_from_msg  # noqa
 from art_guidance.ros.node_status import guard_change_state, transition_name  # noqa: E402
 from art_guidance.ros.parameters import SPECS, check_table  # noqa: E402
+from art_guidance.sim.closed_loop import WAITING_LINE  # noqa: E402
 from art_guidance.config import node_parameter_defaults  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -164,25 +165,31 @@ def test_the_simulator_stopped_before_a_guidance_node_appears(ros_env, python_ex
                              "-p", "step_timeout_s:=120.0", "-p", f"png_path:={png}",
                              "-p", f"summary_path:={summary}"], env=ros_env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    if not rclpy.ok():
-        rclpy.init()
-    watcher = rclpy.create_node("simulator_watcher")
-    try:
-        end = time.monotonic() + 60.0
-        while watcher.count_publishers(f"/{topics.NAV}") == 0 and time.monotonic() < end:
-            assert proc.poll() is None, proc.communicate()
-            time.sleep(0.1)
-        assert watcher.count_publishers(f"/{topics.NAV}") > 0, "the simulator never started"
-    finally:
-        watcher.destroy_node()
+    # the run under way: its first log line (a stop while it is set up ends without a run)
+    err_lines: list[str] = []
+
+    def read_stderr() -> None:
+        for line in proc.stderr:
+            err_lines.append(line)
+
+    reader = threading.Thread(target=read_stderr, daemon=True)
+    reader.start()
+    end = time.monotonic() + 60.0
+    while not any(WAITING_LINE in line for line in err_lines) and time.monotonic() < end:
+        assert proc.poll() is None, "".join(err_lines)
+        time.sleep(0.1)
+    assert any(WAITING_LINE in line for line in err_lines), "the simulator never started its run"
     proc.send_signal(signal.SIGINT)
     try:
-        out, err = proc.communicate(timeout=60)
+        proc.wait(timeout=60)
     except subprocess.TimeoutExpired:
         proc.kill()
         raise
+    reader.join(timeout=10)
+    out, err = proc.stdout.read(), "".join(err_lines)
     assert proc.returncode == 1, err
     lines = [line for line in out.splitlines() if line.startswith("{")]
+    assert lines, (out, err)  # the summary line
     result = json.loads(lines[-1])
     assert result["outcome"] in ("shutdown", "interrupted") and result["reached"] is False
     assert json.loads(summary.read_text()) == result
