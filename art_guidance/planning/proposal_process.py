@@ -26,16 +26,17 @@ provider, a worker that cannot start, fails or answers too late is reported thro
 """
 from __future__ import annotations
 
-import dataclasses
 import itertools
-import math
 import multiprocessing
 import threading
 import time
 from typing import Any
 
-from art_guidance import kernels
 from art_guidance.deadline import Deadline
+from art_guidance.planning.proposal_worker import serve
+from art_guidance.planning.worker_messages import (
+    CancelSlot, Failure, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
+)
 
 STARTUP_TIMEOUT_S = 120.0  # importing torch and loading the model in the spawned process
 GRACE_S = 5.0  # a job's answer may come this long after its deadline before it is abandoned
@@ -69,103 +70,6 @@ def model_key(provider: object) -> tuple | None:
             str(getattr(provider, "runtime", "torch")))
 
 
-@dataclasses.dataclass(frozen=True)
-class _CancellableDeadline(Deadline):
-    """A deadline that has also passed once the planner cancels the run (`cancel` set)."""
-
-    cancel: Any = None
-
-    def passed(self) -> bool:
-        return self.cancel.is_set() or super().passed()
-
-
-def _serve(conn: Any, cancel: Any = None) -> None:
-    """The worker's loop: one job in, one answer out (two for a `solve_art` job: the decision,
-    then SCVx* from the proposal), until the pipe closes or None comes.
-
-    SIGINT is ignored: a Ctrl-C in a terminal (or `ros2 launch`'s) reaches the whole process
-    group, and the worker is stopped by its planner (`close`) or when the pipe closes, not with
-    a KeyboardInterrupt traceback in the node's output."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    state: dict = {}
-    while True:
-        try:
-            job = conn.recv()
-        except (EOFError, OSError):  # the planner's process is gone
-            return
-        if job is None:
-            return
-        try:
-            answer = ("ok", *_run(job, state))
-        except BaseException as exc:  # reported to the planner, which proposes in line
-            answer = ("error", f"{type(exc).__name__}: {exc}")
-        try:
-            conn.send(answer)
-        except (EOFError, OSError):
-            return
-        if not job.get("solve_art"):
-            continue
-        try:  # the second answer: SCVx* from the proposal (None: not made or cancelled)
-            follow = ("ok", job["job_id"], _solve_art(job, state, answer, cancel))
-        except BaseException as exc:  # the planner solves it in line (and fails alike)
-            follow = ("error", f"{type(exc).__name__}: {exc}")
-        try:
-            conn.send(follow)
-        except (EOFError, OSError):
-            return
-
-
-def _run(job: dict, state: dict) -> tuple:
-    """One job: ("warm_up",) loads the model; a plan job returns (decision, wall ms)."""
-    from art_guidance.art.provider import ArtWarmStart
-    from art_guidance.config import GuidanceConfig
-    from art_guidance.planning.learned import timed_learned_warm_start
-    from art_guidance.planning.transfer import Transfers
-
-    key = (job["config_sha256"], job["model"])
-    if state.get("key") != key:
-        path, sha, threads, scales, runtime = job["model"]
-        provider = ArtWarmStart.load(path, expected_sha256=sha, threads=threads,
-                                     reward_scales=scales, runtime=runtime)
-        config = GuidanceConfig.from_json(job["config"])
-        # the door, at the worker's warm-up job: loaded, or the numpy path while a background
-        # process compiles them (never a compile before the first fix)
-        kernels.prepare(config.planning.numerics)
-        state.update(key=key, provider=provider, config=config,
-                     transfers=Transfers(config.scenario, config.uncertainty))
-    if job.get("warm_up"):
-        return (None, 0.0)
-    left_s = job["time_left_s"]  # the plan's deadline, on this process's clock
-    deadline = None if left_s is None else Deadline.after(left_s)
-    transfer = state["transfers"].get(job["request"])
-    state["plan"] = (transfer, deadline)  # for SCVx* from the proposal (`_solve_art`)
-    return timed_learned_warm_start(state["provider"], transfer, job["cvx"],
-                                    state["config"].planning, deadline,
-                                    bool(job.get("cvx_unsafe", False)))
-
-
-def _solve_art(job: dict, state: dict, answer: tuple, cancel: Any) -> Any:
-    """SCVx* from the job's proposal as the planner would solve it (`GuidancePipeline._plan`),
-    or None: no valid proposal, or the planner cancelled the run (before or during it)."""
-    from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
-    from art_guidance.planning.types import WarmStartSource
-
-    if answer[0] != "ok" or answer[1].dv is None or (cancel is not None and cancel.is_set()):
-        return None
-    learned, config = answer[1], state["config"]
-    transfer, deadline = state["plan"]
-    if deadline is not None and learned.source is WarmStartSource.ART:
-        # the first run of the plan: a share of what is left, the rest for the run from CVX
-        deadline = deadline.share(config.planning.art_deadline_share)
-    until = _CancellableDeadline(math.inf if deadline is None else deadline.at_s, cancel)
-    pool = state.setdefault("pool", SubproblemPool())  # the worker's own, as a pipeline's
-    scvx = transfer.scvx(config, SubproblemOptions(**job["subproblem"]), pool)
-    result = scvx.solve(learned.dv, deadline=until, projected=learned.warm_start)
-    return None if cancel is not None and cancel.is_set() else result
-
-
 class ProposalProcess:
     """The worker process of one `GuidancePipeline`.
 
@@ -196,7 +100,7 @@ class ProposalProcess:
         self._lock = threading.Lock()  # one job at a time
         self._warming = False  # a warm-up job was sent and not yet answered
         self._start_failed_at: float | None = None  # time.monotonic() of a failed start
-        self._cancel: Any = None  # the running worker's event: cancel its SCVx* run
+        self._slot: CancelSlot | None = None  # the running worker's: cancel a job's run
         self._follow: int | None = None  # the job whose second answer is still in the pipe
         self._job_ids = itertools.count(1)
         self._failed_starts = 0  # failed starts in a row
@@ -215,7 +119,7 @@ class ProposalProcess:
         False (see `error`) if it could not."""
         with self._lock:
             if not self.alive:
-                self._launch(_warm_up_job(config_json, config_sha256, model))
+                self._launch(WarmUpJob(config_json, config_sha256, model))
             return self._ready(timeout_s)
 
     @property
@@ -238,7 +142,7 @@ class ProposalProcess:
         due = self._start_failed_at + restart_delay_s(self._failed_starts)
         return max(due - time.monotonic(), 0.0)
 
-    def submit(self, job: dict, solve_art: bool = False) -> int | None:
+    def submit(self, job: PlanJob, solve_art: bool = False) -> int | None:
         """Send a plan job if the worker is ready: its id, or None if not (see `error`): the
         caller proposes in line. After an id the caller must `collect` the answer (or
         `abandon` the job): the worker serves one job at a time. With `solve_art` the worker
@@ -248,7 +152,7 @@ class ProposalProcess:
             return None
         sent = None
         try:
-            sent = self._send({**job, "job_id": next(self._job_ids), "solve_art": solve_art})
+            sent = self._send(job.numbered(next(self._job_ids), solve_art))
         except Exception as exc:
             self._fail(f"could not send the job: {type(exc).__name__}: {exc}")
         finally:
@@ -256,14 +160,14 @@ class ProposalProcess:
                 self._lock.release()
         return sent
 
-    def _send(self, job: dict) -> int | None:
+    def _send(self, job: PlanJob) -> int | None:
         """`submit` with the lock held: the job's id once it is sent."""
         if self._follow is not None and self.alive:  # a dismissed run's answer: drain it
             self._follow = None
             answer = self._receive(DRAIN_WAIT_S)
             if answer is None:
                 self.error = f"a cancelled SCVx* run did not stop: {self.error}"
-            elif answer[1] is not None:  # it ended before the cancel
+            elif isinstance(answer, ScvxAnswer) and answer.result is not None:  # ended first
                 self.scvx_runs = (self.scvx_runs[0] + 1, self.scvx_runs[1])
         if not self.alive:
             if self._proc is not None:  # it stopped by itself since the last job
@@ -273,22 +177,22 @@ class ProposalProcess:
                 else:
                     self._died("the worker process died")
             if self._restart_in_s() <= 0.0:
-                self._launch(_warm_up_job(job["config"], job["config_sha256"], job["model"]))
+                self._launch(job.warm_up())
                 self.error = "the worker process is starting"
             return None
         if not self._ready(0.0):
             return None
-        self._cancel.clear()
         self._conn.send(job)
-        self._follow = job["job_id"] if job["solve_art"] else None
-        return job["job_id"]
+        self._follow = job.job_id if job.solve_art else None
+        return job.job_id
 
-    def collect(self, timeout_s: float) -> tuple | None:
-        """The answer to the submitted job: (decision, wall ms), or None (see `error`)."""
+    def collect(self, timeout_s: float) -> Proposal | None:
+        """The answer to the submitted job, or None (see `error`)."""
         try:
             answer = self._receive(timeout_s)
-            if answer is None:
+            if not isinstance(answer, Proposal):
                 self._follow = None
+                return None
             return answer
         finally:
             self._lock.release()
@@ -304,19 +208,20 @@ class ProposalProcess:
                 return None
             self._follow = None
             answer = self._receive(timeout_s)
-            if answer is None or answer[0] != job_id or answer[1] is None:
+            if not isinstance(answer, ScvxAnswer) or answer.job_id != job_id \
+                    or answer.result is None:
                 return None
             self.scvx_runs = (self.scvx_runs[0] + 1, self.scvx_runs[1] + 1)
-            return answer[1]
+            return answer.result
         finally:
             self._lock.release()
 
     def dismiss(self, job_id: int) -> None:
         """The planner does not need SCVx* from the proposal of job `job_id`: cancel the run
         (it stops at its next iteration; the next job drains its answer)."""
-        cancel = self._cancel
-        if self._follow == job_id and cancel is not None:
-            cancel.set()
+        slot = self._slot
+        if self._follow == job_id and slot is not None:
+            slot.cancel(job_id)
 
     def abandon(self, why: str) -> None:
         """Give up the submitted job (the caller failed before collecting it): the worker,
@@ -331,8 +236,8 @@ class ProposalProcess:
         flight after `CLOSE_WAIT_S` does not hold the shutdown: the worker is killed."""
         held = self._lock.acquire(timeout=CLOSE_WAIT_S)
         try:
-            if self._cancel is not None:
-                self._cancel.set()  # a run still going stops at its next iteration
+            if self._slot is not None and self._follow is not None:
+                self._slot.cancel(self._follow)  # a run still going stops at its next iteration
             self._stop(graceful=held)
         finally:
             if held:
@@ -358,7 +263,7 @@ class ProposalProcess:
         self._start_failed_at = time.monotonic()
         self._failed_starts += 1
 
-    def _receive(self, timeout_s: float, dying: bool = True) -> tuple | None:
+    def _receive(self, timeout_s: float, dying: bool = True) -> Proposal | ScvxAnswer | None:
         """The worker's answer within `timeout_s`, or None (see `error`); a worker found dead
         counts in `deaths` when `dying` (not while it loads: that is a failed start)."""
         try:
@@ -373,19 +278,19 @@ class ProposalProcess:
             else:
                 self._fail(why)
             return None
-        if answer[0] != "ok":
-            self._fail(f"the worker failed: {answer[1]}")
+        if isinstance(answer, Failure):
+            self._fail(f"the worker failed: {answer.text}")
             return None
         self.error = ""
-        return answer[1:]
+        return answer
 
-    def _launch(self, warm_up: dict) -> None:
+    def _launch(self, warm_up: WarmUpJob) -> None:
         """Spawn the worker and send it its warm-up job (not waited for)."""
         self._stop(graceful=False)
         ctx = multiprocessing.get_context("spawn")  # no fork of a process with threads
         parent, child = ctx.Pipe()
-        self._cancel = ctx.Event()
-        proc = ctx.Process(target=_serve, args=(child, self._cancel), name="art_proposal",
+        self._slot = CancelSlot(ctx)
+        proc = ctx.Process(target=serve, args=(child, self._slot), name="art_proposal",
                            daemon=True)
         proc.start()
         child.close()
@@ -419,6 +324,28 @@ class ProposalProcess:
             proc.join(timeout=2.0)
 
 
-def _warm_up_job(config_json: dict, config_sha256: str, model: tuple) -> dict:
-    return {"config": config_json, "config_sha256": config_sha256, "model": model,
-            "warm_up": True}
+class WorkerScvx:
+    """SCVx* from the proposal of one plan, solved in the proposal worker: taken where the plan
+    needs it (`result`), cancelled otherwise (`dismiss`, or leaving the `with` block)."""
+
+    def __init__(self, worker: ProposalProcess, job_id: int) -> None:
+        self._worker, self._job_id = worker, job_id
+        self._taken = False
+
+    def result(self, deadline: Deadline | None) -> Any:
+        """The worker's run (an `ScpResult`, waited for within the plan's deadline and
+        `GRACE_S`), or None: the plan solves it in line."""
+        self._taken = True
+        wait = NO_DEADLINE_TIMEOUT_S if deadline is None else deadline.left_s() + GRACE_S
+        return self._worker.scvx_result(self._job_id, wait)
+
+    def dismiss(self) -> None:
+        """Cancel the run if the plan did not take it."""
+        if not self._taken:
+            self._worker.dismiss(self._job_id)
+
+    def __enter__(self) -> "WorkerScvx":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.dismiss()

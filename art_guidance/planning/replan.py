@@ -215,9 +215,9 @@ class ReplanPolicy:
         deviation = deviation_sigma(active, nav)
         due = (s.replan_period_s > 0
                and (nav.stamp_ns - (self.last_plan_ns or 0)) * 1e-9 >= s.replan_period_s)
-        if active.window_end_ns is not None and s.replan_window_nodes > 0:
+        if active.window_end_ns is not None:  # timed by the plan's own window
             window_left = (active.window_end_ns - nav.stamp_ns) * 1e-9 / active.dt_s
-            due = due or window_left < 0.5 * s.replan_window_nodes - 1e-6
+            due = due or window_left < 0.5 * active.result.window.window_nodes - 1e-6
         if deviation > s.replan_sigma_threshold or due:
             return Decision.REPLANNING, deviation
         return Decision.ON_PLAN, deviation

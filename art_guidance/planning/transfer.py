@@ -9,16 +9,18 @@ needs the same ones), so the pipeline and the proposal worker process, each with
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from art_guidance.config import GuidanceConfig, ScenarioConfig, UncertaintyConfig
-from art_guidance.dynamics import Horizon, time_grid_s
+from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
 from art_guidance.optim import Scvx, TransferProblem
 from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
 from art_guidance.planning.types import PlanRequest
 from art_guidance.safety import PassiveSafety
+from art_guidance.scenarios import sample_scenario
 
 CACHE_SIZE = 8  # transfers kept; the cache is emptied when it holds more
 
@@ -61,6 +63,15 @@ class Transfer:
                                  pool)
 
 
+def canned_request(scenario: ScenarioConfig, seed: int = 0) -> PlanRequest:
+    """The scenario's transfer of `seed` (`scenarios.sample_scenario`), chance-constrained,
+    warm-started from CVX: what a warm-up plans before the first timed plan."""
+    sample = sample_scenario(scenario, seed)
+    chief = np.asarray(scenario.chief_oe, float)
+    return PlanRequest(chief, roe_from_rtn_linear(chief, sample.rtn0), sample.target_rtn,
+                       warm_start="cvx")
+
+
 class Transfers:
     """Builds the `Transfer` of a request under a scenario and an uncertainty model, keeping
     the last few horizons and passive-safety models."""
@@ -75,6 +86,16 @@ class Transfers:
         _, safety = self._models(request)
         return Transfer(request, TransferProblem.to_target(safety, request.roe0_m,
                                                            request.target_rtn))
+
+    def in_roe(self, request: PlanRequest, roe_f_m: np.ndarray) -> Transfer:
+        """The transfer of `request` to the post-burn state `roe_f_m` [m] given in ROE (a
+        window's: no RTN round trip); the request returned carries that state's RTN image as
+        its target, for the record."""
+        _, safety = self._models(request)
+        roe_f_m = np.asarray(roe_f_m, dtype=float)
+        target_rtn = safety.horizon.psi[-1] @ roe_f_m
+        return Transfer(dataclasses.replace(request, target_rtn=target_rtn),
+                        TransferProblem(safety, request.roe0_m, roe_f_m, target_rtn))
 
     def _models(self, request: PlanRequest) -> tuple[Horizon, PassiveSafety]:
         n_nodes = int(request.n_nodes or self.scenario.n_nodes)

@@ -21,27 +21,28 @@ the reference's burns from node H + 1 to the waypoint: it always ends at the way
 guidance replans before the window runs out (`planning.replan`: at the latest when fewer than
 H / 2 of its nodes are left). A remainder that fits in the window is planned whole, to the
 waypoint, as without a window. `PlanResult.window` says which, with the target's source and why.
+
+This module is pure functions of the request and of what the pipeline solved
+(`GuidancePipeline` drives the window): whether a request takes its window (`window_size`, the
+one place it is checked), the reference (`reference`), the window's request and transfer
+problem, built in ROE from the reference's post-burn state at node H (`window_request`,
+`target_roe`), and the splice of the window's plan onto the reference (`splice`).
 """
 from __future__ import annotations
 
 import dataclasses
-import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from art_guidance.deadline import Deadline
-from art_guidance.optim import ConvexSolution
-from art_guidance.planning.learned import learned_warm_start
+from art_guidance.config import ScenarioConfig
+from art_guidance.optim import ConvexSolution, Trajectory
+from art_guidance.planning.learned import Learned
 from art_guidance.planning.transfer import Transfer
 from art_guidance.planning.types import (  # noqa: F401  (targets re-exported)
     N_ORBITS_RANGE, REFERENCE_TARGETS, TERMINAL_TARGETS, PlanRequest, PlanResult, WarmStart,
     WarmStartSource,
 )
-
-if TYPE_CHECKING:
-    from art_guidance.planning.pipeline import GuidancePipeline
 
 
 @dataclass(frozen=True)
@@ -69,9 +70,21 @@ class PlanWindow:
         return dataclasses.asdict(self)
 
 
-def needs_window(request: PlanRequest, n_nodes: int) -> bool:
-    """Whether a request over `n_nodes` nodes is planned over a window shorter than it."""
-    return 0 < int(request.window_nodes) < n_nodes - 1
+@dataclass(frozen=True)
+class Reference:
+    """The trajectory over the whole remainder a window's target is taken from.
+
+    Attributes:
+        trajectory: its burns (N, 3) [m/s] and pre-burn states (N, 6) [m].
+        source: "carry", "cvx", "art" or "scvx".
+        reason: why this one, in words.
+        learned: the learned step, where it was run (None: not run).
+    """
+
+    trajectory: Trajectory
+    source: str
+    reason: str
+    learned: Learned | None = None
 
 
 def window_orbits(request: PlanRequest, n_nodes: int, default_orbits: float) -> float:
@@ -80,23 +93,30 @@ def window_orbits(request: PlanRequest, n_nodes: int, default_orbits: float) -> 
     return float(request.n_orbits or default_orbits) * int(request.window_nodes) / (n_nodes - 1)
 
 
-def short_window(request: PlanRequest, n_nodes: int, default_orbits: float) -> str:
-    """Why a request's window is too short for the planner to take ("" = it is not): such a
-    request plans the whole remainder."""
+def window_size(request: PlanRequest, n_nodes: int, default_orbits: float,
+                no_target: str = "") -> tuple[int, str]:
+    """The one check of a request's window against its remainder of `n_nodes` nodes: (H, "")
+    where the window [0, H] is planned; (0, why) where the whole remainder is planned (the
+    waypoint is inside the window, the window would span less than the planner takes, or it
+    has no target: `no_target`, "" = it has one). A request without a window gives (0, "")."""
+    h = int(request.window_nodes)
+    if h == 0:
+        return 0, ""
+    if no_target:
+        return 0, no_target
     span, lowest = window_orbits(request, n_nodes, default_orbits), N_ORBITS_RANGE[0]
-    if span >= lowest:
-        return ""
-    return (f"a window of {int(request.window_nodes)} of {n_nodes - 1} nodes would span "
-            f"{span:.3g} orbits, below the planner's {lowest:g}: the whole remainder is "
-            "planned")
+    if span < lowest:
+        return 0, (f"a window of {h} of {n_nodes - 1} nodes would span {span:.3g} orbits, "
+                   f"below the planner's {lowest:g}: the whole remainder is planned")
+    if h >= n_nodes - 1:
+        return 0, "the waypoint is inside the window: the whole remainder is planned"
+    return h, ""
 
 
-def waypoint_window(request: PlanRequest, n_nodes: int, why: str = "") -> PlanWindow:
-    """The window of a request whose remainder of `n_nodes` fits in it, or that has no target
-    (`why`): planned whole."""
-    return PlanWindow(int(request.window_nodes), n_nodes - 1, "waypoint",
-                      why or "the waypoint is inside the window: the whole remainder is "
-                      "planned", context_steps(request))
+def waypoint_window(request: PlanRequest, n_nodes: int, why: str) -> PlanWindow:
+    """The window of a request planned whole over its remainder of `n_nodes`, and why."""
+    return PlanWindow(int(request.window_nodes), n_nodes - 1, "waypoint", why,
+                      context_steps(request))
 
 
 def context_steps(request: PlanRequest) -> int:
@@ -104,103 +124,89 @@ def context_steps(request: PlanRequest) -> int:
     return 0 if request.context is None else request.context.n_steps
 
 
-def plan_window(pipeline: "GuidancePipeline", transfer: Transfer,
-                deadline: Deadline | None) -> PlanResult:
-    """Plan `transfer` (the whole remainder) over its request's window (module docstring);
-    never raises for solver or model trouble (the plan's status and reason say what
-    happened)."""
-    t0 = time.perf_counter()
-    request = transfer.request
-    horizon, n, h = transfer.horizon, transfer.horizon.n_nodes, int(request.window_nodes)
-    cvx = transfer.problem.cvx()
-    t_cvx = time.perf_counter()
-    ref_dv, ref_roe, source, reason, learned = _reference(pipeline, transfer, cvx, deadline)
-    t_art = time.perf_counter()
-    result, source, reason = _solve_window(pipeline, request, transfer, ref_dv, ref_roe, h,
-                                           source, reason, cvx, deadline)
-    dv = np.concatenate([result.dv_rtn_mps, ref_dv[h + 1:]])
-    roe = np.concatenate([result.roe_m, ref_roe[h + 1:]])
-    t_end = time.perf_counter()
-    timings = {"setup": 0.0, "cvx": 1e3 * (t_cvx - t0), "art": 1e3 * (t_art - t_cvx),
-               "scp": 1e3 * (t_end - t_art), "total": 1e3 * (t_end - t0),
-               "window": float(result.timings_ms.get("total", 0.0))}
-    window = PlanWindow(h, h, source, reason, context_steps(request))
-    text = (f"window of {h} of {n - 1} nodes to a {source.upper()} target ({reason}); "
-            f"{result.warm_start_reason}")
-    return dataclasses.replace(
-        result, epochs_s=horizon.epochs_s, dv_rtn_mps=dv, roe_m=roe, rtn=horizon.to_rtn(roe),
-        cost_mps=float(np.linalg.norm(dv, axis=1).sum()), cvx=cvx,
-        posthoc=None if learned is None else learned.posthoc, timings_ms=timings,
-        request=request, proposal=None if learned is None else learned.proposal,
-        warm_start_reason=text, window=window)
+def wants_learned(request: PlanRequest, cvx: ConvexSolution) -> bool:
+    """Whether the reference of a windowed request asks the learned step."""
+    return request.terminal_target in ("art", "art_any") and cvx.status.feasible
 
 
-def _reference(pipeline: "GuidancePipeline", transfer: Transfer, cvx: ConvexSolution,
-               deadline: Deadline | None) -> tuple:
-    """The trajectory the window's target is taken from: (dv (N, 3), roe (N, 6), source,
-    reason, the learned step or None)."""
-    request = transfer.request
-    cvx_ref = (cvx.dv_rtn_mps, cvx.roe_m)
-    if request.terminal_target == "carry":  # usable: `GuidancePipeline.plan` checked it
+def learned_request(request: PlanRequest) -> PlanRequest:
+    """The request the learned step is asked with (`art_any`: ART whatever the check says)."""
+    if request.terminal_target == "art_any":
+        return dataclasses.replace(request, warm_start=WarmStart.ART.value)
+    return request
+
+
+def reference(request: PlanRequest, cvx: ConvexSolution, learned: Learned | None = None,
+              full: PlanResult | None = None) -> Reference:
+    """The trajectory the window's target is taken from (module docstring), given the learned
+    step where `wants_learned` (`learned`) and the full-horizon plan for the "scvx" oracle
+    (`full`)."""
+    target = request.terminal_target
+    cvx_ref = Trajectory(cvx.dv_rtn_mps, cvx.roe_m)
+    if target == "carry":  # usable: `window_size` was given its refusal
         carry = request.carry
-        return carry.dv_rtn_mps, carry.roe_m, "carry", f"the plan in force {carry.plan_id}", \
-            None
-    if request.terminal_target == "cvx":
-        return (*cvx_ref, "cvx", "terminal_target cvx", None)
+        return Reference(Trajectory(carry.dv_rtn_mps, carry.roe_m), "carry",
+                         f"the plan in force {carry.plan_id}")
+    if target == "cvx":
+        return Reference(cvx_ref, "cvx", "terminal_target cvx")
     if not cvx.status.feasible:
-        return (*cvx_ref, "cvx", f"CVX ended {cvx.status.name}", None)
-    if request.terminal_target == "scvx":  # the oracle: the full-horizon plan
-        full = pipeline.plan(dataclasses.replace(request, window_nodes=0,
-                                                 warm_start=WarmStart.CVX.value), deadline)
+        return Reference(cvx_ref, "cvx", f"CVX ended {cvx.status.name}")
+    if target == "scvx":  # the oracle: the full-horizon plan
         if full.scp.feasible:
-            return full.dv_rtn_mps, full.roe_m, "scvx", "the full-horizon SCVx* plan", None
-        return (*cvx_ref, "cvx", f"the full-horizon plan ended {full.status.name}", None)
-    if request.terminal_target == "art_any":  # ART whatever the check says
-        transfer = dataclasses.replace(transfer, request=dataclasses.replace(
-            request, warm_start=WarmStart.ART.value))
-    learned = learned_warm_start(pipeline.provider, transfer, cvx, pipeline.config.planning,
-                                 deadline)
+            return Reference(Trajectory(full.dv_rtn_mps, full.roe_m), "scvx",
+                             "the full-horizon SCVx* plan")
+        return Reference(cvx_ref, "cvx", f"the full-horizon plan ended {full.status.name}")
     if learned.source is WarmStartSource.ART and learned.warm_start is not None:
-        dv, roe = learned.warm_start
-        return dv, roe, "art", learned.reason, learned
-    return (*cvx_ref, "cvx", f"no ART target: {learned.reason}", learned)
+        return Reference(learned.warm_start, "art", learned.reason, learned)
+    return Reference(cvx_ref, "cvx", f"no ART target: {learned.reason}", learned)
 
 
-def _solve_window(pipeline: "GuidancePipeline", request: PlanRequest, transfer: Transfer,
-                  ref_dv: np.ndarray, ref_roe: np.ndarray, h: int, source: str, reason: str,
-                  cvx: ConvexSolution, deadline: Deadline | None) -> tuple[PlanResult, str, str]:
-    """SCVx* over nodes 0..h to the reference's post-burn state at node h; an infeasible
-    window to an ART (or carried) target is solved again to the CVX target in the time
-    left."""
-    result = pipeline.plan(window_request(pipeline, request, transfer, ref_dv, ref_roe, h,
-                                          tracking=source == "carry"), deadline)
-    if result.scp.feasible or source == "cvx" or not cvx.status.feasible \
-            or (deadline is not None and deadline.passed()):
-        return result, source, reason
-    retry = pipeline.plan(window_request(pipeline, request, transfer, cvx.dv_rtn_mps,
-                                         cvx.roe_m, h), deadline)
-    return retry, "cvx", (f"the window to the {source.upper()} target ended "
-                          f"{result.status.name}")
+def cvx_reference(cvx: ConvexSolution, failed: Reference, status: str) -> Reference:
+    """The CVX reference a window is solved to again after the window to `failed` ended with
+    `status` (the learned step kept)."""
+    return Reference(Trajectory(cvx.dv_rtn_mps, cvx.roe_m), "cvx",
+                     f"the window to the {failed.source.upper()} target ended {status}",
+                     failed.learned)
 
 
-def window_request(pipeline: "GuidancePipeline", request: PlanRequest, transfer: Transfer,
-                   ref_dv: np.ndarray, ref_roe: np.ndarray, h: int,
+def window_request(request: PlanRequest, n_nodes: int, scenario: ScenarioConfig,
                    tracking: bool = False) -> PlanRequest:
-    """The request of the window [0, h] of `transfer` ending at the post-burn state of the
-    reference (`ref_dv`, `ref_roe`) at node h (warm-started from CVX, no window of its own;
-    with `tracking`, the reference is the request's carried plan, whose first h + 1 nodes it
-    carries)."""
-    horizon = transfer.horizon
-    n = horizon.n_nodes
-    n_orbits = window_orbits(request, n, pipeline.scenario.n_orbits)
+    """The request of the window [0, H] of `request` (its remainder of `n_nodes` nodes): the
+    same grid and switch, warm-started from CVX, no window of its own; with `tracking`, the
+    request's carried plan over the window's nodes. Its target is the window transfer's
+    (`target_roe`, given by `planning.transfer.Transfers.in_roe`)."""
+    h = int(request.window_nodes)
     switch = request.koz_switch_node
     if switch is None:
-        switch = pipeline.scenario.ae_to_koz_node
-    z_h = horizon.post_burn_at(h, ref_roe[h], ref_dv[h])
-    carry = request.carry.first(h + 1) if tracking else None
-    shape = dataclasses.replace(request, n_nodes=h + 1, n_orbits=n_orbits,
-                                koz_switch_node=int(switch), warm_start=WarmStart.CVX.value,
-                                window_nodes=0, carry=carry,
-                                no_carry="" if tracking else "a window to a fresh target")
-    psi_h = pipeline.transfer(shape).horizon.psi[-1]
-    return dataclasses.replace(shape, target_rtn=psi_h @ z_h)
+        switch = scenario.ae_to_koz_node
+    return dataclasses.replace(
+        request, n_nodes=h + 1, n_orbits=window_orbits(request, n_nodes, scenario.n_orbits),
+        koz_switch_node=int(switch), warm_start=WarmStart.CVX.value, window_nodes=0,
+        carry=request.carry.first(h + 1) if tracking else None,
+        no_carry="" if tracking else "a window to a fresh target")
+
+
+def target_roe(transfer: Transfer, ref: Reference, h: int) -> np.ndarray:
+    """The window's terminal condition: the reference's post-burn state at node `h` [m]."""
+    traj = ref.trajectory
+    return transfer.horizon.post_burn_at(h, traj.roe_m[h], traj.dv_rtn_mps[h])
+
+
+def splice(transfer: Transfer, window: PlanResult, ref: Reference, cvx: ConvexSolution,
+           timings_ms: dict) -> PlanResult:
+    """The plan over the whole remainder: the window's plan, then the reference's burns from
+    node H + 1 to the waypoint."""
+    request, horizon = transfer.request, transfer.horizon
+    h, learned = int(request.window_nodes), ref.learned
+    dv = np.concatenate([window.dv_rtn_mps, ref.trajectory.dv_rtn_mps[h + 1:]])
+    roe = np.concatenate([window.roe_m, ref.trajectory.roe_m[h + 1:]])
+    text = (f"window of {h} of {horizon.n_nodes - 1} nodes to a {ref.source.upper()} target "
+            f"({ref.reason}); {window.warm_start_reason}")
+    return dataclasses.replace(
+        window, epochs_s=horizon.epochs_s, dv_rtn_mps=dv, roe_m=roe, rtn=horizon.to_rtn(roe),
+        cost_mps=float(np.linalg.norm(dv, axis=1).sum()), cvx=cvx,
+        posthoc=None if learned is None else learned.posthoc,
+        timings_ms={**timings_ms, "window": float(window.timings_ms.get("total", 0.0))},
+        request=request, proposal=None if learned is None else learned.proposal,
+        warm_start_reason=text,
+        window=PlanWindow(h, h, ref.source, ref.reason, context_steps(request)))

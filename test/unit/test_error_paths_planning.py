@@ -25,7 +25,11 @@ from art_guidance.planning import (
 )
 from art_guidance.planning.choice import better_plan
 from art_guidance.planning.learned import carried_warm_start, learned_warm_start
-from art_guidance.planning.proposal_process import ProposalProcess, _serve, model_key
+from art_guidance.planning.proposal_process import ProposalProcess, model_key
+from art_guidance.planning.proposal_worker import serve
+from art_guidance.planning.worker_messages import (
+    Failure, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
+)
 from art_guidance.planning.replan import check_window
 from art_guidance.planning.types import RolloutContext
 
@@ -154,7 +158,7 @@ def _serve_here(jobs: list) -> list:
         parent.send(job)
     before = signal.getsignal(signal.SIGINT)
     try:
-        _serve(child)
+        serve(child)
     finally:
         signal.signal(signal.SIGINT, before)
     answers = []
@@ -169,24 +173,24 @@ def test_a_failing_job_is_answered_with_its_error(tmp_path, pipeline, shipped):
     planner then proposes, or solves, in line."""
     provider, key = shipped
     config = pipeline.config
-    base = {"config": config.to_json(), "config_sha256": config.sha256()}
+    base = (config.to_json(), config.sha256())
     missing = (str(tmp_path / "missing.onnx"), *key[1:])
     request = heldout_requests(1, DEFAULT_MODELS["chance"])[0]
     cvx = pipeline.transfer(request).problem.cvx()
     answers = _serve_here([
-        {**base, "model": missing, "warm_up": True},
-        {**base, "model": key, "warm_up": True},
-        {**base, "model": key, "request": request, "cvx": cvx, "time_left_s": None,
-         "cvx_unsafe": True, "subproblem": {"no_such_option": 1}, "solve_art": True,
-         "job_id": 7},
+        WarmUpJob(*base, missing),
+        WarmUpJob(*base, key),
+        PlanJob(7, *base, key, request, cvx, None, True, {"no_such_option": 1},
+                solve_art=True),
     ])
     assert len(answers) == 4, answers
-    assert answers[0][0] == "error" and "missing.onnx" in answers[0][1]
-    assert answers[1] == ("ok", None, 0.0)
-    ok, learned, _ = answers[2]
-    assert ok == "ok" and learned.dv is not None, learned.reason
-    assert answers[3][0] == "error" and answers[3][1].startswith("TypeError: ")
-    assert "no_such_option" in answers[3][1]
+    assert isinstance(answers[0], Failure) and "missing.onnx" in answers[0].text
+    assert answers[1] == Proposal(0)
+    assert isinstance(answers[2], Proposal) and answers[2].job_id == 7
+    assert answers[2].learned.dv is not None, answers[2].learned.reason
+    assert isinstance(answers[3], Failure) and answers[3].job_id == 7
+    assert answers[3].text.startswith("TypeError: ") and "no_such_option" in answers[3].text
+    assert not any(isinstance(a, ScvxAnswer) for a in answers)
 
 
 def test_a_worker_that_stalls_or_dies_holding_a_job(pipeline, shipped):
@@ -196,8 +200,7 @@ def test_a_worker_that_stalls_or_dies_holding_a_job(pipeline, shipped):
     The worker is held with SIGSTOP, so the job cannot be answered before it is stopped."""
     _, key = shipped
     config = pipeline.config
-    job = {"config": config.to_json(), "config_sha256": config.sha256(), "model": key,
-           "warm_up": True}
+    job = PlanJob(0, config.to_json(), config.sha256(), key, None, None, None, False, {})
     worker = ProposalProcess()
     try:
         for ending in ("late", "dead"):

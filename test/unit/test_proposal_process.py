@@ -14,6 +14,7 @@ from art_guidance.config import GuidanceConfig
 from art_guidance.optim import Scvx
 from art_guidance.planning import GuidancePipeline, proposal_process
 from art_guidance.planning.proposal_process import ProposalProcess, restart_delay_s
+from art_guidance.planning.worker_messages import PlanJob
 from helpers.shipped import heldout_requests
 
 
@@ -32,7 +33,7 @@ def test_a_failed_worker_is_started_again_with_backoff(tmp_path, monkeypatch):
         assert worker.start(config.to_json(), config.sha256(), model) is False
         assert "missing.pt" in worker.error and not worker.alive
         assert "1 failed start(s)" in worker.state and "started again in 5 s" in worker.state
-        job = {"config": config.to_json(), "config_sha256": config.sha256(), "model": model}
+        job = PlanJob(0, config.to_json(), config.sha256(), model, None, None, None, False, {})
         assert worker.submit(job) is None and not worker.alive  # declined, nothing spawned
         assert "missing.pt" in worker.error  # the reason stays
         monkeypatch.setattr(proposal_process, "RESTART_AFTER_S", 0.0)
@@ -98,9 +99,9 @@ def test_close_is_bounded_while_a_job_is_out(concurrent, monkeypatch):
 
     assert worker.start(config.to_json(), config.sha256(), model_key(concurrent.provider))
     request = heldout_requests(1, DEFAULT_MODELS["chance"])[0]
-    assert worker.submit({"config": config.to_json(), "config_sha256": config.sha256(),
-                          "model": model_key(concurrent.provider), "warm_up": True,
-                          "request": request})
+    cvx = concurrent.transfer(request).problem.cvx()
+    assert worker.submit(PlanJob(0, config.to_json(), config.sha256(),
+                                 model_key(concurrent.provider), request, cvx, None, False, {}))
     t0 = time.perf_counter()
     worker.close()  # this thread holds the job: close waits 0.5 s, then kills
     assert time.perf_counter() - t0 < 5.0 and not worker.alive
@@ -112,7 +113,7 @@ def test_the_worker_ignores_sigint(concurrent):
     import os
     import signal
 
-    worker = concurrent._worker
+    worker = concurrent.producers.worker()
     assert worker.alive or concurrent.start_proposal_worker(), concurrent.proposal_worker_error
     os.kill(worker._proc.pid, signal.SIGINT)
     time.sleep(1.0)

@@ -130,8 +130,8 @@ def test_the_concurrent_proposal_plans_as_the_sequence(mode, auto_plans):
         for i, (req, b) in enumerate(zip(auto_plans.requests(mode, 12),
                                          auto_plans.plans(mode, 12))):
             if i == 6:  # the worker dies: proposals in line until its successor is ready
-                concurrent._worker._proc.kill()
-                concurrent._worker._proc.join()
+                concurrent.producers.worker()._proc.kill()
+                concurrent.producers.worker()._proc.join()
             taken = concurrent.proposal_worker_scvx_runs[1]
             a = concurrent.plan(req)
             if i < 6 and a.proposal is not None:  # the worker's plans (before the kill):
@@ -152,7 +152,7 @@ def test_the_concurrent_proposal_plans_as_the_sequence(mode, auto_plans):
                 ran += 1
                 assert a.proposal.rollout_ms > 0
             accepted += a.posthoc is not None and bool(a.posthoc.accepted)
-        assert concurrent._worker.alive  # the successor
+        assert concurrent.producers.worker().alive  # the successor
     finally:
         concurrent.close()
     assert ran >= 6, ran

@@ -62,8 +62,7 @@ def test_a_window_ends_at_the_cvx_state_and_the_plan_continues_to_the_waypoint(p
 def test_the_window_request_keeps_the_grid_and_the_switch(pipeline):
     request = _request(window_nodes=20)
     transfer = pipeline.transfer(request)
-    cvx = pipeline.plan(dataclasses.replace(request, window_nodes=0)).cvx
-    w = window_request(pipeline, request, transfer, cvx.dv_rtn_mps, cvx.roe_m, 20)
+    w = window_request(request, transfer.horizon.n_nodes, pipeline.scenario)
     assert w.n_nodes == 21 and w.window_nodes == 0 and w.warm_start == "cvx"
     assert w.koz_switch_node == SC.ae_to_koz_node
     np.testing.assert_allclose(pipeline.transfer(w).horizon.epochs_s,

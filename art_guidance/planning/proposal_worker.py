@@ -1,0 +1,119 @@
+"""The proposal worker process's side (`proposal_process` starts it): one job in, its answers
+out (`worker_messages`), until the pipe closes or None comes.
+
+The worker chooses its numerics once, at its warm-up (`kernels.prepare` with the planner's
+`numerics`), rebuilds the planner's transfer problem (`planning.transfer.Transfers`) and runs
+the planner's learned step (`planning.learned.timed_learned_warm_start`) and, for a job with
+`solve_art`, the planner's SCVx* run from the proposal, so its answers are the in-line ones bit
+for bit (tested).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from art_guidance import kernels
+from art_guidance.deadline import Deadline
+from art_guidance.planning.worker_messages import (
+    CancellableDeadline, CancelSlot, Failure, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
+)
+
+
+def serve(conn: Any, slot: CancelSlot | None = None) -> None:
+    """The worker's loop (module docstring).
+
+    SIGINT is ignored: a Ctrl-C in a terminal (or `ros2 launch`'s) reaches the whole process
+    group, and the worker is stopped by its planner (`close`) or when the pipe closes, not with
+    a KeyboardInterrupt traceback in the node's output."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    state: dict = {}
+    while True:
+        try:
+            job = conn.recv()
+        except (EOFError, OSError):  # the planner's process is gone
+            return
+        if job is None:
+            return
+        answer = _answer(job.job_id, lambda: _run(job, state))
+        if not _send(conn, answer):
+            return
+        if not isinstance(job, PlanJob) or not job.solve_art:
+            continue
+        # the second answer: SCVx* from the proposal (None: not made or cancelled)
+        follow = _answer(job.job_id, lambda: ScvxAnswer(job.job_id,
+                                                        _solve_art(job, state, answer, slot)))
+        if not _send(conn, follow):
+            return
+
+
+def _answer(job_id: int, make: Any) -> Any:
+    """`make()`, or the `Failure` it raised (reported to the planner, which works in line)."""
+    try:
+        return make()
+    except BaseException as exc:
+        return Failure(job_id, f"{type(exc).__name__}: {exc}")
+
+
+def _send(conn: Any, answer: Any) -> bool:
+    try:
+        conn.send(answer)
+        return True
+    except (EOFError, OSError):
+        return False
+
+
+def _run(job: WarmUpJob | PlanJob, state: dict) -> Proposal:
+    """One job: a warm-up loads the model; a plan job makes the learned step."""
+    from art_guidance.art.provider import ArtWarmStart
+    from art_guidance.config import GuidanceConfig
+    from art_guidance.planning.learned import timed_learned_warm_start
+    from art_guidance.planning.transfer import Transfers
+
+    key = (job.config_sha256, job.model)
+    if state.get("key") != key:
+        path, sha, threads, scales, runtime = job.model
+        provider = ArtWarmStart.load(path, expected_sha256=sha, threads=threads,
+                                     reward_scales=scales, runtime=runtime)
+        config = GuidanceConfig.from_json(job.config_json)
+        # the numerics, chosen once at the worker's start: loaded, or the numpy path while a
+        # background process compiles them (never a compile before the first fix)
+        kernels.prepare(config.planning.numerics)
+        state.update(key=key, provider=provider, config=config,
+                     transfers=Transfers(config.scenario, config.uncertainty))
+    if isinstance(job, WarmUpJob):
+        return Proposal(job.job_id)
+    left_s = job.time_left_s  # the plan's deadline, on this process's clock
+    deadline = None if left_s is None else Deadline.after(left_s)
+    transfer = state["transfers"].get(job.request)
+    state["plan"] = (transfer, deadline)  # for SCVx* from the proposal (`_solve_art`)
+    learned, wall_ms = timed_learned_warm_start(state["provider"], transfer, job.cvx,
+                                                state["config"].planning, deadline,
+                                                job.cvx_unsafe)
+    return Proposal(job.job_id, learned, wall_ms)
+
+
+def _solve_art(job: PlanJob, state: dict, answer: Any, slot: CancelSlot | None) -> Any:
+    """SCVx* from the job's proposal as the planner would solve it (`planning.runs`), or None:
+    no valid proposal, or the planner cancelled the run (before or during it)."""
+    from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
+    from art_guidance.planning.types import WarmStartSource
+
+    def cancelled() -> bool:
+        return slot is not None and slot.cancelled(job.job_id)
+
+    if not isinstance(answer, Proposal) or answer.learned.dv is None or cancelled():
+        return None
+    learned, config = answer.learned, state["config"]
+    transfer, deadline = state["plan"]
+    if deadline is not None and learned.source is WarmStartSource.ART:
+        # the first run of the plan: a share of what is left, the rest for the run from CVX
+        deadline = deadline.share(config.planning.art_deadline_share)
+    until = CancellableDeadline(math.inf if deadline is None else deadline.at_s, slot, job.job_id)
+    if slot is None:
+        until = Deadline(until.at_s)
+    pool = state.setdefault("pool", SubproblemPool())  # the worker's own, as a pipeline's
+    scvx = transfer.scvx(config, SubproblemOptions(**job.subproblem), pool)
+    result = scvx.solve(learned.dv, deadline=until, projected=learned.warm_start)
+    return None if cancelled() else result
