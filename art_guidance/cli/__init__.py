@@ -30,6 +30,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="Onboard rendezvous guidance: ART warm start, post hoc check, robust SCP.",
     )
     parser.add_argument("--version", action="version", version=f"art-guidance {__version__}")
+    parser.add_argument("--numerics", choices=("compiled", "numpy"), default=None,
+                        help="the per-step numerics of every plan this command makes, chosen "
+                        "once here: compiled (numba kernels, loaded from their cache; the "
+                        "numpy path while a cold cache compiles) or numpy (default: "
+                        "planning.yaml's numerics)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in SUBCOMMANDS:
         importlib.import_module(f"art_guidance.cli.{name}").add_parser(sub)
@@ -41,6 +46,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         require(f"art-guidance {args.command}", getattr(args, "needs", ()))
+        _choose_numerics(args.numerics)
         return int(args.func(args))
     except GuidanceError as exc:
         print(json.dumps({"error": type(exc).__name__, "message": str(exc)}), file=sys.stderr)
@@ -48,3 +54,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into `head` and the like
         sys.stderr.close()
         return 0
+
+
+def _choose_numerics(mode: str | None) -> None:
+    """The process's numerics, chosen once at its entry (`kernels.choose`; None: the packaged
+    planning.yaml's); the kernels load at the first plan, or at a command's warm-up."""
+    from art_guidance import kernels
+    from art_guidance.config import PlanningConfig
+
+    kernels.choose(mode or PlanningConfig.from_yaml().numerics)

@@ -1,7 +1,8 @@
 """Compiled numerics (numba) behind the array doors of the numpy modules they are named after;
 the numpy forms stay where they are and are the test oracles (the same decisions).
 
-One process-wide setting chooses the path (`set_numerics`): "compiled" (the default where numba
+One process-wide setting chooses the path, once at the process's entry (`choose`; `set_numerics`
+also says at once whether numba can be used): "compiled" (the default where numba
 imports and the kernels load) or "numpy". Every process that plans goes through one door that
 loads the kernels, `prepare` (the node at configure, the worker at its warm-up, anything else
 at its first plan through `compiled`):
@@ -34,6 +35,7 @@ import time
 from pathlib import Path
 
 NUMERICS = ("compiled", "numpy")
+NUMERICS_ENV = "ART_GUIDANCE_NUMERICS"  # a parent's `choose`, inherited by its children
 _HERE = Path(__file__).resolve().parent
 _LOG = logging.getLogger("art_guidance.kernels")
 # phase: "idle" (not loaded yet), "ready" (compiled path in use), "background" (numpy path
@@ -71,6 +73,29 @@ def _import_error() -> str:
     return _state["error"]
 
 
+def choose(mode: str) -> str:
+    """Choose the path ("compiled" or "numpy") at a process's entry (the node at configure,
+    the CLI in `main`, the proposal worker at its start), as osqp takes `algebra=`: nothing is
+    imported or loaded here; the kernels load at the first `prepare` or `compiled` (the numpy
+    path where they cannot). Returns `mode`.
+
+    Raises:
+        ValueError: an unknown mode.
+    """
+    if mode not in NUMERICS:
+        raise ValueError(f"numerics must be one of {', '.join(NUMERICS)}, got {mode!r}")
+    _state["mode"] = mode
+    os.environ[NUMERICS_ENV] = mode  # the processes this one starts choose alike
+    return mode
+
+
+def _default_mode() -> str:
+    """The path of a process whose entry chose none: its parent's choice (`NUMERICS_ENV`),
+    else "compiled"."""
+    mode = os.environ.get(NUMERICS_ENV, "")
+    return mode if mode in NUMERICS else "compiled"
+
+
 def set_numerics(mode: str) -> str:
     """Choose the path ("compiled" or "numpy"); returns the path chosen ("numpy" where numba
     cannot be used: `error` says why). The kernels load at the first `prepare` or `compiled`.
@@ -88,7 +113,7 @@ def compiled() -> bool:
     """Whether the compiled kernels are in use now (the first call goes through `prepare`:
     False while they compile in the background)."""
     if _state["mode"] is None:
-        set_numerics("compiled")
+        set_numerics(_default_mode())
     if _state["mode"] != "compiled":
         return False
     if _state["phase"] == "idle":
@@ -108,7 +133,7 @@ def prepare(mode: str | None = None, *, wait: bool = False) -> str:
     Returns `status()`."""
     with _lock:
         if mode is not None or _state["mode"] is None:
-            set_numerics(mode or "compiled")
+            set_numerics(mode or _default_mode())
         if _state["mode"] != "compiled" or _state["phase"] in ("ready", "numpy"):
             return status()
         if _state["phase"] == "background":

@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
@@ -46,9 +46,7 @@ from art_guidance.deadline import Deadline
 from art_guidance.optim.cvx import control_cost, terminal_maps
 from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
 from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus, Trajectory
-
-if TYPE_CHECKING:
-    from art_guidance.optim.transfer import TransferProblem
+from art_guidance.safety import PassiveSafety
 
 
 @dataclass
@@ -151,9 +149,30 @@ class ScvxState:
     status: ScpStatus | None = None
 
 
+class ScvxProblem(Protocol):
+    """What SCVx* reads of its problem (`optim.transfer.TransferProblem` is one; this module
+    does not import it: the problem builds its solvers, never the other way round)."""
+
+    @property
+    def safety(self) -> PassiveSafety:
+        """The passive-safety model; its horizon is the problem's."""
+
+    @property
+    def horizon(self) -> Horizon:
+        """The time grid, dynamics and frames (the safety model's)."""
+
+    @property
+    def roe0_m(self) -> np.ndarray:
+        """(6,) initial pre-burn a-scaled ROE [m], float."""
+
+    @property
+    def roe_f_m(self) -> np.ndarray:
+        """(6,) terminal post-burn a-scaled ROE [m], float."""
+
+
 class Scvx:
-    """SCVx* bound to one problem instance (`optim.transfer.TransferProblem`: horizon,
-    boundary conditions, safety), built by `TransferProblem.scvx`.
+    """SCVx* bound to one problem instance (`ScvxProblem`, e.g. `optim.transfer.
+    TransferProblem`: horizon, boundary conditions, safety), built by `TransferProblem.scvx`.
 
     What a run depends on: the problem's safety model (its horizon gives the dynamics) and
     boundary conditions, the SCVx* parameters and one `ScpSubproblem` (set up once per horizon
@@ -161,7 +180,7 @@ class Scvx:
     or set up for this instance alone. A run's loop state is one `ScvxState`.
     """
 
-    def __init__(self, problem: "TransferProblem", config: ScpConfig | None = None,
+    def __init__(self, problem: ScvxProblem, config: ScpConfig | None = None,
                  norm: str = "l2",
                  solver: str = "clarabel", samples_per_node: int = 1,
                  subproblem: SubproblemOptions | None = None,
@@ -179,36 +198,26 @@ class Scvx:
                 instance sets up its own).
         """
         self.problem = problem
-        self.safety = safety = problem.safety
-        self.horizon = safety.horizon
-        self.roe0_m = np.asarray(problem.roe0_m, float)
-        self.roe_f_m = np.asarray(problem.roe_f_m, float)
         self.cfg = config or ScpConfig()
         self.norm = norm
         # rows per node: t* and samples_per_node - 1 other minima / samples, plus the two
         # neighbours t* -/+ delta of the continuous minimum (`PassiveSafety.linearize_samples`)
         k = int(max(samples_per_node, 1))
-        self.k = int(min(k + 2 if k > 1 else 1, safety.n_samples))
+        self.k = int(min(k + 2 if k > 1 else 1, problem.safety.n_samples))
         # The convex model is tightened so converged plans keep a nonlinear margin >= 0.
         self.tighten = self.cfg.tightening
         self.sub = (pool if pool is not None else SubproblemPool()).get(
-            self.horizon, self.roe0_m, self.roe_f_m, norm, solver, self.k, subproblem)
+            problem.horizon, problem.roe0_m, problem.roe_f_m, norm, solver, self.k, subproblem)
 
-    # ------------------------------------------------------------------ dynamics
-    def _propagate(self, dv_rtn_mps: np.ndarray) -> np.ndarray:
-        return self.horizon.propagate_nonlinear(self.roe0_m, dv_rtn_mps)
-
-    def _linearize_dynamics(self, roe_m: np.ndarray,
-                            dv_rtn_mps: np.ndarray) -> DeputyLinearization:
-        return self.horizon.linearize_nonlinear(roe_m, dv_rtn_mps)
-
+    # ------------------------------------------------------------------ iterates
     def _iterate(self, dv_rtn_mps: np.ndarray, roe_m: np.ndarray | None = None) -> _Iterate:
-        roe = self._propagate(dv_rtn_mps) if roe_m is None else roe_m
-        ev = self.safety.evaluate(roe, dv_rtn_mps)
+        p = self.problem
+        roe = p.horizon.propagate_nonlinear(p.roe0_m, dv_rtn_mps) if roe_m is None else roe_m
+        ev = p.safety.evaluate(roe, dv_rtn_mps)
         return _Iterate(roe, dv_rtn_mps, control_cost(dv_rtn_mps, self.norm), -ev.margin)
 
     def _linearize(self, it: _Iterate) -> tuple[np.ndarray, np.ndarray]:
-        a, rhs, _ = self.safety.linearize_samples(it.roe_m, it.dv_rtn_mps, self.k)
+        a, rhs, _ = self.problem.safety.linearize_samples(it.roe_m, it.dv_rtn_mps, self.k)
         return a, rhs + self.tighten
 
     @staticmethod
@@ -245,13 +254,13 @@ class Scvx:
                projected: Trajectory | None) -> ScvxState:
         """The first reference (the warm start on the terminal condition), its
         linearisations, the multipliers; the subproblem set to this problem."""
-        cfg, n = self.cfg, self.horizon.n_nodes
+        p, cfg = self.problem, self.cfg
+        n = p.horizon.n_nodes
         ref = self._iterate(*(projected if projected is not None else terminal_warm_start(
-            self.horizon, self.roe0_m, self.roe_f_m,
-            np.asarray(dv_warm_rtn_mps, float).reshape(n, 3))))
+            p.horizon, p.roe0_m, p.roe_f_m, np.asarray(dv_warm_rtn_mps, float).reshape(n, 3))))
         m = multipliers or {}
-        lin_dyn = self._linearize_dynamics(ref.roe_m, ref.dv_rtn_mps)
-        self.sub.set_boundary(self.roe0_m, self.roe_f_m)  # a pooled one held another problem
+        lin_dyn = p.horizon.linearize_nonlinear(ref.roe_m, ref.dv_rtn_mps)
+        self.sub.set_boundary(p.roe0_m, p.roe_f_m)  # a pooled one held another problem
         self.sub.set_dynamics(lin_dyn)
         return ScvxState(ref, ref if ref.violation <= cfg.eps_feas else None,
                          np.asarray(m.get("mu", np.zeros(n)), float).copy(),
@@ -262,7 +271,7 @@ class Scvx:
     def _step(self, st: ScvxState, it_no: int) -> bool:
         """One iteration: solve the subproblem about the reference, judge the step by the
         ratio of actual to predicted merit decrease, update the state. False: stop."""
-        cfg, ref = self.cfg, st.ref
+        p, cfg, ref = self.problem, self.cfg, st.ref
         self.sub.set_reference(ref.roe_m, ref.dv_rtn_mps, st.radius)
         self.sub.set_safety(*st.lin)
         self.sub.set_penalty(st.mu, st.w)
@@ -270,8 +279,8 @@ class Scvx:
         if not sol.output.ok:
             st.status = ScpStatus.SOLVER_ERROR
             return False
-        cand = self._iterate(*to_terminal(self.horizon, self.roe0_m, self.roe_f_m,
-                                          sol.dv_rtn_mps, st.lin_dyn))
+        cand = self._iterate(*to_terminal(p.horizon, p.roe0_m, p.roe_f_m, sol.dv_rtn_mps,
+                                          st.lin_dyn))
         mu, w = st.mu, st.w
         j_ref = self._merit(ref, mu, w)
         l_cand = sol.cost_mps + float(mu @ sol.zeta) + 0.5 * w * float(sol.zeta @ sol.zeta)
@@ -289,7 +298,7 @@ class Scvx:
             if converged:
                 st.status = ScpStatus.CONVERGED
                 return False
-            st.lin_dyn = self._linearize_dynamics(ref.roe_m, ref.dv_rtn_mps)
+            st.lin_dyn = p.horizon.linearize_nonlinear(ref.roe_m, ref.dv_rtn_mps)
             self.sub.set_dynamics(st.lin_dyn)
             st.lin = self._linearize(ref)
             if abs(d_act) <= st.delta:

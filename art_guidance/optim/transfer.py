@@ -4,7 +4,8 @@ the boundary conditions, the terminal one solved once from the RTN target (`term
 CVX (`TransferProblem.cvx`), SCVx* (`TransferProblem.scvx`) and the terminal warm start
 (`TransferProblem.terminal_warm_start`) of the post hoc check and of the learned proposal all
 take the one `TransferProblem`; the planner's `planning.transfer.Transfer` pairs it with its
-request.
+request. The problem builds its solvers, and the solvers take it as it is: `scp.Scvx` reads
+only what its protocol `scp.ScvxProblem` names and imports nothing from here.
 """
 from __future__ import annotations
 
@@ -37,8 +38,9 @@ class TransferProblem:
     Attributes:
         safety: the passive-safety model (deterministic or chance-constrained); its horizon
             is the problem's.
-        roe0_m: (6,) initial pre-burn a-scaled ROE [m].
-        roe_f_m: (6,) terminal post-burn a-scaled ROE [m].
+        roe0_m: (6,) initial pre-burn a-scaled ROE [m] (a float array: converted when given
+            otherwise).
+        roe_f_m: (6,) terminal post-burn a-scaled ROE [m] (likewise).
         target_rtn: (6,) the RTN target [m, m/s] `roe_f_m` was solved from (the learned
             proposal's goal), or None for a problem given in ROE.
     """
@@ -47,6 +49,11 @@ class TransferProblem:
     roe0_m: np.ndarray
     roe_f_m: np.ndarray
     target_rtn: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        """Boundary conditions as float arrays (the same objects when they are already)."""
+        object.__setattr__(self, "roe0_m", np.asarray(self.roe0_m, float))
+        object.__setattr__(self, "roe_f_m", np.asarray(self.roe_f_m, float))
 
     @classmethod
     def to_target(cls, safety: PassiveSafety, roe0_m: np.ndarray,

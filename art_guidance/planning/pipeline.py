@@ -26,7 +26,6 @@ import threading
 import time
 from typing import Iterator
 
-from art_guidance import kernels
 from art_guidance.config import GuidanceConfig
 from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, InputError
@@ -39,6 +38,7 @@ from art_guidance.planning.producers import Producers
 from art_guidance.planning.runs import carried_run, fresh_runs, plan_result
 from art_guidance.planning.transfer import Transfer, Transfers, canned_request
 from art_guidance.planning.types import PlanRequest, PlanResult, WarmStart, WarmStartProvider
+from art_guidance.planning.warm_up import warm_up
 from art_guidance.safety import PassiveSafety
 
 
@@ -253,21 +253,12 @@ class GuidancePipeline:
         `proposal_worker_error` if it could not start; a no-op returning False otherwise)."""
         return self.producers.start_worker()
 
-    def warm_up(self) -> float:
-        """Pay this process's one-time costs before the first timed plan: load the kernels
-        through their door (`kernels.prepare`, waiting for a compile on a cold cache) and run
-        the learned provider once on a canned transfer (its runtime's first inference). The
-        wall time taken [ms]; never raises for the model (a plan reports that itself)."""
-        t0 = time.perf_counter()
-        kernels.prepare(wait=True)
-        if self.provider is not None:
-            try:
-                transfer = self._transfers.get(canned_request(self.scenario))
-                self.provider.propose(transfer.problem, transfer.problem.cvx(),
-                                      self.config.planning)
-            except Exception:  # the model's trouble is the plans' to report
-                pass
-        return 1e3 * (time.perf_counter() - t0)
+    def warm_up(self, wait: bool = False) -> float:
+        """Pay this process's one-time costs before the first timed plan (`planning.warm_up`:
+        the kernels loaded, compiled first on a cold cache with `wait`; the provider's runtime
+        run once on the scenario's canned transfer): the wall time taken [ms]."""
+        problem = self._transfers.get(canned_request(self.scenario)).problem
+        return warm_up(self.provider, problem, self.config.planning, wait)
 
     def close(self) -> None:
         """Stop the proposal worker process, if any (the pipeline stays usable: a later

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from mcap_ros2.decoder import DecoderFactory
 
+from art_guidance import kernels
 from art_guidance.config import mode_name
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, PlanRequest
@@ -361,6 +362,8 @@ def replay(path: str | Path, model: str | Path | None = None,
         # the pipeline as recorded: configuration, ranking of the candidates, model; replays
         # are not time-boxed (timed-out solves are flagged)
         pipeline = GuidancePipeline.from_config_json(recorded, provider, time_boxed=False)
+        # the replay plans on the recorded numerics (chosen here, its entry)
+        kernels.set_numerics(pipeline.config.planning.numerics)
     except GuidanceError as exc:
         if not (metadata_problems or config_problem):
             raise  # nothing says it was altered: the log cannot be replayed as it is

@@ -50,7 +50,8 @@ is within ``CERT_TOL + CERT_TOL_REL |m|`` of the smallest margin actually evalua
    MAX_LEVELS times (MAX_OPEN intervals per arc and level: only degenerate arcs, e.g. through
    the target centre where sigma is 0/0, reach that cap; they keep a finite, lower bound).
    Converged plans need 1-3 levels, on the few intervals around each node's minimum.
-   (`drift_bounds`: the bounds of step 2; `drift_search`: this search.)
+   (`drift_bounds`: the bounds of step 2; `drift_search.IntervalSearch`: this search, which
+   evaluates the arcs through `DriftArcs.points`.)
 
 A fast fly-by between two coarse samples has a small d while both neighbouring samples are
 far: its interval's bound is low, so it is split until the dip is sampled and refined. Only an
@@ -69,7 +70,7 @@ import numpy as np
 from art_guidance import kernels
 from art_guidance.safety.drift_bounds import N_ORDERS, ArcItems, ArcPoints, lower_bound
 from art_guidance.safety.drift_search import (  # noqa: F401 (the search's constants, here too)
-    CERT_TOL, CERT_TOL_REL, MAX_LEVELS, MAX_OPEN, REFINE_ITERS, SPLIT, intervals, search,
+    CERT_TOL, CERT_TOL_REL, MAX_LEVELS, MAX_OPEN, REFINE_ITERS, SPLIT, IntervalSearch, intervals,
 )
 from art_guidance.dynamics import (
     j2_secular_rates, mean_arg_latitude, psi_from_latitude, stm_basis_orders, stm_j2_terms,
@@ -308,22 +309,17 @@ class DriftArcs:
         sel = np.arange(m_items)
         grid = self.points(it, sel, np.broadcast_to(self.tau_s, (m_items, self.n_samples)),
                            grid=True)
-        cands = [(np.repeat(sel, self.n_samples), grid.tau.ravel(), grid.m.ravel(),
-                  np.ones(grid.m.size, bool))]
-        best = grid.m.min(axis=1)
-        floor = best.copy()  # certified lower bound of every arc's minimum
-        levels = 0
+        search = IntervalSearch(self.points, it, grid.m.min(axis=1), sign_only)
         if self.n_samples > 1:
-            item = np.repeat(sel, self.n_samples - 1)
-            lo, hi = intervals(grid)
-            levels = search(self, it, item, lo, hi, np.zeros(item.size, bool), best, floor,
-                            cands, sign_only)
+            search.run(np.repeat(sel, self.n_samples - 1), *intervals(grid))
+        cands = [(np.repeat(sel, self.n_samples), grid.tau.ravel(), grid.m.ravel(),
+                  np.ones(grid.m.size, bool)), *search.candidates]
         c_item, c_tau, c_m, c_row = (np.concatenate(c) for c in zip(*cands))
         order = np.lexsort((c_m, c_item))
         first = order[np.searchsorted(c_item[order], sel)]
         row = c_row & (c_tau != c_tau[first][c_item])  # row candidates other than t*
-        return ArcMinimum(np.minimum(floor, best), c_tau[first], c_m[first], c_item[row],
-                          c_tau[row], c_m[row], levels)
+        return ArcMinimum(search.margin, c_tau[first], c_m[first], c_item[row], c_tau[row],
+                          c_m[row], search.levels)
 
     def violated(self, it: ArcItems) -> np.ndarray:
         """(M,) bool: whether the minimum margin of each arc is below zero.
@@ -340,12 +336,9 @@ class DriftArcs:
         undecided = np.flatnonzero(best >= 0.0)
         if self.n_samples == 1 or undecided.size == 0:
             return best < 0.0
-        floor = best.copy()
-        lo, hi = intervals(grid.take(undecided))
-        item = np.repeat(undecided, self.n_samples - 1)
-        search(self, it, item, lo, hi, np.zeros(item.size, bool), best, floor, [],
-               sign_only=True)
-        return np.minimum(floor, best) < 0.0
+        search = IntervalSearch(self.points, it, best, sign_only=True)
+        search.run(np.repeat(undecided, self.n_samples - 1), *intervals(grid.take(undecided)))
+        return search.margin < 0.0
 
     def violated_at(self, node: np.ndarray, z_m: np.ndarray, x_cov: np.ndarray | None,
                     q: float) -> np.ndarray:

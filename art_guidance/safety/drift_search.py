@@ -1,17 +1,18 @@
 """The certified search of `drift.DriftArcs` (step 3 of that module's docstring): the
 refinement of bracketed minima and the splitting of uncertified intervals, over every interval
 of every arc of a batch at once (`DriftArcs.minimum` and `DriftArcs.violated` run it).
+
+`IntervalSearch` holds a search's own state (the smallest margin evaluated per arc, the bounds
+of the intervals it closed, the points it evaluated); it evaluates the arcs through the
+function it is given (`DriftArcs.points`), so this module does not import `drift`.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Callable
 
 import numpy as np
 
 from art_guidance.safety.drift_bounds import ArcItems, ArcPoints, lower_bound
-
-if TYPE_CHECKING:
-    from art_guidance.safety.drift import DriftArcs
 
 CERT_TOL = 1e-4     # certified accuracy of the arc minimum [-] (0.1 m on the AE, 2 cm on the KOZ)
 CERT_TOL_REL = 1e-3  # ... plus this fraction of |minimum| (no cm accuracy 300 m off the KOZ)
@@ -20,55 +21,91 @@ MAX_LEVELS = 8      # at most this many splits (h / 4^8: < 0.01 s for the paper'
 MAX_OPEN = 32       # at most this many intervals per arc are split per level (lowest bounds)
 REFINE_ITERS = 4    # safeguarded cubic-Hermite steps per bracketed local minimum
 
+# margins and slopes of arcs `item` (I,) of the items at offsets (I, K) [s] (`DriftArcs.points`)
+Points = Callable[[ArcItems, np.ndarray, np.ndarray], ArcPoints]
 
-def search(arcs: DriftArcs, it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints,
-           refined: np.ndarray, best: np.ndarray, floor: np.ndarray, cands: list,
-           sign_only: bool = False) -> int:
-    """Refine brackets and split uncertified intervals of `arcs` until all are certified.
 
-    Updates in place `best` (M,), the smallest margin evaluated, and `floor` (M,), the
-    smallest bound of the intervals left unsplit (>= best - tolerance once certified).
+class IntervalSearch:
+    """The certified search over the sample intervals of one batch of arcs.
+
+    Built on the arcs' point evaluator (`DriftArcs.points`), the arcs (`ArcItems`, M of them)
+    and the smallest margin sampled on each; `run` refines brackets and splits uncertified
+    intervals until all are certified, updating this search's own state:
+
+    Attributes:
+        best: (M,) the smallest margin evaluated on each arc [-] (the samples', then the
+            search's points).
+        floor: (M,) the smallest lower bound of the intervals closed [-] (>= best - tolerance
+            once certified).
+        candidates: the points the search evaluated, in order: one (arc index, offset [s],
+            margin, row) tuple of arrays per batch, row False for split points.
+        levels: the split levels the run needed (0 before a run).
+        sign_only: decide only the sign of every minimum (`drift.DriftArcs.minimum`).
     """
-    target = _sign_target if sign_only else _target
-    for level in range(MAX_LEVELS + 1):
-        lb = lower_bound(it, item, lo, hi, target(best)[item], sign_only)
-        open_ = lb < target(best)[item]
-        bracket = open_ & (lo.dm < 0.0) & (hi.dm > 0.0) & ~refined
-        if bracket.any():  # a local minimum of m that may matter: refine it
-            idx = np.flatnonzero(bracket)
-            r_item, r_tau, r_m = refine(arcs, it, item[idx], lo.take(idx), hi.take(idx))
-            cands.append((r_item, r_tau, r_m, np.ones(r_m.size, bool)))
-            np.minimum.at(best, r_item, r_m)
-            refined = refined | bracket
-            open_ = lb < target(best)[item]  # bounds stay valid; the target went down
-        if not open_.any() or level == MAX_LEVELS:
-            np.minimum.at(floor, item, lb)
-            return level
-        idx = np.flatnonzero(open_)
-        if idx.size > MAX_OPEN * best.size:  # degenerate arcs (e.g. through the centre)
-            idx = np.sort(idx[np.argpartition(lb[idx], MAX_OPEN * best.size)[
-                :MAX_OPEN * best.size]])
-        closed = np.ones(item.size, bool)
-        closed[idx] = False
-        np.minimum.at(floor, item[closed], lb[closed])
-        item, lo, hi, refined = item[idx], lo.take(idx), hi.take(idx), refined[idx]
-        frac = np.arange(1, SPLIT) / SPLIT
-        taus = lo.tau[:, None] + (hi.tau - lo.tau)[:, None] * frac  # (I, SPLIT-1)
-        mid = arcs.points(it, item, taus)
-        cands.append((np.repeat(item, SPLIT - 1), mid.tau.ravel(), mid.m.ravel(),
-                      np.zeros(mid.m.size, bool)))
-        np.minimum.at(best, np.repeat(item, SPLIT - 1), mid.m.ravel())
-        ends = ArcPoints(*(np.concatenate([getattr(lo, k)[:, None], getattr(mid, k),
-                                           getattr(hi, k)[:, None]], axis=1)
-                           for k in _FIELDS))  # (I, SPLIT + 1)
-        lo, hi = intervals(ends)
-        item, refined = np.repeat(item, SPLIT), np.repeat(refined, SPLIT)
-    return MAX_LEVELS  # pragma: no cover - the loop returns at MAX_LEVELS
+
+    def __init__(self, points: Points, it: ArcItems, best: np.ndarray,
+                 sign_only: bool = False) -> None:
+        self._points = points
+        self._it = it
+        self.sign_only = sign_only
+        self.best = np.array(best, dtype=float)
+        self.floor = self.best.copy()
+        self.candidates: list[tuple[np.ndarray, ...]] = []
+        self.levels = 0
+
+    @property
+    def margin(self) -> np.ndarray:
+        """(M,) the certified lower bound of every arc's minimum margin [-]."""
+        return np.minimum(self.floor, self.best)
+
+    def run(self, item: np.ndarray, lo: ArcPoints, hi: ArcPoints) -> IntervalSearch:
+        """Refine brackets and split the uncertified intervals [lo, hi] of arcs `item` (I,)
+        until all are certified (or MAX_LEVELS splits); returns this search."""
+        it, best, floor = self._it, self.best, self.floor
+        target = _sign_target if self.sign_only else _target
+        refined = np.zeros(item.size, bool)
+        for level in range(MAX_LEVELS + 1):
+            lb = lower_bound(it, item, lo, hi, target(best)[item], self.sign_only)
+            open_ = lb < target(best)[item]
+            bracket = open_ & (lo.dm < 0.0) & (hi.dm > 0.0) & ~refined
+            if bracket.any():  # a local minimum of m that may matter: refine it
+                idx = np.flatnonzero(bracket)
+                r_item, r_tau, r_m = refine(self._points, it, item[idx], lo.take(idx),
+                                            hi.take(idx))
+                self.candidates.append((r_item, r_tau, r_m, np.ones(r_m.size, bool)))
+                np.minimum.at(best, r_item, r_m)
+                refined = refined | bracket
+                open_ = lb < target(best)[item]  # bounds stay valid; the target went down
+            if not open_.any() or level == MAX_LEVELS:
+                np.minimum.at(floor, item, lb)
+                self.levels = level
+                return self
+            idx = np.flatnonzero(open_)
+            if idx.size > MAX_OPEN * best.size:  # degenerate arcs (e.g. through the centre)
+                idx = np.sort(idx[np.argpartition(lb[idx], MAX_OPEN * best.size)[
+                    :MAX_OPEN * best.size]])
+            closed = np.ones(item.size, bool)
+            closed[idx] = False
+            np.minimum.at(floor, item[closed], lb[closed])
+            item, lo, hi, refined = item[idx], lo.take(idx), hi.take(idx), refined[idx]
+            frac = np.arange(1, SPLIT) / SPLIT
+            taus = lo.tau[:, None] + (hi.tau - lo.tau)[:, None] * frac  # (I, SPLIT-1)
+            mid = self._points(it, item, taus)
+            self.candidates.append((np.repeat(item, SPLIT - 1), mid.tau.ravel(), mid.m.ravel(),
+                                    np.zeros(mid.m.size, bool)))
+            np.minimum.at(best, np.repeat(item, SPLIT - 1), mid.m.ravel())
+            ends = ArcPoints(*(np.concatenate([getattr(lo, k)[:, None], getattr(mid, k),
+                                               getattr(hi, k)[:, None]], axis=1)
+                               for k in _FIELDS))  # (I, SPLIT + 1)
+            lo, hi = intervals(ends)
+            item, refined = np.repeat(item, SPLIT), np.repeat(refined, SPLIT)
+        return self  # pragma: no cover - the loop returns at MAX_LEVELS
 
 
-def refine(arcs: DriftArcs, it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints
+def refine(points: Points, it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: ArcPoints
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Safeguarded cubic-Hermite bracketing of m' = 0 on brackets with m'(lo) < 0 < m'(hi).
+    """Safeguarded cubic-Hermite bracketing of m' = 0 on brackets with m'(lo) < 0 < m'(hi)
+    of arcs `item` of `it`, evaluated by `points` (`DriftArcs.points`).
 
     Each step evaluates the minimiser of the Hermite cubic through both ends (bisection
     after a step that kept 95 % of the bracket), then keeps the half where m' changes sign.
@@ -89,7 +126,7 @@ def refine(arcs: DriftArcs, it: ArcItems, item: np.ndarray, lo: ArcPoints, hi: A
         mid = 0.5 * (lo.tau + hi.tau)
         t = np.where(np.isfinite(t) & ~bisect, t, mid)
         t = np.clip(t, lo.tau + 0.05 * width, hi.tau - 0.05 * width)
-        p = arcs.points(it, item, t[:, None]).take((slice(None), 0))
+        p = points(it, item, t[:, None]).take((slice(None), 0))
         better = p.m < best_m
         best_tau, best_m = np.where(better, p.tau, best_tau), np.minimum(best_m, p.m)
         left = p.dm < 0.0

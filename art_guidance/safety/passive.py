@@ -178,15 +178,15 @@ class PassiveSafety:
                 minima within the certification tolerance of zero, and t* no more than that.
 
         Returns:
-            margin [-] (>= 0 is safe) and t* - t_i [s], each of the leading shape of `roe_m`.
+            margin [-] (>= 0 is safe) and t* - t_i [s], each of the leading shape of `roe_m`
+            (arrays of their own: the minimum of the last pairs is cached, `_minimum_at`).
 
         Raises:
             InputError: on a bad node index, NaN/inf or shapes that do not match.
         """
         node, x, u, lead = self._pairs(nodes, roe_m, dv_rtn_mps)
-        items = self._items_at(node, x, u, self.horizon.post_burn_at(node, x, u))
-        res = self.arcs.minimum(items, sign_only=sign_only)
-        return res.margin.reshape(lead), res.tau_s.reshape(lead)
+        res = self._minimum_at(node, x, u, sign_only)[1]
+        return res.margin.reshape(lead).copy(), res.tau_s.reshape(lead).copy()
 
     def violated(self, nodes: object, roe_m: object, dv_rtn_mps: object,
                  z_m: np.ndarray | None = None) -> np.ndarray:
@@ -399,15 +399,23 @@ class PassiveSafety:
         return x, u
 
     def _arc(self, roe_m: object, dv_rtn_mps: object) -> tuple[ArcItems, ArcMinimum]:
-        """Certified arc minima of a trajectory, `minimum`'s (the last one is cached: SCVx*
-        evaluates and then linearises the same iterate)."""
+        """The arcs and certified arc minima of a trajectory, (N, 6) [m] and (N, 3) [m/s]:
+        `minimum`'s at every node (`_minimum_at`)."""
         x, u = self._check(roe_m, dv_rtn_mps)
-        key = (x.tobytes(), u.tobytes())
+        return self._minimum_at(np.arange(self.n_nodes), x, u)
+
+    def _minimum_at(self, node: int | np.ndarray, x: np.ndarray, u: np.ndarray,
+                    sign_only: bool = False) -> tuple[ArcItems, ArcMinimum]:
+        """The drift arcs of validated pairs (`_pairs`: node an int or (M,) ints, pre-burn
+        states (M, 6) [m], burns (M, 3) [m/s]) and their certified minima, the body of
+        `minimum` and of the trajectory adapters. The last one is cached (SCVx* evaluates and
+        then linearises the same iterate): the cached arrays are shared, never to be written."""
+        key = (node if isinstance(node, int) else node.tobytes(), x.tobytes(), u.tobytes(),
+               bool(sign_only))
         cached = self._cache
         if cached is not None and cached[0] == key:
             return cached[1], cached[2]
-        nodes = np.arange(self.n_nodes)
-        items = self._items_at(nodes, x, u, self.horizon.post_burn_at(nodes, x, u))
-        res = self.arcs.minimum(items)
+        items = self._items_at(node, x, u, self.horizon.post_burn_at(node, x, u))
+        res = self.arcs.minimum(items, sign_only=sign_only)
         self._cache = (key, items, res)
         return items, res

@@ -1,11 +1,12 @@
 """The package's modules import each other without a circle, and none is over MAX_LINES long.
 
 The graph is read from the source (`ast`), every `import` and `from ... import` in a module,
-at its top or inside a function (a deferred import closes a circle as surely, only later), but
-not under ``if TYPE_CHECKING:`` (annotations only, never run). An edge goes from a module to
-the module it names (`from a.b import c` names `a.b.c` when that is a module, else `a.b`); the
-implicit import of a module's parent packages is no edge (a package that re-exports its modules
-is not a circle).
+at its top, inside a function (a deferred import closes a circle as surely, only later) or
+under ``if TYPE_CHECKING:`` (an import for annotations only is still a dependency: the two
+modules cannot be read, moved or split apart). An edge goes from a module to the module it
+names (`from a.b import c` names `a.b.c` when that is a module, else `a.b`); the implicit import
+of a module's parent packages is no edge (a package that re-exports its modules is not a
+circle).
 """
 from __future__ import annotations
 
@@ -32,9 +33,17 @@ def module_names() -> dict[str, Path]:
 
 def imported(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
     """The package's modules that module `name` (file `path`) imports."""
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    return imported_by_source(name, path.read_text(), modules, path.name == "__init__.py",
+                              str(path))
+
+
+def imported_by_source(name: str, source: str, modules: dict[str, Path] | set[str],
+                       is_package: bool = False, filename: str = "<source>") -> set[str]:
+    """The modules among `modules` that the source of module `name` imports (`is_package`:
+    the source is the package's ``__init__``)."""
+    package = name if is_package else name.rpartition(".")[0]
     out = set()
-    for node in _run_nodes(ast.parse(path.read_text(), str(path))):
+    for node in ast.walk(ast.parse(source, filename)):
         if isinstance(node, ast.Import):
             targets = [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -48,25 +57,6 @@ def imported(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
             continue
         out.update(t for t in targets if t in modules and t != name)
     return out
-
-
-def _type_checking(node: ast.AST) -> bool:
-    """Whether `node` is ``if TYPE_CHECKING:`` (or ``if typing.TYPE_CHECKING:``)."""
-    test = getattr(node, "test", None) if isinstance(node, ast.If) else None
-    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
-
-
-def _run_nodes(tree: ast.AST):
-    """Every node of `tree` (as `ast.walk`) but the bodies of ``if TYPE_CHECKING:``."""
-    todo = [tree]
-    while todo:
-        node = todo.pop()
-        yield node
-        if _type_checking(node):
-            todo.extend(node.orelse)
-        else:
-            todo.extend(ast.iter_child_nodes(node))
 
 
 def import_graph() -> dict[str, set[str]]:
@@ -116,10 +106,22 @@ def test_the_graph_sees_the_known_imports():
     assert "art_guidance.optim.scp" in graph["art_guidance.optim"]
 
 
-def test_imports_for_annotations_only_are_no_edges():
-    graph = import_graph()
-    assert "art_guidance.safety.drift" not in graph["art_guidance.safety.drift_search"]
-    assert "art_guidance.safety.drift_search" in graph["art_guidance.safety.drift"]
+def test_an_import_for_annotations_only_is_an_edge():
+    modules = {"pkg", "pkg.a", "pkg.b", "pkg.c", "pkg.d"}
+    source = """
+from typing import TYPE_CHECKING
+import typing
+
+from pkg import a
+
+if TYPE_CHECKING:
+    from pkg.b import Thing
+if typing.TYPE_CHECKING:
+    from . import c
+else:
+    import pkg.d
+"""
+    assert imported_by_source("pkg.e", source, modules) == {"pkg.a", "pkg.b", "pkg.c", "pkg.d"}
 
 
 def test_a_circle_is_found():
@@ -128,7 +130,9 @@ def test_a_circle_is_found():
 
 
 def test_no_module_of_the_package_imports_itself_through_others():
-    assert circles(import_graph()) == []
+    found = circles(import_graph())
+    assert found == [], f"{len(found)} import circle(s): " + "; ".join(
+        " <-> ".join(circle) for circle in found)
 
 
 def test_no_module_of_the_package_is_over_max_lines():

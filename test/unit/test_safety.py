@@ -298,10 +298,14 @@ def test_repeated_evaluation_hits_the_cache(ps_cc: PassiveSafety, approach: tupl
     searched = []
     minimum = ps_cc.arcs.minimum
     monkeypatch.setattr(ps_cc.arcs, "minimum",
-                        lambda items: searched.append(1) or minimum(items))
+                        lambda items, **kw: searched.append(1) or minimum(items, **kw))
     lin = ps_cc.linearize(x.copy(), dv.copy())
     assert searched == []
     np.testing.assert_array_equal(lin.t_star_s, ev.t_star_s)
+    margin, t_star = ps_cc.minimum(np.arange(ps_cc.n_nodes), x, dv)  # the same cached body
+    assert searched == []
+    np.testing.assert_array_equal(margin, ev.margin)
+    np.testing.assert_array_equal(t_star, ev.t_star_s)
     ps_cc.linearize(x * 1.001, dv)
     assert searched == [1]  # another iterate: searched
     monkeypatch.undo()
