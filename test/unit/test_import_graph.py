@@ -139,3 +139,16 @@ def test_no_module_of_the_package_is_over_max_lines():
     long = {name: n for name, path in module_names().items()
             if (n := len(path.read_text().splitlines())) > MAX_LINES}
     assert long == {}
+
+
+def test_the_planner_middle_stays_small():
+    """The plan's driver reads as its steps: `GuidancePipeline._plan` within 40 lines (its
+    docstring included) and `planning/pipeline.py` within 350."""
+    import inspect
+
+    from art_guidance.planning.pipeline import GuidancePipeline
+
+    lines = len(inspect.getsource(GuidancePipeline._plan).splitlines())
+    assert lines <= 40, f"_plan is {lines} lines"
+    path = PACKAGE / "planning" / "pipeline.py"
+    assert len(path.read_text().splitlines()) <= 350

@@ -121,3 +121,20 @@ def test_the_worker_ignores_sigint(concurrent):
     request = heldout_requests(12, DEFAULT_MODELS["chance"])
     assert any(concurrent.plan(r).proposal is not None for r in request)
     assert concurrent.proposal_worker_error == ""
+
+
+def test_a_cancel_stops_its_own_job_only():
+    """The cancel is per job: the slot names one job id, and only that job's deadline has
+    passed (a later job's run is not touched by an earlier dismiss)."""
+    import math
+    import multiprocessing
+
+    from art_guidance.planning.worker_messages import CancellableDeadline, CancelSlot
+
+    slot = CancelSlot(multiprocessing.get_context("spawn"))
+    first, second = (CancellableDeadline(math.inf, slot, j) for j in (1, 2))
+    assert not first.passed() and not second.passed()
+    slot.cancel(1)
+    assert first.passed() and not second.passed()
+    slot.cancel(2)
+    assert second.passed()
