@@ -32,6 +32,10 @@ target) is left out of the per-replan figures.
 
 Run it on two checkouts to compare planner versions seed by seed (the numbers do not depend on
 the machine's speed: the solve deadline is far above the solve times).
+
+Every planner is warmed up before its first flight (`common.warm_up`: the kernels, the model's
+first inference), with `configs` in every worker process; the wall time is `warm_up_ms` (with
+`configs`: per configuration, one figure per process that flew it).
 """
 from __future__ import annotations
 
@@ -45,6 +49,7 @@ from art_guidance.planning import GuidancePipeline, WarmStartSource
 from art_guidance.planning.learned import CVX_SAFE_REASON
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
 from art_guidance.sim.inprocess import InProcessGuidance
+from common import warm_up
 
 _LOG = logging.getLogger("bench_closed_loop")
 
@@ -98,6 +103,7 @@ def run(repeats: int = 30, warm_starts: bool = True, first_seed: int = 0,
 
         return compare_configs(configs, repeats, first_seed, min_c_cvx, model, workers)
     pipeline = GuidancePipeline()
+    warm_up_ms = warm_up(pipeline)  # the kernels, before the first timed plan
     t0 = time.perf_counter()
     n = max(int(repeats), 1)
     if min_c_cvx is None:
@@ -119,6 +125,8 @@ def run(repeats: int = 30, warm_starts: bool = True, first_seed: int = 0,
                       "outcomes": sorted({r["outcome"] for r in runs})}
     if warm_starts or min_c_cvx is not None:
         out["warm_starts"] = compare_warm_starts(seeds, runs_cvx, model)
+        warm_up_ms += out["warm_starts"]["warm_up_ms"]
+    out["warm_up_ms"] = warm_up_ms
     out["wall_s"] = time.perf_counter() - t0
     return out
 
@@ -157,6 +165,7 @@ def compare_warm_starts(seeds: list[int], runs_cvx: list[dict], model: str | Non
     from art_guidance.art.provider import ArtWarmStart
 
     pipeline = GuidancePipeline(provider=ArtWarmStart.load(model or None))
+    warm_up_ms = warm_up(pipeline)  # its runtime's first inference, before the first plan
     runs_art = [fly(s, True, pipeline, "auto") for s in seeds]
     dv_c = np.array([r["total_dv_mps"] for r in runs_cvx])
     dv_a = np.array([r["total_dv_mps"] for r in runs_art])
@@ -164,7 +173,8 @@ def compare_warm_starts(seeds: list[int], runs_cvx: list[dict], model: str | Non
     miss_a = np.array([r["miss_m"] for r in runs_art])
     d_dv, d_miss = dv_a - dv_c, miss_a - miss_c
     sem = float(d_dv.std(ddof=1) / np.sqrt(d_dv.size)) if d_dv.size > 1 else float("nan")
-    return {"cvx": {"total_dv_mps": _dist(dv_c), "miss_m": _dist(miss_c),
+    return {"warm_up_ms": warm_up_ms,
+            "cvx": {"total_dv_mps": _dist(dv_c), "miss_m": _dist(miss_c),
                     "plan_ms": _latency(runs_cvx)},
             "auto": {"total_dv_mps": _dist(dv_a), "miss_m": _dist(miss_a),
                      "art": _accepted_share(runs_art), "plan_ms": _latency(runs_art)},

@@ -23,16 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from art_guidance.ros.env import isolated_ros_env
+from common import REPO, helper_module
 
-REPO = Path(__file__).resolve().parents[1]
 MAX_DELAY_S = 8.0
 TORN_SOLVES = 500
 
 
 def torn_window(solves: int = TORN_SOLVES) -> dict:
     """Median / p99 / max of the per-solve write window [ms] and the bytes per solve."""
-    from helpers.ros_client import nav_msg
-
     from art_guidance.config import GuidanceConfig, ScenarioConfig
     from art_guidance.dynamics import roe_from_rtn_linear
     from art_guidance.planning import GuidancePipeline, PlanRequest
@@ -40,6 +38,7 @@ def torn_window(solves: int = TORN_SOLVES) -> dict:
     from art_guidance.ros.adapters import plan_to_msg, solve_record_msg
     from art_guidance.scenarios import sample_scenario
 
+    nav_msg = helper_module("ros_client").nav_msg
     scenario = ScenarioConfig.from_yaml()
     pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario))
     chief, s = np.array(scenario.chief_oe), sample_scenario(scenario, 0)
@@ -65,8 +64,7 @@ def run(repeats: int = 50, first_seed: int = 0) -> dict:
     ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_kill_"),
                            100 + (os.getpid() + 53) % 100)
     os.environ.update(ros)
-    sys.path.insert(0, str(REPO / "test"))
-    from helpers.kill_campaign import kill_once
+    kill_once = helper_module("kill_campaign").kill_once
 
     env = {**os.environ, **ros, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1",
            "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}

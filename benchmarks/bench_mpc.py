@@ -13,6 +13,9 @@ full one's (median and p95 of every replan's wall time, one process per core).
 `first_seed` whose initial CVX plan violates passive safety at >= N nodes: the hard family).
 `trigger` "sigma" replans on the node's deviation rule and, for a window, when fewer than h / 2
 of its nodes are left; "every" replans at every node.
+
+Every process's planner is warmed up before its first flight (`common.warm_up`: the kernels,
+the model's first inference); `warm_up_ms` lists the warm-ups, one per process.
 """
 from __future__ import annotations
 
@@ -27,18 +30,23 @@ from art_guidance.planning import GuidancePipeline
 from art_guidance.planning.replan import ReplanSettings
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
 from art_guidance.sim.inprocess import InProcessGuidance, default_settings
+from common import warm_up
 
 _LOG = logging.getLogger("bench_mpc")
 _PIPELINE: GuidancePipeline | None = None
+_WARM_UP_MS: list[float] = []  # this process's warm-up, until a flight reports it [ms]
 SOURCES = ("art", "cvx", "scvx", "carry", "waypoint")  # where the windows' targets came from
 
 
 def _pipeline(model: str | None) -> GuidancePipeline:
+    """This process's planner, warmed up as it is made (`common.warm_up`: in a worker process,
+    in its first flight, before that flight's first plan)."""
     global _PIPELINE
     if _PIPELINE is None:
         from art_guidance.art.provider import ArtWarmStart
 
         _PIPELINE = GuidancePipeline(provider=ArtWarmStart.load(model or None))
+        _WARM_UP_MS.append(warm_up(_PIPELINE))
     return _PIPELINE
 
 
@@ -46,8 +54,10 @@ def fly(seed: int, window_nodes: int, target: str, model: str | None = None,
         trigger: str = "sigma", context: bool = False) -> dict:
     """One closed-loop flight of `seed` with a window of `window_nodes` (0: the full
     remainder) to `target`, the learned proposal given the flown steps with `context`; its
-    figures."""
+    figures (`warm_up_ms`: the planner's warm-up in this process, paid before the flight, in
+    the process's first flight only, else None)."""
     pipeline = _pipeline(model)
+    warm_up_ms = _WARM_UP_MS.pop() if _WARM_UP_MS else None
     settings = default_settings(pipeline.scenario)
     import dataclasses
 
@@ -63,7 +73,7 @@ def fly(seed: int, window_nodes: int, target: str, model: str | None = None,
         summary, _ = loop.finish(loop.run(), 0.0)
     results = [r for _, r in guidance.results]
     windows = [r.window for r in results if r.window is not None]
-    return {"seed": int(seed), "reached": bool(summary["reached"]),
+    return {"seed": int(seed), "reached": bool(summary["reached"]), "warm_up_ms": warm_up_ms,
             "dv_mps": float(summary["total_dv_mps"]), "miss_m": float(summary["miss_m"]),
             "replan_ms": [float(r.timings_ms["total"]) for r in results],
             "replans": len(results),
@@ -142,6 +152,7 @@ def run(repeats: int = 30, first_seed: int = 1000, min_c_cvx: int | None = None,
     table = {name: summarise(runs, None if name == "full" else full)
              for name, runs in by.items()}
     out.update(seeds=seeds, trigger=trigger, context=context, configs=table,
+               warm_up_ms=[r["warm_up_ms"] for r in flights if r["warm_up_ms"] is not None],
                per_seed_dv_mps={name: [round(r["dv_mps"], 4) for r in runs]
                                 for name, runs in by.items()},
                wall_s=time.perf_counter() - t0)

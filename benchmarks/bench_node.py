@@ -10,6 +10,9 @@ over the run reaches all three alike.
 The reference is the same `GuidancePipeline.plan` called in-process on the same states, so the
 difference is the node and middleware overhead; its timings give the split per stage (CVX,
 ART rollout + post hoc check, SCP).
+
+The in-process pipelines are warmed up before their first plan (`common.warm_up`;
+`warm_up_ms`); each node start's first plan is left out of the node's latencies.
 """
 from __future__ import annotations
 
@@ -28,8 +31,7 @@ from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import GuidancePipeline, PlanRequest, WarmStartSource
 from art_guidance.ros.env import isolated_ros_env
-
-REPO = Path(__file__).resolve().parents[1]
+from common import helper_module, warm_up
 
 
 def _states(repeats: int) -> list[np.ndarray]:
@@ -123,8 +125,7 @@ def run(repeats: int = 30, model: str | None = None) -> dict:
     ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_bench_"),
                            150 + os.getpid() % 50)
     os.environ.update(ros)  # this process is the client
-    sys.path.insert(0, str(REPO / "test"))  # the tests' DDS client (helpers.ros_client)
-    from helpers.ros_client import Client, nav_msg
+    ros_client = helper_module("ros_client")  # the tests' DDS client
 
     from art_guidance.art.provider import ArtWarmStart
 
@@ -135,11 +136,13 @@ def run(repeats: int = 30, model: str | None = None) -> dict:
     target = np.asarray(scenario.waypoints_rtn["plus_vbar"])
     provider = ArtWarmStart.load(model or None)
     out["model"] = Path(provider.path).name
-    latencies = _node_latencies(states, Client, nav_msg, model)
+    latencies = _node_latencies(states, ros_client.Client, ros_client.nav_msg, model)
+    out["warm_up_ms"] = 0.0
     for warm_start in ("auto", "cvx"):
         latency = latencies[warm_start]
         pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario),
                                     provider=provider if warm_start == "auto" else None)
+        out["warm_up_ms"] += warm_up(pipeline)  # before the first in-process plan
         stages: dict[str, list[float]] = {k: [] for k in ("cvx", "art", "scp", "total")}
         accepted = 0
         for rtn in states[1:]:

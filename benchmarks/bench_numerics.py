@@ -8,6 +8,10 @@ order, and SCVx* is solved from CVX on both paths: CPU time of each, paired medi
 the two proposals are the same bit for bit, whether SCVx* ends the same (status, iterations;
 its cost to rounding), and the kernels' start-up: compiled from nothing in a fresh interpreter
 with an empty cache, and loaded from the cache.
+
+Before the first timed proposal the process is warmed up (`common.warm_up`: the kernels loaded,
+the model run once on a canned transfer and once on the first scenario); its wall time is
+`warm_up_ms`.
 """
 from __future__ import annotations
 
@@ -15,7 +19,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 
 import numpy as np
 from tqdm import tqdm
@@ -24,16 +27,10 @@ from art_guidance import kernels
 from art_guidance.art.provider import ArtWarmStart
 from art_guidance.config import GuidanceConfig
 from art_guidance.planning import GuidancePipeline
-from bench_proposal import unsafe_cases
+from common import alternate, cpu_ms, unsafe_cases, warm_up
 
 _START = ("import time; t = time.perf_counter(); from art_guidance import kernels; "
           "kernels.warm_up(); print(time.perf_counter() - t)")
-
-
-def _cpu_ms(fn) -> tuple[object, float]:
-    t = time.process_time()
-    out = fn()
-    return out, 1e3 * (time.process_time() - t)
 
 
 def _start_s(cache_dir: str) -> float:
@@ -54,24 +51,21 @@ def run(repeats: int = 20, first_seed: int = 60000, model: str | None = None) ->
     """Paired medians over `repeats` scenarios [ms CPU], and the kernels' start-up [s]."""
     with tempfile.TemporaryDirectory() as cache:
         cold_s, warm_s = _start_s(cache), _start_s(cache)
-    kernels.warm_up()
     provider = ArtWarmStart.load(model or None)
     planning = GuidanceConfig.load().planning
     pipeline = GuidancePipeline(provider=provider)
+    warm_up_ms = warm_up(pipeline)  # the kernels, the runtime's first inference
     cases = unsafe_cases(pipeline, True, int(first_seed), max(int(repeats), 1))
     transfer, cvx = cases[0]
-    provider.propose(transfer.problem, cvx, planning)  # warm-up
+    warm_up_ms += warm_up(None, lambda: provider.propose(transfer.problem, cvx, planning))
     rows, same, same_path, cost_diff = [], 0, 0, 0.0
     for k, (transfer, cvx) in enumerate(tqdm(cases, desc="bench numerics", unit="scenario")):
-        times, out = {}, {}
-        for mode in (("numpy", "compiled") if k % 2 == 0 else ("compiled", "numpy")):
-            kernels.set_numerics(mode)
-            out[mode], times[mode] = _cpu_ms(lambda: provider.propose(
-                transfer.problem, cvx, planning))
+        out, times = alternate(k, ("numpy", "compiled"), lambda mode: provider.propose(
+            transfer.problem, cvx, planning), before=kernels.set_numerics)
         scvx = {}
         for mode in ("numpy", "compiled"):
             kernels.set_numerics(mode)
-            scvx[mode], times[f"scvx_{mode}"] = _cpu_ms(lambda: transfer.scvx(
+            scvx[mode], times[f"scvx_{mode}"] = cpu_ms(lambda: transfer.scvx(
                 pipeline.config, pipeline.subproblem).solve(cvx.dv_rtn_mps))
         same += _same(out["numpy"], out["compiled"])
         a, b = scvx["numpy"], scvx["compiled"]
@@ -80,6 +74,7 @@ def run(repeats: int = 20, first_seed: int = 60000, model: str | None = None) ->
         rows.append(times)
     col = {key: np.array([r[key] for r in rows]) for key in rows[0]}
     return {"scenarios": len(rows), "model": os.path.basename(provider.path),
+            "warm_up_ms": warm_up_ms,
             "proposal_numpy_ms_median": float(np.median(col["numpy"])),
             "proposal_compiled_ms_median": float(np.median(col["compiled"])),
             "compiled_over_numpy_paired_median": float(np.median(col["compiled"]

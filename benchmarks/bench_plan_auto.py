@@ -12,8 +12,12 @@ where CVX is already passively safe); `auto` also once more with the proposal an
 CVX run concurrently, the proposal in a worker process (`propose_concurrently: true`; the
 default is one after the other), which also solves SCVx* from its proposal meanwhile (taken
 where the plan needs that run: the check accepted ART, or SCVx* from CVX did not converge),
-and once more with that worker making the proposal only (`solve_art_in_worker` False: every
-SCVx* run in the planner's process, the reference of the overlap).
+and once more with that worker making the proposal only (`producers.solve_art_in_worker`
+False: every SCVx* run in the planner's process, the reference of the overlap).
+
+Before the first timed plan every pipeline is warmed up (`common.warm_up`: the kernels, the
+model's first inference) and plans one throwaway transfer whose CVX plan is unsafe (the
+proposal workers' first job); the wall time of it all is `warm_up_ms`, apart from the timings.
 """
 from __future__ import annotations
 
@@ -28,12 +32,14 @@ from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import GuidancePipeline, PlanRequest, WarmStartSource
+from common import unsafe_cases, warm_up
 
 
 def run(repeats: int = 40, first_seed: int = 0, model: str | None = None) -> dict:
     """Seeds first_seed.. (repeats of them), `auto` with the shipped default (or `model`)
     against CVX only, paired; the ratios also over the plans where `auto` ran SCVx* once."""
     torch.set_num_threads(1)
+    warm_up_ms = warm_up()  # the kernels, in the cache before the proposal workers start
     scenario = ScenarioConfig.from_yaml()
     chief = np.array(scenario.chief_oe)
     provider = ArtWarmStart.load(model or None)
@@ -43,12 +49,13 @@ def run(repeats: int = 40, first_seed: int = 0, model: str | None = None) -> dic
         config.planning, propose_concurrently=True)), provider=ArtWarmStart.load(model or None))
     concurrent.start_proposal_worker()
     propose_only = GuidancePipeline(concurrent.config, provider=ArtWarmStart.load(model or None))
-    propose_only.solve_art_in_worker = False
+    propose_only.producers.solve_art_in_worker = False
     propose_only.start_proposal_worker()
     cvx_only = GuidancePipeline()
     rows, t_con, t_pro = [], [], []
-    t0 = time.perf_counter()
     try:
+        warm_up_ms += _warm_up(auto, concurrent, propose_only, cvx_only)
+        t0 = time.perf_counter()
         for seed in range(int(first_seed), int(first_seed) + max(int(repeats), 1)):
             s = sample_scenario(scenario, seed)
             request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
@@ -73,7 +80,8 @@ def run(repeats: int = 40, first_seed: int = 0, model: str | None = None) -> dic
     t_con, t_pro = np.array(t_con), np.array(t_pro)
     both = ok_a & ok_c
     gap_mmps = 1e3 * (j_a - j_c)[both]
-    return {"seeds": int(len(rows)), "art_accepted_share": float(acc.mean()),
+    return {"seeds": int(len(rows)), "warm_up_ms": warm_up_ms,
+            "art_accepted_share": float(acc.mean()),
             "art_kept_share": float(art.mean()),
             "feasible_auto": int(ok_a.sum()), "feasible_cvx_only": int(ok_c.sum()),
             "cost_auto_minus_cvx_only_mmps_min": float(gap_mmps.min()),
@@ -114,6 +122,21 @@ def run(repeats: int = 40, first_seed: int = 0, model: str | None = None) -> dic
             "total_auto_over_cvx_only_paired_median_where_art_run":
                 float(np.median((t_a / t_c)[ran])) if ran.any() else 0.0,
             "wall_s": time.perf_counter() - t0}
+
+
+def _warm_up(*pipelines: GuidancePipeline) -> float:
+    """Each pipeline's warm-up (`common.warm_up`: the kernels, its provider's first inference)
+    and one throwaway plan of a transfer whose CVX plan is unsafe (the first from seed
+    10,000), so that every timed plan finds the same warm process: the plan gives the proposal
+    worker of the concurrent pipelines its first job (its runtime's first inference there) and
+    sets SCVx* up for the horizon in each pipeline. The wall time [ms]."""
+    transfer = unsafe_cases(pipelines[0], True, 10_000, 1)[0][0]
+    total = 0.0
+    for pipeline in pipelines:
+        request = transfer.request if pipeline.provider is not None else dataclasses.replace(
+            transfer.request, warm_start="cvx")
+        total += warm_up(pipeline, lambda: pipeline.plan(request))
+    return total
 
 
 if __name__ == "__main__":

@@ -25,6 +25,10 @@ decodes again the steps after a missed prediction) and the numerics (everything 
 `sweep_K_ms` times proposals with sweeps of K reward scales (the transformer's work grows
 with the batch: at batch 8 it is arithmetic, not per-call overhead).
 
+Before the first timed proposal the process is warmed up (`common.warm_up`: the kernels loaded,
+the model run once on a canned transfer and once on the first scenario); its wall time is
+`warm_up_ms`, apart from the timings.
+
     art-guidance bench proposal --repeats 40 --first-seed 20000 --json out/proposal.json
 """
 from __future__ import annotations
@@ -38,11 +42,9 @@ import torch
 
 import art_guidance.art.provider as provider_module
 from art_guidance.art.provider import ArtWarmStart
-from art_guidance.config import GuidanceConfig, ScenarioConfig
-from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.planning import GuidancePipeline, PlanRequest
-from art_guidance.planning.learned import cvx_is_safe
-from art_guidance.scenarios import sample_scenario
+from art_guidance.config import GuidanceConfig
+from art_guidance.planning import GuidancePipeline
+from common import StepTimer, unsafe_cases, warm_up
 
 SWEEPS = {1: (1.0,), 2: (0.9, 1.1), 4: (0.85, 0.95, 1.05, 1.2)}  # and 8: the default
 
@@ -64,21 +66,6 @@ class _Reference:
     def violations_batch(self, roe_m, dv_rtn_mps):
         return np.stack([self._safety.evaluate(r, u).violation.astype(bool)
                          for r, u in zip(roe_m, dv_rtn_mps)])
-
-
-class StepTimer:
-    """Adds up the time and the count of a decoder's `step_numpy` calls (installed in its
-    place); also read by bench runtime and bench slim."""
-
-    def __init__(self, decoder) -> None:
-        self.step, self.s, self.n = decoder.step_numpy, 0.0, 0
-
-    def __call__(self, *args):
-        t = time.perf_counter()
-        out = self.step(*args)
-        self.s += time.perf_counter() - t
-        self.n += 1
-        return out
 
 
 class _Timed:
@@ -104,24 +91,6 @@ class _Timed:
         return self._timed("violations_batch", "judge_eval_s", *args)
 
 
-def unsafe_cases(pipeline: GuidancePipeline, chance: bool, first: int, n: int) -> list:
-    """(transfer, cvx) of the first `n` seeds from `first` on which CVX is feasible and unsafe
-    (where `auto` runs ART); also read by bench runtime and bench slim."""
-    sc = ScenarioConfig()
-    chief = np.array(sc.chief_oe)
-    out, seed = [], first
-    while len(out) < n and seed < first + 20 * n:
-        s = sample_scenario(sc, seed)
-        seed += 1
-        request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
-                              chance_constrained=chance)
-        transfer = pipeline.transfer(request)
-        cvx = transfer.problem.cvx()
-        if cvx.status.feasible and not cvx_is_safe(cvx, transfer.safety):
-            out.append((transfer, cvx))
-    return out
-
-
 def _scenarios(pipeline: GuidancePipeline, first: int, n: int) -> list:
     """(problem, cvx) of the first `n` chance-constrained `unsafe_cases`."""
     return [(t.problem, cvx) for t, cvx in unsafe_cases(pipeline, True, first, n)]
@@ -140,9 +109,10 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
     provider = ArtWarmStart.load()
     planning = GuidanceConfig.load().planning  # candidates ranked as the pipeline ranks them
     pipeline = GuidancePipeline(provider=provider)
+    warm_up_ms = warm_up(pipeline)  # the kernels, the runtime's first inference
     cases = _scenarios(pipeline, int(first_seed), max(int(repeats), 1))
     problem, cvx = cases[0]
-    provider.propose(problem, cvx, planning)  # warm-up (decoder, caches)
+    warm_up_ms += warm_up(None, lambda: provider.propose(problem, cvx, planning))  # caches
     rows, same = [], 0
     parts = {"c_update": [], "judge_correction": [], "judge_search": [], "transformer": [],
              "numerics": [], "rest": []}
@@ -193,7 +163,7 @@ def run(repeats: int = 30, first_seed: int = 20000) -> dict:
         parts["numerics"].append(wall - 1e3 * timer.s)  # everything but the transformer
     wall, cpu, ref_wall, ref_cpu = (np.array(x) for x in zip(*rows))
     step_wall, step_cpu = (np.array(x) for x in zip(*steps))
-    out = {"scenarios": len(rows), "first_seed": int(first_seed),
+    out = {"scenarios": len(rows), "first_seed": int(first_seed), "warm_up_ms": warm_up_ms,
            "identical_proposals": same,
            "fast_ms": float(np.median(wall)), "reference_ms": float(np.median(ref_wall)),
            "fast_cpu_ms": float(np.median(cpu)), "reference_cpu_ms": float(np.median(ref_cpu)),

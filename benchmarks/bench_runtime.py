@@ -15,11 +15,13 @@ process. Reported per mode:
 - time: medians of CPU time per learned step on each runtime and the paired ratio onnx/torch,
   and the transformer alone (the decoder's steps) on each.
 
+Before the first timed step the process is warmed up (`common.warm_up`: the kernels loaded,
+each runtime run once on the first scenario); its wall time is `warm_up_ms` (per mode
+`{mode}_warm_up_ms`), apart from the timings.
+
     art-guidance bench runtime --repeats 100 --first-seed 40000 --json out/runtime.json
 """
 from __future__ import annotations
-
-import time
 
 import numpy as np
 
@@ -27,7 +29,7 @@ from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart, default_mode
 from art_guidance.config import GuidanceConfig
 from art_guidance.planning import GuidancePipeline
 from art_guidance.planning.learned import learned_warm_start
-from bench_proposal import StepTimer, unsafe_cases
+from common import StepTimer, alternate, unsafe_cases, warm_up
 
 
 def _mode(mode: str, repeats: int, first_seed: int) -> dict:
@@ -39,21 +41,21 @@ def _mode(mode: str, repeats: int, first_seed: int) -> dict:
         timers[rt] = StepTimer(provider.art.decoder)
         provider.art.decoder.step_numpy = timers[rt]
     pipeline = GuidancePipeline(config)
+    warm_up_ms = warm_up(pipeline)  # the kernels
     cases = unsafe_cases(pipeline, mode == "chance", first_seed, repeats)
-    for provider in models.values():  # warm-up (sessions, caches)
-        learned_warm_start(provider, cases[0][0], cases[0][1], config.planning, cvx_unsafe=True)
+    warm_up_ms += warm_up(None, lambda: [  # each runtime's first inference (sessions, caches)
+        learned_warm_start(p, cases[0][0], cases[0][1], config.planning, cvx_unsafe=True)
+        for p in models.values()])
     cpu = {rt: [] for rt in models}
     net = {rt: [] for rt in models}
     same_c = same_decision = 0
     worst = 0.0
     for i, (transfer, cvx) in enumerate(cases):
-        out = {}
-        for rt in (("torch", "onnx") if i % 2 == 0 else ("onnx", "torch")):
-            timers[rt].s = 0.0
-            t = time.process_time()
-            out[rt] = learned_warm_start(models[rt], transfer, cvx, config.planning,
-                                         cvx_unsafe=True)
-            cpu[rt].append(1e3 * (time.process_time() - t))
+        out, ms = alternate(i, ("torch", "onnx"), lambda rt: learned_warm_start(
+            models[rt], transfer, cvx, config.planning, cvx_unsafe=True),
+            before=lambda rt: setattr(timers[rt], "s", 0.0))  # the transformer's time
+        for rt in models:
+            cpu[rt].append(ms[rt])
             net[rt].append(1e3 * timers[rt].s)
         a, b = out["torch"], out["onnx"]
         pa, pb = a.proposal, b.proposal
@@ -63,7 +65,7 @@ def _mode(mode: str, repeats: int, first_seed: int) -> dict:
         same_decision += int(a.source is b.source and (a.posthoc is None) == (b.posthoc is None)
                              and (a.posthoc is None or a.posthoc.accepted == b.posthoc.accepted))
     t, o = np.array(cpu["torch"]), np.array(cpu["onnx"])
-    return {f"{mode}_scenarios": len(cases),
+    return {f"{mode}_scenarios": len(cases), f"{mode}_warm_up_ms": warm_up_ms,
             f"{mode}_same_constraint_to_go": same_c,
             f"{mode}_same_decision": same_decision,
             f"{mode}_max_dv_difference_mps": worst,
@@ -84,4 +86,5 @@ def run(repeats: int = 30, first_seed: int = 40000) -> dict:
     out: dict = {"first_seed": int(first_seed)}
     for mode in sorted(DEFAULT_MODELS):
         out.update(_mode(mode, max(int(repeats), 1), int(first_seed)))
+    out["warm_up_ms"] = sum(out[f"{mode}_warm_up_ms"] for mode in DEFAULT_MODELS)
     return out

@@ -21,6 +21,8 @@ Reports per mode and path the medians [ms], iterations, converged and feasible s
 pair (current or equivalent against reference) the paired time ratios, the problems converged by
 one only, and the cost differences over the problems both converge on, against
 `ScpConfig.eps_opt`.
+
+The kernels are loaded before the first solve (`common.warm_up`; `warm_up_ms`).
 """
 from __future__ import annotations
 
@@ -38,6 +40,7 @@ from art_guidance.optim import ScpStatus, TransferProblem
 from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions, SubproblemPool
 from art_guidance.safety import PassiveSafety
 from art_guidance.scenarios import sample_scenario
+from common import warm_up
 
 PATHS = ("current", "equivalent", "reference")
 
@@ -65,7 +68,8 @@ def compare(current: SubproblemOptions, reference: SubproblemOptions, repeats: i
                                                config.scenario.n_nodes))
     options = dict(zip(PATHS, (current, equivalent, reference)))
     summary: dict = {"first_seed": first_seed, "eps_opt": config.scp.eps_opt,
-                     "options": {p: dataclasses.asdict(o) for p, o in options.items()}}
+                     "options": {p: dataclasses.asdict(o) for p, o in options.items()},
+                     "warm_up_ms": warm_up()}  # the kernels, before the first solve
     rows = []
     t0 = time.perf_counter()
     for mode, count in (("chance", repeats), ("deterministic", max(repeats // 5, 1))):

@@ -15,13 +15,16 @@ post hoc check.
 What the student is worth as a warm start (the plans flown from it) is measured by the
 warm-start analysis (`art-guidance evaluate` + `benchmarks/default_models.py`), not here.
 
+Before the first timed step the process is warmed up (`common.warm_up`: the kernels loaded,
+each model run once on the first scenario); its wall time is `warm_up_ms`, apart from the
+timings.
+
     art-guidance bench slim --repeats 60 --first-seed 40000 --json out/slim.json
     art-guidance bench slim --model results/slim/art_slim1_chance_rtn.pt \
         --reference results/slim/art_slim_chance_rtn.pt     # one student against another
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +33,7 @@ from art_guidance.art.provider import TEACHERS, ArtWarmStart, models_dir
 from art_guidance.config import GuidanceConfig
 from art_guidance.planning import GuidancePipeline
 from art_guidance.planning.learned import learned_warm_start
+from common import StepTimer, alternate, cpu_ms, unsafe_cases, warm_up
 
 SLIM_MODEL = Path(__file__).resolve().parent / "results" / "slim" / "art_slim_chance_rtn.pt"
 
@@ -42,8 +46,6 @@ def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None,
     the teacher's place (e.g. another student, or the chance-constrained default)."""
     import torch
 
-    from bench_proposal import StepTimer, unsafe_cases
-
     torch.set_num_threads(1)
     config = GuidanceConfig.load()
     student = ArtWarmStart.load(model or SLIM_MODEL)
@@ -54,29 +56,29 @@ def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None,
     for name, provider in models.items():
         timers[name] = StepTimer(provider.art.decoder)
         provider.art.decoder.step_numpy = timers[name]
-    cases = unsafe_cases(GuidancePipeline(config), mode == "chance", int(first_seed),
-                         max(int(repeats), 1))
-    for provider in models.values():  # warm-up
-        learned_warm_start(provider, cases[0][0], cases[0][1], config.planning, cvx_unsafe=True)
+    pipeline = GuidancePipeline(config)
+    warm_up_ms = warm_up(pipeline)  # the kernels
+    cases = unsafe_cases(pipeline, mode == "chance", int(first_seed), max(int(repeats), 1))
+    warm_up_ms += warm_up(None, lambda: [  # each model's first inference
+        learned_warm_start(p, cases[0][0], cases[0][1], config.planning, cvx_unsafe=True)
+        for p in models.values()])
     cpu = {n: [] for n in models}
     net = {n: [] for n in models}
     accepted = {n: 0 for n in models}
     scvx_ms = []
     for i, (transfer, cvx) in enumerate(cases):
-        for name in (("teacher", "student") if i % 2 == 0 else ("student", "teacher")):
-            timers[name].s = 0.0
-            t = time.process_time()
-            out = learned_warm_start(models[name], transfer, cvx, config.planning,
-                                     cvx_unsafe=True)
-            cpu[name].append(1e3 * (time.process_time() - t))
+        out, ms = alternate(i, ("teacher", "student"), lambda name: learned_warm_start(
+            models[name], transfer, cvx, config.planning, cvx_unsafe=True),
+            before=lambda name: setattr(timers[name], "s", 0.0))  # the transformer's time
+        for name in models:
+            cpu[name].append(ms[name])
             net[name].append(1e3 * timers[name].s)
-            accepted[name] += int(out.posthoc is not None and out.posthoc.accepted)
-        t = time.process_time()
-        transfer.problem.scvx(config.scp, config.planning.samples_per_node).solve(
-            cvx.dv_rtn_mps)
-        scvx_ms.append(1e3 * (time.process_time() - t))
+            accepted[name] += int(out[name].posthoc is not None and out[name].posthoc.accepted)
+        scvx_ms.append(cpu_ms(lambda: transfer.problem.scvx(
+            config.scp, config.planning.samples_per_node).solve(cvx.dv_rtn_mps))[1])
     t, s, c = (np.array(x) for x in (cpu["teacher"], cpu["student"], scvx_ms))
     return {"scenarios": len(cases), "first_seed": int(first_seed), "mode": mode,
+            "warm_up_ms": warm_up_ms,
             "student": Path(student.path).name, "runtime": models["student"].runtime,
             "teacher": Path(models["teacher"].path).name,
             "teacher_cpu_ms": float(np.median(t)), "student_cpu_ms": float(np.median(s)),

@@ -31,8 +31,8 @@ import numpy as np
 from tqdm import tqdm
 
 from art_guidance.ros.env import isolated_ros_env
+from common import REPO, helper_module
 
-REPO = Path(__file__).resolve().parents[1]
 MAX_BYTES = 1 << 20
 CAP_BYTES = 8 << 20
 SAMPLE_S = 5.0
@@ -97,8 +97,8 @@ def run(repeats: int = 150, first_seed: int = 0) -> dict:
     ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_soak_"),
                            100 + (os.getpid() + 53) % 100)
     os.environ.update(ros)
-    sys.path.insert(0, str(REPO / "test"))
-    from helpers.processes import interrupt, process_stats
+    processes = helper_module("processes")
+    interrupt, process_stats = processes.interrupt, processes.process_stats
 
     work = Path(tempfile.mkdtemp(prefix="art_guidance_soak_run_"))
     bag = work / "bag"

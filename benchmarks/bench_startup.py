@@ -30,6 +30,12 @@ Every key is the median over the rounds, `cold_*` and `warm_*`. The node is stop
 after each start. Only the numba cache is cold: the interpreter's bytecode and the OS file cache
 (torch, the model file) are warm after the first start of the run.
 
+This benchmark measures the one-time costs on purpose, so it warms nothing up: "warm" here is
+the numba cache, not the process. Its `first_plan_ms` carries what the other benchmarks pay in
+their warm-up before any timed solve (`common.warm_up`, reported there as `warm_up_ms`): the
+kernels' load where the node has not loaded them yet, and the runtime's first inference; the
+next ten plans are the warm figure they are compared with.
+
     art-guidance bench startup --repeats 3 --json benchmarks/results/startup/startup.json
 """
 from __future__ import annotations

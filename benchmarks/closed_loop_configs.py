@@ -16,11 +16,13 @@ from art_guidance.optim import ScpStatus
 from art_guidance.planning import GuidancePipeline
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
 from art_guidance.sim.inprocess import InProcessGuidance
+from common import warm_up
 
 _LOG = logging.getLogger("bench_closed_loop")
 REFERENCE = "cvx_fresh"
 WARM_STARTS, REPLANS = ("cvx", "auto"), ("fresh", "carry")
 _PIPELINES: dict[tuple, GuidancePipeline] = {}
+_WARM_UPS: dict[tuple, float] = {}  # the warm-ups of this process not reported yet [ms]
 
 
 def parse_configs(text: str) -> list[str]:
@@ -40,7 +42,9 @@ def parse_configs(text: str) -> list[str]:
 
 
 def pipeline_for(name: str, model: str | None) -> GuidancePipeline:
-    """The planner of a configuration (one per process and configuration)."""
+    """The planner of a configuration (one per process and configuration), warmed up as it is
+    made (`common.warm_up`: in a worker process, in its first flight of the configuration,
+    before that flight's first plan)."""
     ws, _, replan = name.partition("_")
     key = (ws, replan, model)
     if key not in _PIPELINES:
@@ -53,12 +57,17 @@ def pipeline_for(name: str, model: str | None) -> GuidancePipeline:
 
             provider = ArtWarmStart.load(model or None)
         _PIPELINES[key] = GuidancePipeline(config, provider)
+        _WARM_UPS[key] = warm_up(_PIPELINES[key])
     return _PIPELINES[key]
 
 
 def fly(seed: int, name: str, model: str | None = None) -> dict:
-    """One flight of `seed` under configuration `name`; its figures."""
+    """One flight of `seed` under configuration `name`; its figures (`warm_up_ms`: the
+    warm-up of its planner in this process, paid before the flight, in the process's first
+    flight of the configuration only, else None)."""
     pipeline = pipeline_for(name, model)
+    ws, _, replan = name.partition("_")
+    warm_up_ms = _WARM_UPS.pop((ws, replan, model), None)
     with tempfile.TemporaryDirectory(prefix="bench_closed_loop_") as tmp:
         params = dict(PARAMETERS, rtn0=None, png_path="", summary_path=f"{tmp}/s.json",
                       seed=int(seed), warm_start=name.partition("_")[0], errors=True)
@@ -66,7 +75,7 @@ def fly(seed: int, name: str, model: str | None = None) -> dict:
         loop = ClosedLoop(guidance, params, _LOG, settle_s=0.0)
         summary, _ = loop.finish(loop.run(), 0.0)
     replans = [r for _, r in guidance.results][1:]  # the first plan: a fresh target
-    return {"seed": int(seed), "reached": bool(summary["reached"]),
+    return {"seed": int(seed), "reached": bool(summary["reached"]), "warm_up_ms": warm_up_ms,
             "dv_mps": float(summary["total_dv_mps"]), "miss_m": float(summary["miss_m"]),
             "replans": len(replans),
             "iterations": [int(r.scp_iterations_all) for r in replans],
@@ -119,6 +128,8 @@ def compare_configs(configs: str, repeats: int = 30, first_seed: int = 0,
     by = {name: flights[i::len(names)] for i, name in enumerate(names)}
     out.update(seeds=seeds, configs={name: summarise(runs, by[REFERENCE], name)
                                      for name, runs in by.items()},
+               warm_up_ms={name: [r["warm_up_ms"] for r in runs if r["warm_up_ms"] is not None]
+                           for name, runs in by.items()},
                per_seed_dv_mps={name: [round(r["dv_mps"], 4) for r in runs]
                                 for name, runs in by.items()},
                wall_s=time.perf_counter() - t0)
