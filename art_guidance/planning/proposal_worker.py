@@ -2,10 +2,11 @@
 out (`worker_messages`), until the pipe closes or None comes.
 
 The worker chooses its numerics once, at its warm-up (`kernels.prepare` with the planner's
-`numerics`), rebuilds the planner's transfer problem (`planning.transfer.Transfers`) and runs
-the planner's learned step (`planning.learned.timed_learned_warm_start`) and, for a job with
-`solve_art`, the planner's SCVx* run from the proposal, so its answers are the in-line ones bit
-for bit (tested).
+`numerics`), where it also runs the model once on a canned transfer (`planning.warm_up`: the
+runtime's first inference is not the first plan's). It rebuilds the planner's transfer problem
+(`planning.transfer.Transfers`) and runs the planner's learned step
+(`planning.learned.timed_learned_warm_start`) and, for a job with `solve_art`, the planner's
+SCVx* run from the proposal, so its answers are the in-line ones bit for bit (tested).
 """
 from __future__ import annotations
 
@@ -69,7 +70,8 @@ def _run(job: WarmUpJob | PlanJob, state: dict) -> Proposal:
     from art_guidance.art.provider import ArtWarmStart
     from art_guidance.config import GuidanceConfig
     from art_guidance.planning.learned import timed_learned_warm_start
-    from art_guidance.planning.transfer import Transfers
+    from art_guidance.planning.transfer import Transfers, canned_request
+    from art_guidance.planning.warm_up import warm_up
 
     key = (job.config_sha256, job.model)
     if state.get("key") != key:
@@ -82,7 +84,10 @@ def _run(job: WarmUpJob | PlanJob, state: dict) -> Proposal:
         kernels.prepare(config.planning.numerics)
         state.update(key=key, provider=provider, config=config,
                      transfers=Transfers(config.scenario, config.uncertainty))
-    if isinstance(job, WarmUpJob):
+    if isinstance(job, WarmUpJob):  # the runtime's first inference, not the first plan's
+        config = state["config"]
+        warm_up(state["provider"], state["transfers"].get(
+            canned_request(config.scenario)).problem, config.planning)
         return Proposal(job.job_id)
     left_s = job.time_left_s  # the plan's deadline, on this process's clock
     deadline = None if left_s is None else Deadline.after(left_s)
