@@ -10,7 +10,7 @@ its cost to rounding), and the kernels' start-up: compiled from nothing in a fre
 with an empty cache, and loaded from the cache.
 
 Before the first timed proposal the process is warmed up (`common.warm_up`: the kernels loaded,
-the model run once on a canned transfer and once on the first scenario); its wall time is
+the pipeline's throwaway plan of a canned transfer from the model); its wall time is
 `warm_up_ms`.
 """
 from __future__ import annotations
@@ -56,8 +56,6 @@ def run(repeats: int = 20, first_seed: int = 60000, model: str | None = None) ->
     pipeline = GuidancePipeline(provider=provider)
     warm_up_ms = warm_up(pipeline)  # the kernels, the runtime's first inference
     cases = unsafe_cases(pipeline, True, int(first_seed), max(int(repeats), 1))
-    transfer, cvx = cases[0]
-    warm_up_ms += warm_up(None, lambda: provider.propose(transfer.problem, cvx, planning))
     rows, same, same_path, cost_diff = [], 0, 0, 0.0
     for k, (transfer, cvx) in enumerate(tqdm(cases, desc="bench numerics", unit="scenario")):
         out, times = alternate(k, ("numpy", "compiled"), lambda mode: provider.propose(

@@ -50,8 +50,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"{result.status.name}: cost {result.cost_mps:.4f} m/s, {result.scp.iterations} SCP "
           f"iterations, margin {result.constraint_margin_m:.2f} m, {t['total']:.0f} ms "
           f"(CVX {t['cvx']:.0f}, ART {t['art']:.0f}, SCP {t['scp']:.0f}) -> {args.json}")
-    print(f"warm-up {warm_up_ms:.0f} ms before the solve (kernels loaded, model runtime's first "
-          f"inference): one-time costs, not in the solve's times; numerics: {data['numerics']}")
+    print(f"warm-up {warm_up_ms:.0f} ms before the solve (kernels loaded, one throwaway plan: "
+          "the model runtime's first inference, the solver's set-up): one-time costs, not in "
+          f"the solve's times; numerics: {data['numerics']}")
     return 0 if result.scp.feasible else 1
 
 
@@ -85,8 +86,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
     p = sub.add_parser("plan", help="plan one transfer and write JSON",
                        description=run.__doc__ + " The process's one-time costs (the "
-                       "kernels loaded from their cache, or compiled on a cold one; the model "
-                       "runtime's first inference) are paid by a warm-up before the solve and "
+                       "kernels loaded from their cache, or compiled in the background on a cold "
+                       "one; the model runtime's first inference and the solver's set-up, by "
+                       "one throwaway plan) are paid by a warm-up before the solve and "
                        "reported apart as timings_ms.warm_up: every other timing is the "
                        "solve's own. Exit 0 feasible, 1 infeasible, 2 bad input.")
     p.add_argument("--seed", type=int, required=True, help="scenario seed (initial state and "

@@ -36,9 +36,9 @@ from art_guidance.planning.choice import choose
 from art_guidance.planning.config_record import config_json_sha256
 from art_guidance.planning.producers import Producers
 from art_guidance.planning.runs import carried_run, fresh_runs, plan_result
-from art_guidance.planning.transfer import Transfer, Transfers, canned_request
+from art_guidance.planning.transfer import Transfer, Transfers
 from art_guidance.planning.types import PlanRequest, PlanResult, WarmStart, WarmStartProvider
-from art_guidance.planning.warm_up import warm_up
+from art_guidance.planning.warm_up import canned_request, warm_up
 from art_guidance.safety import PassiveSafety
 
 

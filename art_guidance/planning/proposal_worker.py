@@ -70,8 +70,8 @@ def _run(job: WarmUpJob | PlanJob, state: dict) -> Proposal:
     from art_guidance.art.provider import ArtWarmStart
     from art_guidance.config import GuidanceConfig
     from art_guidance.planning.learned import timed_learned_warm_start
-    from art_guidance.planning.transfer import Transfers, canned_request
-    from art_guidance.planning.warm_up import warm_up
+    from art_guidance.planning.transfer import Transfers
+    from art_guidance.planning.warm_up import canned_request, warm_up
 
     key = (job.config_sha256, job.model)
     if state.get("key") != key:

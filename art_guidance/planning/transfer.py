@@ -15,12 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from art_guidance.config import GuidanceConfig, ScenarioConfig, UncertaintyConfig
-from art_guidance.dynamics import Horizon, roe_from_rtn_linear, time_grid_s
+from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.optim import Scvx, TransferProblem
 from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
 from art_guidance.planning.types import PlanRequest
 from art_guidance.safety import PassiveSafety
-from art_guidance.scenarios import sample_scenario
 
 CACHE_SIZE = 8  # transfers kept; the cache is emptied when it holds more
 
@@ -61,15 +60,6 @@ class Transfer:
         proposal worker (`pool`: the caller's subproblems)."""
         return self.problem.scvx(config.scp, config.planning.samples_per_node, subproblem,
                                  pool)
-
-
-def canned_request(scenario: ScenarioConfig, seed: int = 0) -> PlanRequest:
-    """The scenario's transfer of `seed` (`scenarios.sample_scenario`), chance-constrained,
-    warm-started from CVX: what a warm-up plans before the first timed plan."""
-    sample = sample_scenario(scenario, seed)
-    chief = np.asarray(scenario.chief_oe, float)
-    return PlanRequest(chief, roe_from_rtn_linear(chief, sample.rtn0), sample.target_rtn,
-                       warm_start="cvx")
 
 
 class Transfers:

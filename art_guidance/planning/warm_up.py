@@ -13,9 +13,23 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
 from art_guidance import kernels
-from art_guidance.config import PlanningConfig
+from art_guidance.config import PlanningConfig, ScenarioConfig
+from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.optim import TransferProblem
+from art_guidance.planning.types import PlanRequest
+from art_guidance.scenarios import sample_scenario
+
+
+def canned_request(scenario: ScenarioConfig, seed: int = 0) -> PlanRequest:
+    """The scenario's transfer of `seed` (`scenarios.sample_scenario`), chance-constrained,
+    warm-started from CVX: what a warm-up plans before the first timed plan."""
+    sample = sample_scenario(scenario, seed)
+    chief = np.asarray(scenario.chief_oe, float)
+    return PlanRequest(chief, roe_from_rtn_linear(chief, sample.rtn0), sample.target_rtn,
+                       warm_start="cvx")
 
 
 def warm_up(provider: object | None = None, problem: TransferProblem | None = None,
