@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
+from helpers.lifecycle import Lifecycle  # noqa: E402
 from helpers.ros_client import Client, nav_msg  # noqa: E402
 from lifecycle_msgs.msg import State, Transition  # noqa: E402
-from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
 
 from art_guidance.config import ScenarioConfig  # noqa: E402
 from art_guidance.record.replay import read_log  # noqa: E402
@@ -63,36 +63,22 @@ class Walked:
              "-r", f"__ns:=/{ns}", *args], env=env, stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT, text=True)
         self.client = Client(f"{ns}_client", namespace=f"/{ns}")
-        self.change = self.client.node.create_client(ChangeState, f"/{ns}/guidance_node/"
-                                                     "change_state")
-        self.get = self.client.node.create_client(GetState, f"/{ns}/guidance_node/get_state")
+        self.lifecycle: Lifecycle | None = None  # its services, found at the first call
         self.sent: list[tuple[float, int]] = []  # (monotonic time, stamp) of streamed fixes
         self.lock = threading.Lock()
 
-    def call(self, srv, request, timeout_s: float = 20.0):
-        """The service's answer, or None after `timeout_s`. Under load Fast DDS may drop a
-        reply ("failed to send response (timeout)" in the node's log) whose writer had not
-        matched the client's reader yet: the caller decides whether to ask again."""
-        assert srv.wait_for_service(timeout_sec=60.0), f"{self.ns}: no {srv.srv_name}"
-        future = srv.call_async(request)
-        end = time.monotonic() + timeout_s
-        while not future.done() and time.monotonic() < end:
-            time.sleep(0.02)
-        return future.result() if future.done() else None
+    def _services(self) -> Lifecycle:
+        if self.lifecycle is None:
+            self.lifecycle = Lifecycle(self.client, wait_s=(60.0, 60.0),
+                                       node=f"/{self.ns}/guidance_node")
+        return self.lifecycle
 
     def state(self) -> int:
-        for _ in range(3):  # asking again is harmless
-            answer = self.call(self.get, GetState.Request())
-            if answer is not None:
-                return answer.current_state.id
-        raise AssertionError(f"{self.ns}: no answer from {self.get.srv_name}")
+        return self._services().state()
 
     def transition(self, tid: int, expected: int) -> bool:
-        """Request a transition; a lost reply is judged by the state it left (asking again
-        would request a second transition)."""
-        answer = self.call(self.change, ChangeState.Request(transition=Transition(id=tid)),
-                           timeout_s=60.0)
-        return answer.success if answer is not None else self.state() == expected
+        """Request a transition; a lost reply is judged by the state it left."""
+        return self._services().transition(tid, expected=expected)
 
     def stream_one(self) -> None:
         stamp = (time.time_ns() // 10) * 10 + self.index  # unique across the three streams
@@ -120,6 +106,10 @@ def _walk(node: Walked, steps: list[tuple[int, int]]) -> None:
         assert node.proc.poll() is None, (node.ns, tid)
         if expected == State.PRIMARY_STATE_ACTIVE:
             assert node.answered_after(t_done, 30.0) > 0, f"{node.ns}: active, no fix answered"
+            # a plan published is a solve recorded: each configuration's bag holds one (on a
+            # loaded machine the first plan can take longer than the fix's answer)
+            assert node.client.wait_for(lambda plans, _: any(t > t_done for t, _ in plans),
+                                        60.0), f"{node.ns}: active, no plan"
         else:  # fixes keep streaming into a node that must not take them (nor die of them)
             time.sleep(1.0)
             assert node.answered_after(t_done + 0.5, 0.0) == 0, (node.ns, tid)
