@@ -22,9 +22,9 @@ they are loaded from it at configure). Per start:
 - first plan: the nav -> plan latency [ms] of the first fix after the start against the median
   of the next ten (each sent when the node is idle again, from the nominal initial state with
   small offsets, simulated stamps 1 s apart), their ratio, and the node's own solve time of
-  each (`solve_time_ms` of its plan diagnostic), and the warm start each plan took
-  (`first_warm_start`, `next10_warm_starts`); `cold_first_over_warm_next10`: the cold start's
-  first plan against the warm start's next ten.
+  each (`solve_time_ms` of its plan diagnostic; `first_solve_over_next10` their ratio), and
+  the warm start each plan took (`first_warm_start`, `next10_warm_starts`);
+  `cold_first_over_warm_next10`: the cold start's first plan against the warm start's next ten.
 
 Every key is the median over the rounds, `cold_*` and `warm_*`. The node is stopped with SIGINT
 after each start. Only the numba cache is cold: the interpreter's bytecode and the OS file cache
@@ -344,6 +344,7 @@ def _start(context, env: dict, params: list[str], label: str) -> dict:
             "workers": len(workers), "first_plan_ms": latency[0], "next10_median_ms": next_ms,
             "first_over_next10": latency[0] / next_ms, "first_solve_ms": solve[0],
             "next10_solve_median_ms": float(np.median(solve[1:])),
+            "first_solve_over_next10": solve[0] / float(np.median(solve[1:])),
             "first_warm_start": sources[0], "next10_warm_starts": " ".join(
                 f"{k}:{sources[1:].count(k)}" for k in sorted(set(sources[1:]))),
             "numerics_at_configure": numerics or "unknown",
