@@ -28,19 +28,15 @@ REPEATS_IN_PROCESS = 6  # plans of the same request in one process (the first le
 
 _REPEATED = r'''
 import json, sys
-import numpy as np
 from art_guidance import kernels
 kernels.choose("compiled")
 from art_guidance.art.provider import ArtWarmStart, resolve_model_path
 from art_guidance.config import GuidanceConfig, ScenarioConfig
-from art_guidance.dynamics import roe_from_rtn_linear
-from art_guidance.planning import GuidancePipeline, PlanRequest
-from art_guidance.scenarios import sample_scenario
+from art_guidance.planning import GuidancePipeline
+from art_guidance.planning.warm_up import seed_request
 seed, ws, n = int(sys.argv[1]), sys.argv[2], int(sys.argv[3])
 sc = ScenarioConfig.from_yaml(None)
-s = sample_scenario(sc, seed)
-chief = np.array(sc.chief_oe)
-req = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn, warm_start=ws)
+req = seed_request(sc, seed, warm_start=ws)  # art-guidance plan --seed S --warm-start W's
 prov = None if ws == "cvx" else ArtWarmStart.load(resolve_model_path("", True), runtime="auto")
 p = GuidancePipeline(GuidanceConfig.load().replace(scenario=sc), provider=prov)
 print(json.dumps([p.plan(req).timings_ms for _ in range(n)][1:]))

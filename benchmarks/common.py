@@ -65,22 +65,15 @@ def unsafe_cases(pipeline: GuidancePipeline, chance: bool, first: int, n: int) -
     """(transfer, cvx) of the first `n` seeds from `first` (of at most 20 n screened) on which
     CVX is feasible and not passively safe: where `auto` runs ART. The requests are the
     `plan --seed S` ones (warm start auto)."""
-    import numpy as np
-
     from art_guidance.config import ScenarioConfig
-    from art_guidance.dynamics import roe_from_rtn_linear
-    from art_guidance.planning import PlanRequest
     from art_guidance.planning.learned import cvx_is_safe
-    from art_guidance.scenarios import sample_scenario
+    from art_guidance.planning.warm_up import seed_request
 
     sc = ScenarioConfig()
-    chief = np.array(sc.chief_oe)
     out, seed = [], first
     while len(out) < n and seed < first + 20 * n:
-        s = sample_scenario(sc, seed)
+        request = seed_request(sc, seed, chance_constrained=chance, warm_start="auto")
         seed += 1
-        request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
-                              chance_constrained=chance)
         transfer = pipeline.transfer(request)
         cvx = transfer.problem.cvx()
         if cvx.status.feasible and not cvx_is_safe(cvx, transfer.safety):

@@ -14,21 +14,20 @@ def run(args: argparse.Namespace) -> int:
     """Plan one randomised transfer of the paper scenario and write it as JSON."""
     from art_guidance.config import GuidanceConfig, ScenarioConfig, mode_name
     from art_guidance.scenarios import sample_scenario
-    from art_guidance.dynamics import roe_from_rtn_linear
     from art_guidance import kernels
-    from art_guidance.planning import GuidancePipeline, PlanRequest
+    from art_guidance.planning import GuidancePipeline
+    from art_guidance.planning.warm_up import seed_request
 
     scenario = ScenarioConfig.from_yaml(args.scenario)
     sample = sample_scenario(scenario, args.seed)
-    target = sample.target_rtn
+    target = None
     if args.waypoint:
         if args.waypoint not in scenario.waypoints_rtn:
             raise InputError("waypoint", f"unknown; choose from {sorted(scenario.waypoints_rtn)}",
                              args.waypoint)
         target = np.asarray(scenario.waypoints_rtn[args.waypoint])
-    chief = np.array(scenario.chief_oe)
-    request = PlanRequest(chief, roe_from_rtn_linear(chief, sample.rtn0), target,
-                          chance_constrained=not args.deterministic, warm_start=args.warm_start)
+    request = seed_request(scenario, args.seed, chance_constrained=not args.deterministic,
+                           warm_start=args.warm_start, target_rtn=target)
     provider, model_text = _provider(args)
     pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario),
                                 provider=provider)

@@ -38,7 +38,7 @@ from art_guidance.planning.producers import Producers
 from art_guidance.planning.runs import carried_run, fresh_runs, plan_result
 from art_guidance.planning.transfer import Transfer, Transfers
 from art_guidance.planning.types import PlanRequest, PlanResult, WarmStart, WarmStartProvider
-from art_guidance.planning.warm_up import canned_request, warm_up
+from art_guidance.planning.warm_up import seed_request, warm_up
 from art_guidance.safety import PassiveSafety
 
 
@@ -261,10 +261,8 @@ class GuidancePipeline:
         horizon, the solver's first call). The wall time taken [ms]."""
         t0 = time.perf_counter()
         warm_up(wait=wait)
-        request = canned_request(self.scenario)
-        if self.provider is not None:
-            request = dataclasses.replace(request, warm_start=WarmStart.ART.value)
-        self.plan(request)
+        self.plan(seed_request(self.scenario, warm_start=(
+            WarmStart.CVX if self.provider is None else WarmStart.ART).value))
         return 1e3 * (time.perf_counter() - t0)
 
     def close(self) -> None:

@@ -71,7 +71,7 @@ def _run(job: WarmUpJob | PlanJob, state: dict) -> Proposal:
     from art_guidance.config import GuidanceConfig
     from art_guidance.planning.learned import timed_learned_warm_start
     from art_guidance.planning.transfer import Transfers
-    from art_guidance.planning.warm_up import canned_request, warm_up
+    from art_guidance.planning.warm_up import seed_request, warm_up
 
     key = (job.config_sha256, job.model)
     if state.get("key") != key:
@@ -87,7 +87,7 @@ def _run(job: WarmUpJob | PlanJob, state: dict) -> Proposal:
     if isinstance(job, WarmUpJob):  # the runtime's first inference, not the first plan's
         config = state["config"]
         warm_up(state["provider"], state["transfers"].get(
-            canned_request(config.scenario)).problem, config.planning)
+            seed_request(config.scenario)).problem, config.planning)
         return Proposal(job.job_id)
     left_s = job.time_left_s  # the plan's deadline, on this process's clock
     deadline = None if left_s is None else Deadline.after(left_s)

@@ -23,13 +23,17 @@ from art_guidance.planning.types import PlanRequest
 from art_guidance.scenarios import sample_scenario
 
 
-def canned_request(scenario: ScenarioConfig, seed: int = 0) -> PlanRequest:
-    """The scenario's transfer of `seed` (`scenarios.sample_scenario`), chance-constrained,
-    warm-started from CVX: what a warm-up plans before the first timed plan."""
+def seed_request(scenario: ScenarioConfig, seed: int = 0, *, chance_constrained: bool = True,
+                 warm_start: str = "cvx", target_rtn: np.ndarray | None = None) -> PlanRequest:
+    """The request of the scenario's transfer of `seed` (`scenarios.sample_scenario`), as
+    `art-guidance plan --seed S` plans it: chance-constrained unless told, warm-started from
+    `warm_start`, to the seed's waypoint or `target_rtn` (6,) [m, m/s]. With the defaults, seed
+    0: the canned transfer a warm-up plans before the first timed plan."""
     sample = sample_scenario(scenario, seed)
     chief = np.asarray(scenario.chief_oe, float)
-    return PlanRequest(chief, roe_from_rtn_linear(chief, sample.rtn0), sample.target_rtn,
-                       warm_start="cvx")
+    target = sample.target_rtn if target_rtn is None else target_rtn
+    return PlanRequest(chief, roe_from_rtn_linear(chief, sample.rtn0), target,
+                       chance_constrained=chance_constrained, warm_start=warm_start)
 
 
 def warm_up(provider: object | None = None, problem: TransferProblem | None = None,
