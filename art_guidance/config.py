@@ -263,6 +263,9 @@ POSTHOC_SUBJECTS = ("warm_start", "rollout")
 # a replan with a plan in force starts from it (`planning.carry`) or solves afresh
 REPLAN_WARM_STARTS = ("carry", "fresh")
 NUMERICS = ("compiled", "numpy")  # `art_guidance.kernels`: numba kernels or their numpy oracles
+# the end-game policy (`planning.endgame`): every replan put in force as before, or a replan
+# the deviation triggers made only when the error matters (and, keep_cap, capped in cost)
+ENDGAMES = ("none", "keep", "keep_cap")
 
 
 @dataclass(frozen=True)
@@ -279,10 +282,19 @@ class PlanningConfig:
     skip_art_when_cvx_safe: bool = True
     propose_concurrently: bool = False
     numerics: str = "compiled"
-    replan_warm_start: str = "fresh"
+    replan_warm_start: str = "carry"
     carry_guard_mps: float = 0.05
+    endgame: str = "keep_cap"
+    terminal_tolerance_m: float = 10.0
+    terminal_tolerance_mps: float = 0.02
+    terminal_tolerance_sigma: float = 0.0
+    tolerance_growth_nodes: int = 10
+    aim_within_tolerance: bool = False
+    endgame_cost_cap_mps: float = 0.05
 
     def __post_init__(self) -> None:
+        if self.endgame not in ENDGAMES:
+            raise ConfigError(f"endgame must be one of {ENDGAMES}, got {self.endgame!r}")
         if self.replan_warm_start not in REPLAN_WARM_STARTS:
             raise ConfigError(f"replan_warm_start must be one of {REPLAN_WARM_STARTS}, got "
                               f"{self.replan_warm_start!r}")
@@ -291,20 +303,27 @@ class PlanningConfig:
         if self.posthoc_subject not in POSTHOC_SUBJECTS:
             raise ConfigError(f"posthoc_subject must be one of {POSTHOC_SUBJECTS}, got "
                               f"{self.posthoc_subject!r}")
+        g = self.tolerance_growth_nodes
+        if isinstance(g, bool) or not isinstance(g, int) or g < 0:
+            raise ConfigError(f"tolerance_growth_nodes must be an integer >= 0, got {g!r}")
         k = self.samples_per_node
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ConfigError(f"samples_per_node must be an integer >= 1, "
                               f"got {self.samples_per_node!r}")
         for name in ("also_solve_from_cvx", "also_solve_from_art", "propose_concurrently",
-                     "skip_art_when_cvx_safe"):
+                     "skip_art_when_cvx_safe", "aim_within_tolerance"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
-        for name in ("art_min_gain_mps", "carry_guard_mps"):
+        for name in ("art_min_gain_mps", "carry_guard_mps", "terminal_tolerance_m",
+                     "terminal_tolerance_mps", "terminal_tolerance_sigma",
+                     "endgame_cost_cap_mps"):
             gain = getattr(self, name)
+            unit = ("m" if name.endswith("_m") else "sigma" if name.endswith("_sigma")
+                    else "m/s")
             if isinstance(gain, bool) or not isinstance(gain, (int, float)) \
                     or not 0.0 <= gain < float("inf"):
-                raise ConfigError(f"{name} must be a finite number >= 0 [m/s], got {gain!r}")
+                raise ConfigError(f"{name} must be a finite number >= 0 [{unit}], got {gain!r}")
         share = self.art_deadline_share
         if isinstance(share, bool) or not isinstance(share, (int, float)) \
                 or not 0.0 < share < 1.0:
@@ -325,14 +344,17 @@ class PlanningConfig:
 FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
                         "also_solve_from_art", "posthoc_subject", "art_min_gain_mps",
                         "skip_art_when_cvx_safe", "propose_concurrently", "numerics",
-                        "replan_warm_start", "carry_guard_mps")
+                        "replan_warm_start", "carry_guard_mps", "endgame",
+                        "terminal_tolerance_m", "terminal_tolerance_mps",
+                        "terminal_tolerance_sigma", "tolerance_growth_nodes",
+                        "aim_within_tolerance", "endgame_cost_cap_mps")
 
 
 # What the pipeline did before these planning fields existed: fly the cheaper plan whatever
 # the gap, run ART even when the CVX plan is passively safe, and replan from scratch.
 _BEFORE = {"art_min_gain_mps": 0.0, "skip_art_when_cvx_safe": False,
            "propose_concurrently": False, "also_solve_from_art": False,
-           "replan_warm_start": "fresh"}
+           "replan_warm_start": "fresh", "endgame": "none"}
 
 
 @dataclass(frozen=True)

@@ -20,14 +20,25 @@ waypoint, as the first replan sees it without navigation error), flown with erro
 the learned warm start against CVX only. `model`: the model `auto` flies (default: the
 shipped default).
 
-`configs` (`--configs cvx_fresh,auto_fresh,cvx_carry,auto_carry`): instead of the above, every
-seed flown once per configuration, errors on, `workers` processes: the warm start (`cvx`: CVX
-only; `auto`: the learned proposal, the shipped default model or `model`) and the replan's
-(`fresh`: every replan solved from scratch; `carry`: from the plan in force,
-`planning.carry`). Per configuration: reached, delta-v, the worst miss, replans, the paired
-delta-v against `cvx_fresh` (flown too if not named: mean, sem, worst seed), SCVx* iterations of
-every run of a replan, replan time median and p95, the share of replans whose plan ended at the
-iteration cap, and the share that kept the carried plan; the first plan of a flight (a fresh
+`configs` (`--configs cvx_fresh,auto_fresh,auto_carry_keep_cap,default`): instead of the
+above, every seed flown once per configuration, errors on, on `workers` processes (or as Ray
+tasks: `--engine ray`, `--ray-address`). A name is `default` (the shipped planning.yaml and node
+defaults) or `WARMSTART_REPLAN[_ENDGAME]`: the warm start (`cvx`: CVX only; `auto`: the learned
+proposal, the shipped default model or `model`), the replan's (`fresh`: every replan solved from
+scratch; `carry`: from the plan in force, `planning.carry`) and the end game (`none`, the
+default: every usable replan put in force; `keep` / `keep_cap`: `planning.endgame`, optionally
+with its tolerances `<m>m<mm/s>v<sigma>s`, their growth `g<nodes>` and `a` for
+aim_within_tolerance, e.g. `keep_cap10m20vg10a`; or a crude node rule: `late6`
+(min_remaining_nodes 6), `late6s5` / `late6s8` (and replan_sigma_threshold 5 / 8)).
+Per configuration: reached, delta-v, the worst miss, replans, the paired delta-v against
+`cvx_fresh` (flown too if not named: mean, sem, worst seed) and, where `auto_fresh` (the default
+before the end game) is flown, against it; SCVx* iterations of every run of a replan (mean,
+p95), replan time median and p95, the share of replans whose plan ended at the iteration cap,
+the share that kept the carried plan; where the delta-v goes (`closed_loop_configs.growth`: the
+first plan's cost, flown minus first, the growth of the plans put in force with <= 5 and > 5
+nodes left, the largest single growth), the miss and velocity error in truth (mean, max), the
+smallest realised passive-safety margin, the share of replans not converged by nodes left, and
+the end game's counts (replans kept out, capped, aimed). The first plan of a flight (a fresh
 target) is left out of the per-replan figures.
 
 Run it on two checkouts to compare planner versions seed by seed (the numbers do not depend on
@@ -93,7 +104,7 @@ def _dist(x: np.ndarray) -> dict:
 
 def run(repeats: int = 30, warm_starts: bool = True, first_seed: int = 0,
         min_c_cvx: int | None = None, model: str | None = None, configs: str | None = None,
-        workers: int = 1) -> dict:
+        workers: int = 1, engine: str = "local", ray_address: str | None = None) -> dict:
     """Seeds first_seed..first_seed+repeats-1 with and without errors; miss and delta-v
     distributions; with `warm_starts`, ART in the loop against CVX only (errors on, paired per
     seed). With `min_c_cvx`, the hard family (module docstring), errors on only. With
@@ -101,7 +112,8 @@ def run(repeats: int = 30, warm_starts: bool = True, first_seed: int = 0,
     if configs is not None:
         from closed_loop_configs import compare_configs
 
-        return compare_configs(configs, repeats, first_seed, min_c_cvx, model, workers)
+        return compare_configs(configs, repeats, first_seed, min_c_cvx, model, workers, engine,
+                               ray_address)
     pipeline = GuidancePipeline()
     warm_up_ms = warm_up(pipeline)  # the kernels, before the first timed plan
     t0 = time.perf_counter()

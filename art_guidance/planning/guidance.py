@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from art_guidance.deadline import Deadline
+from art_guidance.planning.endgame import Endgame
 from art_guidance.planning.pipeline import GuidancePipeline
 from art_guidance.planning.replan import (
     Action, Decision, ReplanPolicy, ReplanSettings, ReplanWindow, check_target, request_for,
@@ -118,7 +119,11 @@ class GuidanceCore:
         self.pipeline = pipeline
         self.policy = ReplanPolicy(settings)
         self.target = target
-        self.stats = {"nav": 0, "rejected": 0, "plans": 0, "superseded": 0}
+        self.stats = {"nav": 0, "rejected": 0, "plans": 0, "superseded": 0, "kept": 0,
+                      "capped": 0, "aimed": 0}
+        # why the last `on_nav` stayed on the plan in force although the fix deviates ("" =
+        # it did not: read by its caller right after the call)
+        self.why_on_plan = ""
         self._lock = threading.Condition()
         self._job: Job | None = None
         self._busy = False
@@ -146,9 +151,59 @@ class GuidanceCore:
             self._latest = (nav, payload)
             self.policy.accept(nav)
             decision, deviation = self.policy.decide(nav, self._busy or self._job is not None)
+            self.why_on_plan = ""
             if decision is Decision.REPLANNING:
-                self._submit(self._job_for(nav, payload, "nav"))
+                job = self._job_for(nav, payload, "nav")
+                job, self.why_on_plan = (self._end_game(job) if self.policy.deviation_only
+                                         else (job, ""))
+                if self.why_on_plan:
+                    self.stats["kept"] += 1
+                    decision = Decision.ON_PLAN
+                else:
+                    self._submit(job)
         return decision, deviation
+
+    def _end_game(self, job: Job) -> tuple[Job, str]:
+        """The end game's answer to the replan `job` (`planning.endgame`): why the plan in
+        force stays in force (passively safe and on target from the fix), or "" and the job
+        to solve: as it is, or, when the plan in force is on target but not safe from the fix
+        and `aim_within_tolerance` is set, aimed at the plan in force's own predicted end
+        (within the tolerance of the waypoint: the replan restores passive safety without
+        paying to null an error that does not matter)."""
+        planning = self.pipeline.config.planning
+        if not Endgame(planning.endgame).keeps:
+            return job, ""
+        check = self.pipeline.check_in_force(job.request, job.nav.cov_m2)
+        if check is None:
+            return job, ""
+        n_left = len(job.request.carry.dv_rtn_mps)
+        if check.kept_under(planning, n_left):
+            return job, f"endgame {planning.endgame}: the error does not matter, {check.text()}"
+        if planning.aim_within_tolerance and check.on_target_under(planning, n_left) \
+                and not job.request.window_nodes:
+            self.stats["aimed"] += 1
+            return dataclasses.replace(job, request=dataclasses.replace(
+                job.request, target_rtn=check.terminal_rtn)), ""
+        return job, ""
+
+    def _capped(self, job: Job, result: PlanResult) -> str:
+        """Why a usable replan is not put in force (`endgame: keep_cap`: it costs more than
+        `endgame_cost_cap_mps` above the plan in force's remaining burns while the plan in
+        force is passively safe from the fix), or "" (put it in force)."""
+        planning = self.pipeline.config.planning
+        carry = job.request.carry
+        if not Endgame(planning.endgame).caps or carry is None or not result.scp.feasible \
+                or self.policy.active is None or carry.plan_id != self.policy.active_id:
+            return ""
+        growth = float(result.cost_mps) - carry.remaining_mps
+        if growth <= planning.endgame_cost_cap_mps:
+            return ""
+        check = self.pipeline.check_in_force(job.request)
+        if check is None or not check.safe:
+            return ""
+        return (f"not put in force (endgame keep_cap): it costs {1e3 * growth:.0f} mm/s above "
+                f"the plan in force's remaining burns (endgame_cost_cap_mps "
+                f"{1e3 * planning.endgame_cost_cap_mps:.0f} mm/s); {check.text()}")
 
     def on_target(self, target: Target, payload: Any = None) -> None:
         """A new target: restart the horizon and the stamp sequence, replan from the newest
@@ -234,14 +289,20 @@ class GuidanceCore:
         result = self.pipeline.plan(job.request, deadline)
         plan_id = self.next_id()
         with self._lock:  # an unusable replan never replaces the plan in force
-            action = self.policy.on_result(plan_id, job.nav.stamp_ns, result)
+            capped = self._capped(job, result)
+            if capped:
+                self.stats["capped"] += 1
+                action = Action.KEPT_ACTIVE_PLAN
+            else:
+                action = self.policy.on_result(plan_id, job.nav.stamp_ns, result)
             active_id = self.policy.active_id
             # the solve is over once its plan is decided: a fix that arrives while the node
             # records, publishes and draws it is judged against the plan in force (not
             # replanned as if a solve were under way)
             self._busy = False
         text = (result.status.name if action is Action.ACTIVATED
-                else unusable_text(result, active_id))
+                else f"{result.status.name}: replan {capped}; plan {active_id} stays in force"
+                if capped else unusable_text(result, active_id))
         self.stats["plans"] += 1
         return Solved(plan_id, result, action, active_id, text)
 

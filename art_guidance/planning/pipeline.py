@@ -26,6 +26,8 @@ import threading
 import time
 from typing import Iterator
 
+import numpy as np
+
 from art_guidance.config import GuidanceConfig
 from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, InputError
@@ -34,6 +36,7 @@ from art_guidance.planning import window
 from art_guidance.planning.carry import refusal
 from art_guidance.planning.choice import choose
 from art_guidance.planning.config_record import config_json_sha256
+from art_guidance.planning.endgame import InForceCheck, check_in_force
 from art_guidance.planning.producers import Producers
 from art_guidance.planning.runs import carried_run, fresh_runs, plan_result
 from art_guidance.planning.transfer import Transfer, Transfers
@@ -110,6 +113,20 @@ class GuidancePipeline:
         """The problem every stage of a plan of `request` solves (horizon and passive-safety
         model cached)."""
         return self._transfers.get(request)
+
+    def check_in_force(self, request: PlanRequest, cov_m2: np.ndarray | None = None
+                       ) -> InForceCheck | None:
+        """The plan the request carries (the plan in force) flown from the request's fix over
+        its remaining horizon, judged by this planner's passive-safety model and terminal
+        condition (`planning.endgame`; `cov_m2`: the fix's covariance); None when the request
+        carries none, or one of another length or mode."""
+        carry = request.carry
+        if carry is None or carry.chance_constrained != request.chance_constrained:
+            return None
+        transfer = self.transfer(request)
+        if carry.dv_rtn_mps.shape[0] != transfer.horizon.n_nodes:
+            return None
+        return check_in_force(transfer, carry, cov_m2)
 
     def safety_model(self, request: PlanRequest) -> PassiveSafety:
         """The passive-safety model a request is planned with (cached with its horizon)."""

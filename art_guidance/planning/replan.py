@@ -156,6 +156,10 @@ class ReplanPolicy:
         self.stamp_floor_ns: int | None = None
         self.last_plan_ns: int | None = None
         self.no_carry = "no plan in force"  # why `carry_at` has nothing while none is
+        # the last `decide` replans only because the fix deviates from the plan in force (not
+        # for want of a plan, a solve under way, a period or a window): the end game may keep
+        # the plan in force instead (`planning.endgame`)
+        self.deviation_only = False
 
     @property
     def active_id(self) -> str:
@@ -207,6 +211,7 @@ class ReplanPolicy:
             not computed).
         """
         active, s = self.active, self.settings
+        self.deviation_only = False
         if active is None or busy:
             return Decision.REPLANNING, math.nan
         remaining = (active.end_ns - nav.stamp_ns) * 1e-9
@@ -219,6 +224,7 @@ class ReplanPolicy:
             window_left = (active.window_end_ns - nav.stamp_ns) * 1e-9 / active.dt_s
             due = due or window_left < 0.5 * active.result.window.window_nodes - 1e-6
         if deviation > s.replan_sigma_threshold or due:
+            self.deviation_only = not due
             return Decision.REPLANNING, deviation
         return Decision.ON_PLAN, deviation
 

@@ -110,7 +110,10 @@ class GuidanceNodeBase:
         config = config.replace(planning=dataclasses.replace(
             config.planning, samples_per_node=p.samples_per_node,
             propose_concurrently=p.propose_concurrently, numerics=p.numerics,
-            replan_warm_start=p.replan_warm_start))
+            replan_warm_start=p.replan_warm_start, endgame=p.endgame,
+            terminal_tolerance_m=p.terminal_tolerance_m,
+            terminal_tolerance_mps=p.terminal_tolerance_mps,
+            endgame_cost_cap_mps=p.endgame_cost_cap_mps))
         self.scenario = config.scenario
         if p.default_waypoint not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {shown_value(p.default_waypoint)} is not one of "
@@ -216,6 +219,7 @@ class GuidanceNodeBase:
         try:
             nav = nav_from_msg(msg)
             decision, deviation = core.on_nav(nav, time.time_ns(), msg)
+            why = core.why_on_plan
         except GuidanceError as exc:
             self._reject(stamp_ns, str(exc))
             return
@@ -223,8 +227,9 @@ class GuidanceNodeBase:
             self._reject(stamp_ns, f"unexpected {type(exc).__name__}: {exc}")
             return
         self.out.publish_deputy(nav, self.get_logger())
+        extra = {"endgame": why} if why else {}
         self.out.nav_diag(nav.stamp_ns, OK, decision.value,
-                          {"deviation_sigma": round(deviation, 3), **fix_counts(core)})
+                          {"deviation_sigma": round(deviation, 3), **extra, **fix_counts(core)})
 
     def _on_request(self, msg: ReplanRequest) -> None:
         if self.core is None or self.out is None:  # taken between unsubscribe and delivery

@@ -132,4 +132,5 @@ def fix_counts(core: GuidanceCore) -> dict[str, int]:
     solved) and `plans_solved` (nav- and request-triggered)."""
     stats = dict(core.stats)
     return {"fixes_received": stats["nav"], "fixes_rejected": stats["rejected"],
-            "replans_superseded": stats["superseded"], "plans_solved": stats["plans"]}
+            "replans_superseded": stats["superseded"], "plans_solved": stats["plans"],
+            "replans_kept_in_force": stats["kept"], "replans_capped": stats["capped"]}

@@ -15,7 +15,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from art_guidance.config import NUMERICS, REPLAN_WARM_STARTS
+from art_guidance.config import ENDGAMES, NUMERICS, REPLAN_WARM_STARTS
 from art_guidance.errors import ConfigError
 from art_guidance.planning import WARM_STARTS
 from art_guidance.planning.replan import STAMP_CHECKS, ReplanSettings
@@ -211,9 +211,29 @@ SPECS: dict[str, ParamSpec] = {
                                    "converge, and where the plan has grown far above a fresh "
                                    "one's); 'fresh' solves every replan from scratch (default: "
                                    "planning.yaml)", "str", REPLAN_WARM_STARTS),
+    "endgame": ParamSpec("the end game: 'keep' makes a replan the deviation triggers only "
+                         "when the error matters (the plan in force, flown from the fix, not "
+                         "passively safe, or its predicted terminal error beyond "
+                         "terminal_tolerance_m / terminal_tolerance_mps); 'keep_cap' also "
+                         "leaves a replan costing more than endgame_cost_cap_mps above the "
+                         "plan in force's remaining burns out of force while that plan is "
+                         "passively safe from the fix; 'none' puts every usable replan in "
+                         "force (default: planning.yaml)", "str", ENDGAMES),
+    "terminal_tolerance_m": ParamSpec("endgame keep: the predicted terminal position error "
+                                      "the plan in force may keep [m] (default: "
+                                      "planning.yaml)", "float", minimum=0.0),
+    "terminal_tolerance_mps": ParamSpec("endgame keep: the predicted terminal velocity error "
+                                        "the plan in force may keep [m/s] (default: "
+                                        "planning.yaml)", "float", minimum=0.0),
+    "endgame_cost_cap_mps": ParamSpec("endgame keep_cap: a replan costing more than this "
+                                      "above the plan in force's remaining burns stays out "
+                                      "of force while that plan is passively safe from the "
+                                      "fix [m/s] (default: planning.yaml)", "float",
+                                      minimum=0.0),
 }
 # parameters whose defaults come from planning.yaml, not guidance_node.yaml
-PLANNING_PARAMETERS = ("samples_per_node", "numerics", "replan_warm_start")
+PLANNING_PARAMETERS = ("samples_per_node", "numerics", "replan_warm_start", "endgame",
+                       "terminal_tolerance_m", "terminal_tolerance_mps", "endgame_cost_cap_mps")
 # the replan policy's parameters (`planning.replan.ReplanSettings`)
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
@@ -255,6 +275,10 @@ class NodeParameters:
     samples_per_node: int
     numerics: str
     replan_warm_start: str
+    endgame: str
+    terminal_tolerance_m: float
+    terminal_tolerance_mps: float
+    endgame_cost_cap_mps: float
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any]) -> "NodeParameters":

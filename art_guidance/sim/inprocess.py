@@ -17,7 +17,7 @@ from art_guidance.dynamics import check_oe
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
 from art_guidance.planning.guidance import GuidanceCore
-from art_guidance.planning.replan import Decision, ReplanSettings
+from art_guidance.planning.replan import Action, Decision, ReplanSettings
 from art_guidance.sim.link import LinkPlan
 
 _EMPTY = np.zeros(0)
@@ -48,6 +48,7 @@ class InProcessGuidance:
         self.core: GuidanceCore | None = None
         self._settings = settings or default_settings(pipeline.scenario)
         self.results: list[tuple[str, PlanResult]] = []
+        self.actions: list[Action] = []  # what each result did to the plan in force
         self._decisions: dict[int, dict[str, str]] = {}
         self._plans: list[LinkPlan] = []
 
@@ -88,6 +89,8 @@ class InProcessGuidance:
             return
         self._decisions[nav.stamp_ns] = {"decision": decision.value,
                                          "deviation_sigma": f"{deviation:.3f}"}
+        if self.core.why_on_plan:
+            self._decisions[nav.stamp_ns]["endgame"] = self.core.why_on_plan
         self._solve_queued()
 
     def _solve_queued(self) -> None:
@@ -102,6 +105,7 @@ class InProcessGuidance:
             self.core.job_done()
         result = solved.result
         self.results.append((solved.plan_id, result))
+        self.actions.append(solved.action)
         self._plans.append(LinkPlan(job.nav.stamp_ns, solved.plan_id, result.status,
                                     solved.status_text, solved.active_id, result.epochs_s,
                                     result.dv_rtn_mps.ravel(), result.rtn.ravel()))

@@ -8,7 +8,7 @@ import pytest
 from art_guidance.config import GuidanceConfig, node_parameter_defaults
 from art_guidance.errors import ConfigError
 from art_guidance.ros.parameters import (
-    POLICY_PARAMETERS, SPECS, NodeParameters, check_table, shown_value,
+    PLANNING_PARAMETERS, POLICY_PARAMETERS, SPECS, NodeParameters, check_table, shown_value,
 )
 
 
@@ -17,10 +17,8 @@ def params() -> NodeParameters:
     defaults = node_parameter_defaults()
     check_table(defaults)
     planning = GuidanceConfig.load().planning
-    return NodeParameters.from_values({**defaults,
-                                       "samples_per_node": planning.samples_per_node,
-                                       "numerics": planning.numerics,
-                                       "replan_warm_start": planning.replan_warm_start})
+    return NodeParameters.from_values({**defaults, **{name: getattr(planning, name)
+                                                      for name in PLANNING_PARAMETERS}})
 
 
 def test_every_spec_is_a_typed_field_in_order(params):
