@@ -277,6 +277,7 @@ class PlanningConfig:
     art_deadline_share: float = 0.6
     also_solve_from_cvx: bool = True
     also_solve_from_art: bool = False
+    first_plan_from_both: bool = False
     posthoc_subject: str = "warm_start"
     art_min_gain_mps: float = 0.001
     skip_art_when_cvx_safe: bool = True
@@ -311,7 +312,7 @@ class PlanningConfig:
             raise ConfigError(f"samples_per_node must be an integer >= 1, "
                               f"got {self.samples_per_node!r}")
         for name in ("also_solve_from_cvx", "also_solve_from_art", "propose_concurrently",
-                     "skip_art_when_cvx_safe", "aim_within_tolerance"):
+                     "skip_art_when_cvx_safe", "aim_within_tolerance", "first_plan_from_both"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -342,7 +343,8 @@ class PlanningConfig:
 # Planning fields that the dataset generator does not use (the post hoc check and the
 # in-flight choices between warm starts); `samples_per_node` shapes SCVx* and does matter.
 FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
-                        "also_solve_from_art", "posthoc_subject", "art_min_gain_mps",
+                        "also_solve_from_art", "first_plan_from_both", "posthoc_subject",
+                        "art_min_gain_mps",
                         "skip_art_when_cvx_safe", "propose_concurrently", "numerics",
                         "replan_warm_start", "carry_guard_mps", "endgame",
                         "terminal_tolerance_m", "terminal_tolerance_mps",

@@ -28,7 +28,8 @@ proposal, the shipped default model or `model`), the replan's (`fresh`: every re
 scratch; `carry`: from the plan in force, `planning.carry`) and the end game (`none`, the
 default: every usable replan put in force; `keep` / `keep_cap`: `planning.endgame`, optionally
 with its tolerances `<m>m<mm/s>v<sigma>s`, their growth `g<nodes>` and `a` for
-aim_within_tolerance, e.g. `keep_cap10m20vg10a`; or a crude node rule: `late6`
+aim_within_tolerance, `f` for first_plan_from_both, e.g. `keep_cap10m20vg10a`; or a crude node
+rule: `late6`
 (min_remaining_nodes 6), `late6s5` / `late6s8` (and replan_sigma_threshold 5 / 8)).
 Per configuration: reached, delta-v, the worst miss, replans, the paired delta-v against
 `cvx_fresh` (flown too if not named: mean, sem, worst seed) and, where `auto_fresh` (the default

@@ -29,7 +29,7 @@ WARM_STARTS, REPLANS = ("cvx", "auto"), ("fresh", "carry")
 # the third part of a name: the end-game policy (planning.yaml `endgame`, with its terminal
 # tolerances appended where they are not the configuration's: position [m], velocity [mm/s],
 # navigation sigmas, the nodes left over which they grow: keep3m, keep3m20v, keep3m20v4s,
-# keep10m20vg10; a final "a": aim_within_tolerance), or a crude rule
+# keep10m20vg10; then "a": aim_within_tolerance, "f": first_plan_from_both), or a crude rule
 # (node parameters only: `min_remaining_nodes` 6, and `replan_sigma_threshold` 5 or 8)
 ENDGAMES = ("none", "keep", "keep_cap")
 CRUDE = {"late6": {"min_remaining_nodes": 6},
@@ -38,7 +38,7 @@ CRUDE = {"late6": {"min_remaining_nodes": 6},
 DEFAULT = "default"  # the shipped defaults: planning.yaml and guidance_node.yaml as they are
 _NUM = r"(\d+(?:\.\d+)?)"
 _ENDGAME = re.compile(
-    rf"^(none|keep|keep_cap)(?:{_NUM}m)?(?:{_NUM}v)?(?:{_NUM}s)?(?:g(\d+))?(a)?$")
+    rf"^(none|keep|keep_cap)(?:{_NUM}m)?(?:{_NUM}v)?(?:{_NUM}s)?(?:g(\d+))?(a)?(f)?$")
 _PIPELINES: dict[tuple, GuidancePipeline] = {}
 _WARM_UPS: dict[tuple, float] = {}  # the warm-ups of this process not reported yet [ms]
 
@@ -57,6 +57,7 @@ class FlightConfig:
     tolerance_sigma: float | None = None
     growth_nodes: int | None = None
     aim: bool | None = None
+    first_from_both: bool | None = None
     settings: tuple[tuple[str, float], ...] = ()
 
 
@@ -68,14 +69,14 @@ def flight_config(name: str) -> FlightConfig:
     ws, replan, *rest = name.split("_", 2)
     endgame = rest[0] if rest else "none"
     if endgame in CRUDE:
-        return FlightConfig(ws, replan, "none", None, None, None, None, None,
+        return FlightConfig(ws, replan, "none", None, None, None, None, None, None,
                             tuple(sorted(CRUDE[endgame].items())))
     match = _ENDGAME.match(endgame)
     tol_m, tol_mmps, tol_sigma = (None if g is None else float(g) for g in match.group(2, 3, 4))
     growth = None if match.group(5) is None else int(match.group(5))
     return FlightConfig(ws, replan, match.group(1), tol_m,
                         None if tol_mmps is None else 1e-3 * tol_mmps, tol_sigma, growth,
-                        True if match.group(6) else None)
+                        True if match.group(6) else None, True if match.group(7) else None)
 
 
 def parse_configs(text: str) -> list[str]:
@@ -117,6 +118,8 @@ def pipeline_for(name: str, model: str | None) -> GuidancePipeline:
             changes["terminal_tolerance_m"] = fc.tolerance_m
         if fc.tolerance_mps is not None:
             changes["terminal_tolerance_mps"] = fc.tolerance_mps
+        if fc.first_from_both is not None:
+            changes["first_plan_from_both"] = fc.first_from_both
         if fc.aim is not None:
             changes["aim_within_tolerance"] = fc.aim
         if fc.growth_nodes is not None:

@@ -92,11 +92,14 @@ def fresh_runs(transfer: Transfer, cvx: ConvexSolution, scvx: Scvx, deadline: De
             first = deadline.share(planning.art_deadline_share)
         res = solve(source, first)
         iterations = res.iterations
-        auto = transfer.request.warm_start == WarmStart.AUTO.value and not (
+        request = transfer.request
+        auto = request.warm_start == WarmStart.AUTO.value and not (
             deadline is not None and deadline.passed())
+        # the first plan of a target (nothing to carry): the plan later replans carry
+        from_art = planning.also_solve_from_art or (planning.first_plan_from_both
+                                                    and request.carry is None)
         second = second_run(res, source, warm[other] is not None,
-                            auto and planning.also_solve_from_cvx,
-                            auto and planning.also_solve_from_art)
+                            auto and planning.also_solve_from_cvx, auto and from_art)
         if art_run is not None and ART not in (source, second and second[0]):
             art_run.dismiss()  # the worker's run from ART is not needed: stop it now
         if second is not None:
