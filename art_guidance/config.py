@@ -277,7 +277,7 @@ class PlanningConfig:
     art_deadline_share: float = 0.6
     also_solve_from_cvx: bool = True
     also_solve_from_art: bool = False
-    first_plan_from_both: bool = False
+    first_plan_from_both: bool = True
     posthoc_subject: str = "warm_start"
     art_min_gain_mps: float = 0.001
     skip_art_when_cvx_safe: bool = True

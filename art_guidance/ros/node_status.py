@@ -129,7 +129,9 @@ def fix_counts(core: GuidanceCore) -> dict[str, int]:
     """What became of the fixes since configure: `fixes_received` (reached the nav callback;
     fixes a best-effort subscription dropped never do), `fixes_rejected` (of those), and of the
     replans decided, `replans_superseded` (a queued replan replaced by a newer one, never
-    solved) and `plans_solved` (nav- and request-triggered)."""
+    solved), `plans_solved` (nav- and request-triggered), and the end game's
+    `replans_kept_in_force` (replans the plan in force made unnecessary) and `replans_capped`
+    (solved, left out of force by the cost cap)."""
     stats = dict(core.stats)
     return {"fixes_received": stats["nav"], "fixes_rejected": stats["rejected"],
             "replans_superseded": stats["superseded"], "plans_solved": stats["plans"],
