@@ -2,8 +2,9 @@
 
 Loop: publish the nav fix at the current sim time; wait (wall-clock ``step_timeout_s``) for its
 decision and, after "replanning", for its plan; adopt every plan received so far in arrival
-order (a usable plan with valid arrays becomes the active plan; an unusable one leaves the plan
-the guidance keeps in force, as the guidance does); execute the active plan's burn whose epoch
+order (a usable plan with valid arrays that the guidance put in force, its `active_plan_id`
+its own or empty, becomes the active plan; an unusable one, or a usable one the guidance left
+out of force, leaves the plan the guidance keeps in force, as the guidance does); execute the active plan's burn whose epoch
 is within 1 s of now (each node once, with Gates errors); stop after the burn at the active
 plan's final epoch; otherwise advance the truth to the plan's next epoch. Without an active plan
 the truth drifts for one nominal node spacing and the next fix is published (five rejected fixes
@@ -188,7 +189,7 @@ class ClosedLoop:
         self.executed: set[tuple[int, int]] = set()
         self.sent: set[int] = set()  # nav stamps published by this run
         self.counts = {"steps": 0, "plans_received": 0, "replans": 0, "plans_failed": 0,
-                       "replans_kept_active": 0,
+                       "replans_kept_active": 0, "replans_not_in_force": 0,
                        "plans_foreign": 0, "idle_steps": 0, **{d: 0 for d in DECISIONS}}
         self._seen_plans = 0
         self.fault = Fault.parse(str(p.get("fault", "")), int(p.get("fault_node", 0)))
@@ -298,6 +299,12 @@ class ClosedLoop:
                 # the guidance keeps the plan in force: so does the simulator
                 self.counts["replans_kept_active" if kept else "plans_failed"] += 1
                 self.log.warning(f"plan {msg.plan_id} not usable: {msg.status_text}")
+                continue
+            if msg.active_plan_id not in ("", msg.plan_id):
+                # usable, but the guidance left it out of force (the end game's cost cap):
+                # the plan it names stays the one flown
+                self.counts["replans_not_in_force"] += 1
+                self.log.info(f"plan {msg.plan_id} not put in force: {msg.status_text}")
                 continue
             try:
                 plan = parse_plan(msg, self.link.epoch0_ns)
