@@ -4,9 +4,10 @@ Loop: publish the nav fix at the current sim time; wait (wall-clock ``step_timeo
 decision and, after "replanning", for its plan; adopt every plan received so far in arrival
 order (a usable plan with valid arrays that the guidance put in force, its `active_plan_id`
 its own or empty, becomes the active plan; an unusable one, or a usable one the guidance left
-out of force, leaves the plan the guidance keeps in force, as the guidance does); execute the active plan's burn whose epoch
-is within 1 s of now (each node once, with Gates errors); stop after the burn at the active
-plan's final epoch; otherwise advance the truth to the plan's next epoch. Without an active plan
+out of force, leaves the plan the guidance keeps in force, as the guidance does); execute the
+active plan's burn whose epoch is within 1 s of now (each node once, with Gates errors); stop
+after the burn at the active plan's final epoch; otherwise advance the truth to the plan's next
+epoch. Without an active plan
 the truth drifts for one nominal node spacing and the next fix is published (five rejected fixes
 in a row without a plan end the run). The request and the first fix are re-sent every 2 s until
 the first answer (over DDS a message published right after discovery can be lost). Plans
