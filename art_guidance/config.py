@@ -356,7 +356,7 @@ FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
 # the gap, run ART even when the CVX plan is passively safe, and replan from scratch.
 _BEFORE = {"art_min_gain_mps": 0.0, "skip_art_when_cvx_safe": False,
            "propose_concurrently": False, "also_solve_from_art": False,
-           "replan_warm_start": "fresh", "endgame": "none"}
+           "replan_warm_start": "fresh", "endgame": "none", "first_plan_from_both": False}
 
 
 @dataclass(frozen=True)
