@@ -292,6 +292,7 @@ class PlanningConfig:
     tolerance_growth_nodes: int = 10
     aim_within_tolerance: bool = False
     endgame_cost_cap_mps: float = 0.05
+    endgame_cost_per_m: float = 0.01
 
     def __post_init__(self) -> None:
         if self.endgame not in ENDGAMES:
@@ -318,10 +319,10 @@ class PlanningConfig:
                                   f"{getattr(self, name)!r}")
         for name in ("art_min_gain_mps", "carry_guard_mps", "terminal_tolerance_m",
                      "terminal_tolerance_mps", "terminal_tolerance_sigma",
-                     "endgame_cost_cap_mps"):
+                     "endgame_cost_cap_mps", "endgame_cost_per_m"):
             gain = getattr(self, name)
-            unit = ("m" if name.endswith("_m") else "sigma" if name.endswith("_sigma")
-                    else "m/s")
+            unit = ("m/s per m" if name.endswith("_per_m") else "m" if name.endswith("_m")
+                    else "sigma" if name.endswith("_sigma") else "m/s")
             if isinstance(gain, bool) or not isinstance(gain, (int, float)) \
                     or not 0.0 <= gain < float("inf"):
                 raise ConfigError(f"{name} must be a finite number >= 0 [{unit}], got {gain!r}")
@@ -349,7 +350,7 @@ FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
                         "replan_warm_start", "carry_guard_mps", "endgame",
                         "terminal_tolerance_m", "terminal_tolerance_mps",
                         "terminal_tolerance_sigma", "tolerance_growth_nodes",
-                        "aim_within_tolerance", "endgame_cost_cap_mps")
+                        "aim_within_tolerance", "endgame_cost_cap_mps", "endgame_cost_per_m")
 
 
 # What the pipeline did before these planning fields existed: fly the cheaper plan whatever

@@ -187,9 +187,10 @@ class GuidanceCore:
         return job, ""
 
     def _capped(self, job: Job, result: PlanResult) -> str:
-        """Why a usable replan is not put in force (`endgame: keep_cap`: it costs more than
-        `endgame_cost_cap_mps` above the plan in force's remaining burns while the plan in
-        force is passively safe from the fix), or "" (put it in force)."""
+        """Why a usable replan is not put in force (`endgame: keep_cap`: it costs more above
+        the plan in force's remaining burns than the terminal error it removes is worth,
+        `InForceCheck.worth_mps`, while the plan in force is passively safe from the fix), or
+        "" (put it in force)."""
         planning = self.pipeline.config.planning
         carry = job.request.carry
         if not Endgame(planning.endgame).caps or carry is None or not result.scp.feasible \
@@ -201,9 +202,13 @@ class GuidanceCore:
         check = self.pipeline.check_in_force(job.request)
         if check is None or not check.safe:
             return ""
+        worth = check.worth_mps(planning)
+        if growth <= worth:
+            return ""
         return (f"not put in force (endgame keep_cap): it costs {1e3 * growth:.0f} mm/s above "
-                f"the plan in force's remaining burns (endgame_cost_cap_mps "
-                f"{1e3 * planning.endgame_cost_cap_mps:.0f} mm/s); {check.text()}")
+                f"the plan in force's remaining burns, more than the "
+                f"{check.terminal_error_m:.1f} m it removes is worth ({1e3 * worth:.0f} mm/s: "
+                f"endgame_cost_cap_mps + endgame_cost_per_m x the error); {check.text()}")
 
     def on_target(self, target: Target, payload: Any = None) -> None:
         """A new target: restart the horizon and the stamp sequence, replan from the newest

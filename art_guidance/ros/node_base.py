@@ -113,7 +113,8 @@ class GuidanceNodeBase:
             replan_warm_start=p.replan_warm_start, endgame=p.endgame,
             terminal_tolerance_m=p.terminal_tolerance_m,
             terminal_tolerance_mps=p.terminal_tolerance_mps,
-            endgame_cost_cap_mps=p.endgame_cost_cap_mps))
+            endgame_cost_cap_mps=p.endgame_cost_cap_mps,
+            endgame_cost_per_m=p.endgame_cost_per_m))
         self.scenario = config.scenario
         if p.default_waypoint not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {shown_value(p.default_waypoint)} is not one of "

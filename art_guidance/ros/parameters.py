@@ -225,15 +225,20 @@ SPECS: dict[str, ParamSpec] = {
     "terminal_tolerance_mps": ParamSpec("endgame keep: the predicted terminal velocity error "
                                         "the plan in force may keep [m/s] (default: "
                                         "planning.yaml)", "float", minimum=0.0),
-    "endgame_cost_cap_mps": ParamSpec("endgame keep_cap: a replan costing more than this "
-                                      "above the plan in force's remaining burns stays out "
-                                      "of force while that plan is passively safe from the "
-                                      "fix [m/s] (default: planning.yaml)", "float",
-                                      minimum=0.0),
+    "endgame_cost_cap_mps": ParamSpec("endgame keep_cap: a replan costing more than this, "
+                                      "plus endgame_cost_per_m per metre of the terminal "
+                                      "error it removes, above the plan in force's remaining "
+                                      "burns stays out of force while that plan is passively "
+                                      "safe from the fix [m/s] (default: planning.yaml)",
+                                      "float", minimum=0.0),
+    "endgame_cost_per_m": ParamSpec("endgame keep_cap: what a metre of predicted terminal "
+                                    "error is worth [m/s per m] (default: planning.yaml)",
+                                    "float", minimum=0.0),
 }
 # parameters whose defaults come from planning.yaml, not guidance_node.yaml
 PLANNING_PARAMETERS = ("samples_per_node", "numerics", "replan_warm_start", "endgame",
-                       "terminal_tolerance_m", "terminal_tolerance_mps", "endgame_cost_cap_mps")
+                       "terminal_tolerance_m", "terminal_tolerance_mps", "endgame_cost_cap_mps",
+                       "endgame_cost_per_m")
 # the replan policy's parameters (`planning.replan.ReplanSettings`)
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
@@ -279,6 +284,7 @@ class NodeParameters:
     terminal_tolerance_m: float
     terminal_tolerance_mps: float
     endgame_cost_cap_mps: float
+    endgame_cost_per_m: float
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any]) -> "NodeParameters":

@@ -31,9 +31,12 @@ PAPER = PosthocThresholds()  # -1.5 <= 100 E_R <= 3.5, 0 <= E_C <= 2
 
 
 def _judging(subject: str) -> GuidanceConfig:
-    """The packaged configuration with the post hoc check judging `subject`."""
+    """The packaged configuration with the post hoc check judging `subject`, and deciding
+    alone (a rejected proposal is not also solved, as `first_plan_from_both` would for a
+    plan with nothing to carry)."""
     cfg = GuidanceConfig.load()
-    return cfg.replace(planning=dataclasses.replace(cfg.planning, posthoc_subject=subject))
+    return cfg.replace(planning=dataclasses.replace(cfg.planning, posthoc_subject=subject,
+                                                    first_plan_from_both=False))
 
 
 RAW = _judging("rollout")  # the paper's check: the rollout itself

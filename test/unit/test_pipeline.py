@@ -35,9 +35,11 @@ class ScaledCvx:
 def _config(scenario: ScenarioConfig, posthoc: PosthocThresholds | None = None,
             subject: str = "rollout") -> GuidanceConfig:
     """The packaged configuration on `scenario`; the post hoc check judges the rollout itself
-    (the paper's definitions) unless `subject` says otherwise."""
+    (the paper's definitions) unless `subject` says otherwise, and decides alone (a rejected
+    proposal is not also solved: `first_plan_from_both` off)."""
     cfg = GuidanceConfig.load().replace(scenario=scenario)
-    planning = dataclasses.replace(cfg.planning, posthoc_subject=subject)
+    planning = dataclasses.replace(cfg.planning, posthoc_subject=subject,
+                                   first_plan_from_both=False)
     if posthoc is not None:
         planning = dataclasses.replace(planning, posthoc=posthoc)
     return cfg.replace(planning=planning)

@@ -2,6 +2,8 @@
 held-out scenarios of each mode (end-to-end: CVX, rollout, post hoc check, SCVx* from both)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -51,7 +53,9 @@ class AutoPlans:
     scenarios)."""
 
     def __init__(self) -> None:
-        self.config = GuidanceConfig.load()
+        config = GuidanceConfig.load()  # the check alone decides (no second run from ART)
+        self.config = config.replace(planning=dataclasses.replace(
+            config.planning, first_plan_from_both=False))
         self._pipelines: dict = {}
         self._plans: dict = {}
 

@@ -146,11 +146,12 @@ def test_requests_round_trip_with_their_window_and_old_records_have_none():
     ({"terminal_target": "waypoint"}, "terminal_target must be one of"),
 ])
 def test_bad_window_parameters_are_refused_with_the_reason(changes, reason):
-    from art_guidance.config import node_parameter_defaults
+    from art_guidance.config import GuidanceConfig, node_parameter_defaults
+    from art_guidance.ros.parameters import PLANNING_PARAMETERS
 
+    planning = GuidanceConfig.load().planning
     params = NodeParameters.from_values({**node_parameter_defaults(),
-                                         "samples_per_node": 3, "numerics": "compiled",
-                                         "replan_warm_start": "fresh"})
+                                         **{n: getattr(planning, n) for n in PLANNING_PARAMETERS}})
     with pytest.raises(ConfigError, match=reason):
         params.changed(changes)
     good = params.changed({"replan_window_nodes": 20, "terminal_target": "cvx"})
