@@ -143,7 +143,7 @@ def test_none_replans_every_deviating_fix(scenario):
 def test_the_cost_cap_leaves_a_dear_replan_out_of_force_while_the_plan_is_safe(scenario):
     # no keep (zero tolerances): every deviating fix is solved, and any growth is "dear"
     core = _core(scenario, "keep_cap", terminal_tolerance_m=0.0, terminal_tolerance_mps=0.0,
-                 endgame_cost_cap_mps=0.0)
+                 endgame_cost_cap_mps=0.0, endgame_cost_per_m=0.0)
     active = core.policy.active_id
     nav = _fix(core, np.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.0]))
     check = core.pipeline.check_in_force(core._job_for(nav, None, "nav").request, nav.cov_m2)
@@ -183,6 +183,14 @@ def test_the_tolerances_widen_with_the_nodes_left():
     assert check.on_target(1.0, 0.001, tolerance_sigma=60.0)
 
 
+def test_a_large_error_is_worth_a_dear_replan():
+    planning = PlanningConfig(endgame_cost_cap_mps=0.05, endgame_cost_per_m=0.01)
+    near = InForceCheck(1.0, 3.0, 0.001, 1.0)
+    far = InForceCheck(1.0, 2000.0, 0.5, 1.0)  # a missed burn's kilometres
+    assert near.worth_mps(planning) == pytest.approx(0.08)
+    assert far.worth_mps(planning) == pytest.approx(20.05)
+
+
 def test_settings_are_validated():
     assert Endgame("keep").keeps and not Endgame("keep").caps and Endgame("keep_cap").caps
     assert not Endgame("none").keeps
@@ -193,7 +201,7 @@ def test_settings_are_validated():
     with pytest.raises(ConfigError, match="aim_within_tolerance"):
         PlanningConfig(aim_within_tolerance="yes")
     for name in ("terminal_tolerance_m", "terminal_tolerance_mps", "endgame_cost_cap_mps",
-                 "terminal_tolerance_sigma"):
+                 "terminal_tolerance_sigma", "endgame_cost_per_m"):
         with pytest.raises(ConfigError, match=name):
             PlanningConfig(**{name: -1.0})
         with pytest.raises(ConfigError, match=name):
