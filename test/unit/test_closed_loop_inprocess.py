@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from helpers.benchmarks import load_benchmark
 
+from art_guidance.errors import InputError
 from art_guidance.planning import GuidancePipeline
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
 from art_guidance.sim.inprocess import InProcessGuidance
@@ -83,3 +84,105 @@ def test_the_hard_family_is_the_seeds_whose_cvx_warm_start_violates_most():
         cvx = tr.problem.cvx()
         assert not cvx.status.feasible or \
             tr.safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0] < 40
+
+
+# ----------------------------------------------------------------- bench closed_loop --configs
+def _configs():
+    """benchmarks/closed_loop_configs.py, imported by name as `art-guidance bench` does (its
+    modules import each other by name; its dataclass needs its module registered)."""
+    import importlib
+    import sys
+
+    from helpers.benchmarks import BENCHMARKS
+
+    if str(BENCHMARKS) not in sys.path:
+        sys.path.insert(0, str(BENCHMARKS))
+    return importlib.import_module("closed_loop_configs")
+
+
+def test_configuration_names_say_what_is_flown():
+    c = _configs()
+    assert c.parse_configs("default,auto_carry_keep_cap,auto_fresh_late6s5") == [
+        "cvx_fresh", "default", "auto_carry_keep_cap", "auto_fresh_late6s5"]
+    fc = c.flight_config("auto_carry_keep_cap10m20v3sg10af")
+    assert (fc.warm_start, fc.replan, fc.endgame, fc.tolerance_m, fc.tolerance_mps,
+            fc.tolerance_sigma, fc.growth_nodes, fc.aim, fc.first_from_both) == (
+        "auto", "carry", "keep_cap", 10.0, 0.02, 3.0, 10, True, True)
+    assert c.flight_config("cvx_fresh").endgame == "none"  # no third part: as before
+    assert dict(c.flight_config("auto_fresh_late6s8").settings) == {
+        "min_remaining_nodes": 6, "replan_sigma_threshold": 8.0}
+    assert c.flight_config("default") == c.FlightConfig("auto", None, None, None)
+    for bad in ("auto_carry_hold", "auto_later", "art_fresh", "auto_fresh_keep10x"):
+        with pytest.raises(InputError, match="--configs"):
+            c.parse_configs(bad)
+
+
+class _Carry:
+    def __init__(self, remaining_mps: float) -> None:
+        self.remaining_mps = remaining_mps
+
+
+class _Request:
+    def __init__(self, remaining_mps: float | None) -> None:
+        self.carry = None if remaining_mps is None else _Carry(remaining_mps)
+
+
+class _Result:
+    def __init__(self, cost: float, n_nodes: int, remaining: float | None,
+                 converged: bool = True) -> None:
+        from art_guidance.optim import ScpStatus
+
+        self.cost_mps, self.epochs_s = cost, np.zeros(n_nodes)
+        self.request = _Request(remaining)
+        self.status = ScpStatus.CONVERGED if converged else ScpStatus.MAX_ITERATIONS
+
+
+def test_growth_counts_the_plans_put_in_force_by_nodes_left():
+    from art_guidance.planning.replan import Action
+
+    c = _configs()
+    put, kept = Action.ACTIVATED, Action.KEPT_ACTIVE_PLAN
+    results = [("p1", _Result(3.0, 100, None)),  # the first plan: a fresh target
+               ("p2", _Result(2.5, 60, 2.4)),  # mid-flight, +0.1
+               ("p3", _Result(0.5, 5, 0.2)),  # end game, +0.3
+               ("p4", _Result(0.9, 4, 0.1, converged=False)),  # not put in force
+               ("p5", _Result(0.1, 3, 0.15))]  # end game, -0.05
+    g = c.growth(results, [put, put, put, kept, put])
+    assert g["first_plan_dv_mps"] == 3.0
+    assert g["midflight_growth_mps"] == pytest.approx(0.1)
+    assert g["endgame_growth_mps"] == pytest.approx(0.25)
+    assert g["replan_growth_mps"] == pytest.approx([0.1, 0.3, -0.05])
+    assert g["replans_by_nodes_left"] == [3, 1] and g["not_converged"] == [1, 0]
+
+
+@pytest.mark.slow
+def test_a_flight_of_the_defaults_reports_where_its_delta_v_goes():
+    c = _configs()
+    r = c.fly(0, "default")
+    assert r["reached"] and r["kept_in_force"] > 0  # the end game kept the plan in force
+    assert r["endgame_growth_mps"] + r["midflight_growth_mps"] == pytest.approx(
+        sum(r["replan_growth_mps"]))
+    s = c.where_dv_goes([r])
+    assert s["flown_minus_first_mps_mean"] == pytest.approx(r["dv_mps"] - r["first_plan_dv_mps"])
+    assert s["min_safety_margin_m_min"] == r["min_safety_margin_m"] >= 0.0
+    assert s["miss_m_mean"] == r["miss_m"] < 50.0
+
+
+def test_the_simulator_flies_only_the_plan_the_guidance_puts_in_force(tmp_path):
+    """A usable plan that names another plan in force (the end game's cost cap) is counted and
+    not flown."""
+    from art_guidance.sim.link import LinkPlan
+
+    link = InProcessGuidance(GuidancePipeline(), SIM_EPOCH0_NS)
+    params = dict(PARAMETERS, rtn0=None, png_path="", summary_path="", seed=0)
+    loop = ClosedLoop(link, params, LOG, settle_s=0.0)
+    epochs, dv, rtn = np.array([0.0, 60.0]), np.zeros(6), np.zeros(12)
+    from art_guidance.optim import ScpStatus
+
+    for pid, active in (("plan-1", "plan-1"), ("plan-2", "plan-1"), ("plan-3", "")):
+        loop.sent.add(SIM_EPOCH0_NS + int(pid[-1]))
+        link._plans.append(LinkPlan(SIM_EPOCH0_NS + int(pid[-1]), pid, ScpStatus.CONVERGED,
+                                    "CONVERGED", active, epochs, dv, rtn))
+        loop._adopt_plans()
+        assert loop.active.plan_id == ("plan-1" if pid == "plan-2" else pid)
+    assert loop.counts["replans_not_in_force"] == 1 and loop.counts["replans"] == 3
