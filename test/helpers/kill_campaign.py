@@ -48,6 +48,7 @@ def kill_once(python_exe: str, env: dict, bag: Path, seed: int, max_delay_s: flo
     delay_s = float(rng.uniform(0.0, max_delay_s))
     proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "-p", f"record_dir:={bag}", "-p", "replan_sigma_threshold:=1e-9",
+                             "-p", "endgame:=none",
                              "-p", f"record_max_bytes:={MAX_BYTES}"],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     client, stop = Client(name), threading.Event()

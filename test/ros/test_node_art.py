@@ -83,7 +83,7 @@ def test_learned_warm_start_is_checked_recorded_and_replayed(ros_env, python_exe
     model, bag = tmp_path / "model.pt", tmp_path / "bag"
     sha = write_untrained_checkpoint(model)
     with _node(ros_env, python_exe, f"learned{int(concurrent)}", f"model_path:={model}",
-               f"record_dir:={bag}", "replan_sigma_threshold:=1e-9",
+               f"record_dir:={bag}", "replan_sigma_threshold:=1e-9", "endgame:=none",
                f"propose_concurrently:={str(concurrent).lower()}") as (proc, client):
         plans = []
         for offset in (0.0, 300.0):
@@ -120,7 +120,8 @@ def test_an_equatorial_chief_is_refused_and_planning_goes_on(ros_env, python_exe
     and published; SIGINT stops the node (exit 0)."""
     from art_guidance_msgs.msg import ReplanRequest
 
-    with _node(ros_env, python_exe, "equatorial", "record:=false",
+    # every fix replans (the end game would keep the plan in force from a fix on target)
+    with _node(ros_env, python_exe, "equatorial", "record:=false", "endgame:=none",
                "replan_sigma_threshold:=1e-9", "propose_concurrently:=true") as (proc, client):
         stamp, decision = client.send_nav(NOMINAL_RTN)
         assert decision == "replanning"
@@ -174,7 +175,7 @@ def test_a_non_default_planning_yaml_replays_as_flown(ros_env, python_exe, tmp_p
     model, bag = tmp_path / "model.pt", tmp_path / "bag"
     write_untrained_checkpoint(model)
     with _node(ros_env, python_exe, "nondefault", f"model_path:={model}", f"record_dir:={bag}",
-               f"config_dir:={config}", "replan_sigma_threshold:=1e-9",
+               f"config_dir:={config}", "replan_sigma_threshold:=1e-9", "endgame:=none",
                "propose_concurrently:=false") as (proc, client):
         for offset in (0.0, 300.0, 600.0):
             stamp, decision = client.send_nav(NOMINAL_RTN + [0.0, offset, 0, 0, 0, 0])

@@ -39,7 +39,7 @@ def _node_with_client(ros_env, python_exe, record_dir, name, namespace="", param
     remap = ["-r", f"__ns:={namespace}"] if namespace else []
     proc = subprocess.Popen([python_exe, "-m", "art_guidance.ros.guidance_node", "--ros-args",
                              "-p", f"record_dir:={record_dir}",
-                             "-p", "replan_sigma_threshold:=1e-9",
+                             "-p", "replan_sigma_threshold:=1e-9", "-p", "endgame:=none",
                              *[a for p in params for a in ("-p", p)], *remap],
                             env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
