@@ -45,38 +45,36 @@ _WARM_UPS: dict[tuple, float] = {}  # the warm-ups of this process not reported 
 
 @dataclass(frozen=True)
 class FlightConfig:
-    """What one configuration name flies: the warm start, the replan's warm start, the
-    planning.yaml end game (None: the shipped one), its terminal tolerance [m] (None: the
-    shipped one) and the replan policy's settings changed from the node's defaults."""
+    """What one configuration name flies: the warm start, the planning.yaml fields changed
+    from the shipped ones (name, value) and the replan policy's settings changed from the
+    node's defaults (name, value)."""
 
     warm_start: str
-    replan: str | None
-    endgame: str | None
-    tolerance_m: float | None
-    tolerance_mps: float | None = None
-    tolerance_sigma: float | None = None
-    growth_nodes: int | None = None
-    aim: bool | None = None
-    first_from_both: bool | None = None
+    planning: tuple[tuple[str, object], ...] = ()
     settings: tuple[tuple[str, float], ...] = ()
+
+
+# the end game part's groups -> the planning.yaml fields they set (tolerance [mm/s] scaled)
+_FIELDS = (("endgame", str), ("terminal_tolerance_m", float),
+           ("terminal_tolerance_mps", lambda v: 1e-3 * float(v)),
+           ("terminal_tolerance_sigma", float), ("tolerance_growth_nodes", int),
+           ("aim_within_tolerance", bool), ("first_plan_from_both", bool))
 
 
 def flight_config(name: str) -> FlightConfig:
     """The configuration a name flies (`parse_configs` validated it): `default`, or
     `WARMSTART_REPLAN[_ENDGAME]` (no end game part: `none`, every replan put in force)."""
     if name == DEFAULT:
-        return FlightConfig("auto", None, None, None)
+        return FlightConfig("auto")
     ws, replan, *rest = name.split("_", 2)
     endgame = rest[0] if rest else "none"
+    planning = [("replan_warm_start", replan)]
     if endgame in CRUDE:
-        return FlightConfig(ws, replan, "none", None, None, None, None, None, None,
+        return FlightConfig(ws, (*planning, ("endgame", "none")),
                             tuple(sorted(CRUDE[endgame].items())))
-    match = _ENDGAME.match(endgame)
-    tol_m, tol_mmps, tol_sigma = (None if g is None else float(g) for g in match.group(2, 3, 4))
-    growth = None if match.group(5) is None else int(match.group(5))
-    return FlightConfig(ws, replan, match.group(1), tol_m,
-                        None if tol_mmps is None else 1e-3 * tol_mmps, tol_sigma, growth,
-                        True if match.group(6) else None, True if match.group(7) else None)
+    groups = _ENDGAME.match(endgame).groups()
+    planning += [(field, kind(g)) for (field, kind), g in zip(_FIELDS, groups) if g]
+    return FlightConfig(ws, tuple(planning))
 
 
 def parse_configs(text: str) -> list[str]:
@@ -109,24 +107,8 @@ def pipeline_for(name: str, model: str | None) -> GuidancePipeline:
     key = (name, model)
     if key not in _PIPELINES:
         config = GuidanceConfig.load()
-        changes = {}
-        if fc.replan is not None:
-            changes["replan_warm_start"] = fc.replan
-        if fc.endgame is not None:
-            changes["endgame"] = fc.endgame
-        if fc.tolerance_m is not None:
-            changes["terminal_tolerance_m"] = fc.tolerance_m
-        if fc.tolerance_mps is not None:
-            changes["terminal_tolerance_mps"] = fc.tolerance_mps
-        if fc.first_from_both is not None:
-            changes["first_plan_from_both"] = fc.first_from_both
-        if fc.aim is not None:
-            changes["aim_within_tolerance"] = fc.aim
-        if fc.growth_nodes is not None:
-            changes["tolerance_growth_nodes"] = fc.growth_nodes
-        if fc.tolerance_sigma is not None:
-            changes["terminal_tolerance_sigma"] = fc.tolerance_sigma
-        config = config.replace(planning=dataclasses.replace(config.planning, **changes))
+        config = config.replace(planning=dataclasses.replace(config.planning,
+                                                             **dict(fc.planning)))
         provider = None
         if fc.warm_start == "auto":
             from art_guidance.art.provider import ArtWarmStart

@@ -105,13 +105,18 @@ def test_configuration_names_say_what_is_flown():
     assert c.parse_configs("default,auto_carry_keep_cap,auto_fresh_late6s5") == [
         "cvx_fresh", "default", "auto_carry_keep_cap", "auto_fresh_late6s5"]
     fc = c.flight_config("auto_carry_keep_cap10m20v3sg10af")
-    assert (fc.warm_start, fc.replan, fc.endgame, fc.tolerance_m, fc.tolerance_mps,
-            fc.tolerance_sigma, fc.growth_nodes, fc.aim, fc.first_from_both) == (
-        "auto", "carry", "keep_cap", 10.0, 0.02, 3.0, 10, True, True)
-    assert c.flight_config("cvx_fresh").endgame == "none"  # no third part: as before
-    assert dict(c.flight_config("auto_fresh_late6s8").settings) == {
-        "min_remaining_nodes": 6, "replan_sigma_threshold": 8.0}
-    assert c.flight_config("default") == c.FlightConfig("auto", None, None, None)
+    assert fc.warm_start == "auto" and dict(fc.planning) == {
+        "replan_warm_start": "carry", "endgame": "keep_cap", "terminal_tolerance_m": 10.0,
+        "terminal_tolerance_mps": 0.02, "terminal_tolerance_sigma": 3.0,
+        "tolerance_growth_nodes": 10, "aim_within_tolerance": True,
+        "first_plan_from_both": True}
+    assert dict(c.flight_config("cvx_fresh").planning) == {  # no third part: as before
+        "replan_warm_start": "fresh", "endgame": "none"}
+    late = c.flight_config("auto_fresh_late6s8")
+    assert dict(late.settings) == {"min_remaining_nodes": 6, "replan_sigma_threshold": 8.0}
+    assert dict(late.planning)["endgame"] == "none"
+    assert c.flight_config("default") == c.FlightConfig("auto")  # the shipped files'
+    c.pipeline_for("cvx_carry_keep5m", None)  # the changed fields make a valid configuration
     for bad in ("auto_carry_hold", "auto_later", "art_fresh", "auto_fresh_keep10x"):
         with pytest.raises(InputError, match="--configs"):
             c.parse_configs(bad)
