@@ -84,6 +84,7 @@ def test_learned_warm_start_is_checked_recorded_and_replayed(ros_env, python_exe
     sha = write_untrained_checkpoint(model)
     with _node(ros_env, python_exe, f"learned{int(concurrent)}", f"model_path:={model}",
                f"record_dir:={bag}", "replan_sigma_threshold:=1e-9", "endgame:=none",
+               "replan_warm_start:=fresh",  # a fix on the plan's grid would be carried
                f"propose_concurrently:={str(concurrent).lower()}") as (proc, client):
         plans = []
         for offset in (0.0, 300.0):
@@ -176,7 +177,7 @@ def test_a_non_default_planning_yaml_replays_as_flown(ros_env, python_exe, tmp_p
     write_untrained_checkpoint(model)
     with _node(ros_env, python_exe, "nondefault", f"model_path:={model}", f"record_dir:={bag}",
                f"config_dir:={config}", "replan_sigma_threshold:=1e-9", "endgame:=none",
-               "propose_concurrently:=false") as (proc, client):
+               "replan_warm_start:=fresh", "propose_concurrently:=false") as (proc, client):
         for offset in (0.0, 300.0, 600.0):
             stamp, decision = client.send_nav(NOMINAL_RTN + [0.0, offset, 0, 0, 0, 0])
             assert decision == "replanning"
