@@ -293,6 +293,8 @@ class PlanningConfig:
     aim_within_tolerance: bool = False
     endgame_cost_cap_mps: float = 0.05
     endgame_cost_per_m: float = 0.01
+    terminal_set_nodes: int = 0
+    terminal_set_share: float = 0.5
 
     def __post_init__(self) -> None:
         if self.endgame not in ENDGAMES:
@@ -305,9 +307,10 @@ class PlanningConfig:
         if self.posthoc_subject not in POSTHOC_SUBJECTS:
             raise ConfigError(f"posthoc_subject must be one of {POSTHOC_SUBJECTS}, got "
                               f"{self.posthoc_subject!r}")
-        g = self.tolerance_growth_nodes
-        if isinstance(g, bool) or not isinstance(g, int) or g < 0:
-            raise ConfigError(f"tolerance_growth_nodes must be an integer >= 0, got {g!r}")
+        for name in ("tolerance_growth_nodes", "terminal_set_nodes"):
+            g = getattr(self, name)
+            if isinstance(g, bool) or not isinstance(g, int) or g < 0:
+                raise ConfigError(f"{name} must be an integer >= 0, got {g!r}")
         k = self.samples_per_node
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ConfigError(f"samples_per_node must be an integer >= 1, "
@@ -326,6 +329,10 @@ class PlanningConfig:
             if isinstance(gain, bool) or not isinstance(gain, (int, float)) \
                     or not 0.0 <= gain < float("inf"):
                 raise ConfigError(f"{name} must be a finite number >= 0 [{unit}], got {gain!r}")
+        share = self.terminal_set_share
+        if isinstance(share, bool) or not isinstance(share, (int, float)) \
+                or not 0.0 < share <= 1.0:
+            raise ConfigError(f"terminal_set_share must be in (0, 1], got {share!r}")
         share = self.art_deadline_share
         if isinstance(share, bool) or not isinstance(share, (int, float)) \
                 or not 0.0 < share < 1.0:
@@ -350,14 +357,16 @@ FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
                         "replan_warm_start", "carry_guard_mps", "endgame",
                         "terminal_tolerance_m", "terminal_tolerance_mps",
                         "terminal_tolerance_sigma", "tolerance_growth_nodes",
-                        "aim_within_tolerance", "endgame_cost_cap_mps", "endgame_cost_per_m")
+                        "aim_within_tolerance", "endgame_cost_cap_mps", "endgame_cost_per_m",
+                        "terminal_set_nodes", "terminal_set_share")
 
 
 # What the pipeline did before these planning fields existed: fly the cheaper plan whatever
 # the gap, run ART even when the CVX plan is passively safe, and replan from scratch.
 _BEFORE = {"art_min_gain_mps": 0.0, "skip_art_when_cvx_safe": False,
            "propose_concurrently": False, "also_solve_from_art": False,
-           "replan_warm_start": "fresh", "endgame": "none", "first_plan_from_both": False}
+           "replan_warm_start": "fresh", "endgame": "none", "first_plan_from_both": False,
+           "terminal_set_nodes": 0}
 
 
 @dataclass(frozen=True)

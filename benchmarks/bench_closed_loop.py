@@ -39,8 +39,8 @@ the share that kept the carried plan; where the delta-v goes (`closed_loop_confi
 first plan's cost, flown minus first, the growth of the plans put in force with <= 5 and > 5
 nodes left, the largest single growth), the miss and velocity error in truth (mean, max), the
 smallest realised passive-safety margin, the share of replans not converged by nodes left, and
-the end game's counts (replans kept out, capped, aimed). The first plan of a flight (a fresh
-target) is left out of the per-replan figures.
+the end game's counts (replans kept out, capped, aimed, planned into a terminal set). The
+first plan of a flight (a fresh target) is left out of the per-replan figures.
 
 Run it on two checkouts to compare planner versions seed by seed (the numbers do not depend on
 the machine's speed: the solve deadline is far above the solve times).

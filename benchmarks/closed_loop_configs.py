@@ -29,7 +29,9 @@ WARM_STARTS, REPLANS = ("cvx", "auto"), ("fresh", "carry")
 # the third part of a name: the end-game policy (planning.yaml `endgame`, with its terminal
 # tolerances appended where they are not the configuration's: position [m], velocity [mm/s],
 # navigation sigmas, the nodes left over which they grow: keep3m, keep3m20v, keep3m20v4s,
-# keep10m20vg10; then "a": aim_within_tolerance, "f": first_plan_from_both), or a crude rule
+# keep10m20vg10; then "t5": terminal_set_nodes 5 and "x0.3" terminal_set_share 0.3, "a":
+# aim_within_tolerance, "f": first_plan_from_both: keep_capt5, keep_cap10m20vt99x0.3f), or a
+# crude rule
 # (node parameters only: `min_remaining_nodes` 6, and `replan_sigma_threshold` 5 or 8)
 ENDGAMES = ("none", "keep", "keep_cap")
 CRUDE = {"late6": {"min_remaining_nodes": 6},
@@ -38,7 +40,8 @@ CRUDE = {"late6": {"min_remaining_nodes": 6},
 DEFAULT = "default"  # the shipped defaults: planning.yaml and guidance_node.yaml as they are
 _NUM = r"(\d+(?:\.\d+)?)"
 _ENDGAME = re.compile(
-    rf"^(none|keep|keep_cap)(?:{_NUM}m)?(?:{_NUM}v)?(?:{_NUM}s)?(?:g(\d+))?(a)?(f)?$")
+    rf"^(none|keep|keep_cap)(?:{_NUM}m)?(?:{_NUM}v)?(?:{_NUM}s)?(?:g(\d+))?(?:t(\d+))?"
+    rf"(?:x{_NUM})?(a)?(f)?$")
 _PIPELINES: dict[tuple, GuidancePipeline] = {}
 _WARM_UPS: dict[tuple, float] = {}  # the warm-ups of this process not reported yet [ms]
 
@@ -58,7 +61,9 @@ class FlightConfig:
 _FIELDS = (("endgame", str), ("terminal_tolerance_m", float),
            ("terminal_tolerance_mps", lambda v: 1e-3 * float(v)),
            ("terminal_tolerance_sigma", float), ("tolerance_growth_nodes", int),
-           ("aim_within_tolerance", bool), ("first_plan_from_both", bool))
+           ("terminal_set_nodes", int), ("terminal_set_share", float),
+           ("aim_within_tolerance", bool),
+           ("first_plan_from_both", bool))
 
 
 def flight_config(name: str) -> FlightConfig:
@@ -151,6 +156,7 @@ def fly(seed: int, name: str, model: str | None = None) -> dict:
             "kept_in_force": 0 if core is None else int(core.stats["kept"]),
             "capped": 0 if core is None else int(core.stats["capped"]),
             "aimed": 0 if core is None else int(core.stats["aimed"]),
+            "in_set": 0 if core is None else int(core.stats["in_set"]),
             **growth(guidance.results, guidance.actions),
             "why_fresh": _why_fresh(replans)}
 
@@ -296,6 +302,7 @@ def where_dv_goes(runs: list[dict]) -> dict:
         "replans_kept_in_force_mean": float(np.mean([r["kept_in_force"] for r in runs])),
         "replans_capped": int(sum(r["capped"] for r in runs)),
         "replans_aimed_mean": float(np.mean([r["aimed"] for r in runs])),
+        "replans_in_terminal_set_mean": float(np.mean([r["in_set"] for r in runs])),
     }
 
 

@@ -12,8 +12,12 @@ from art_guidance.optim.cvx import L1_REG_S_PER_M
 
 
 def cvxpy_tpbvp(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
-                norm: str = "l2", solver: str = "CLARABEL") -> tuple[float, np.ndarray]:
-    """Solve the convex TPBVP with cvxpy; returns (cost [m/s], dv_rtn_mps (N, 3))."""
+                norm: str = "l2", solver: str = "CLARABEL",
+                terminal_set: tuple[float, float] | None = None) -> tuple[float, np.ndarray]:
+    """Solve the convex TPBVP with cvxpy; returns (cost [m/s], dv_rtn_mps (N, 3)).
+
+    `terminal_set` (position [m], velocity [m/s]): the post-burn RTN state at the last node
+    within those distances of the target's instead of on it."""
     import cvxpy as cp
 
     n = horizon.n_nodes
@@ -22,7 +26,13 @@ def cvxpy_tpbvp(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
     x = cp.Variable((n, 6))
     u = cp.Variable((n, 3))
     b = horizon.b / sx
-    cons = [x[0] == roe0_m / sx, x[n - 1] + b[n - 1] @ u[n - 1] == roe_f_m / sx]
+    z_f = x[n - 1] + b[n - 1] @ u[n - 1]
+    cons = [x[0] == roe0_m / sx]
+    if terminal_set is None:
+        cons.append(z_f == roe_f_m / sx)
+    else:
+        err = horizon.psi[-1] @ (sx * z_f - roe_f_m)  # RTN [m, m/s]
+        cons += [cp.norm(err[:3], 2) <= terminal_set[0], cp.norm(err[3:], 2) <= terminal_set[1]]
     cons += [x[k + 1] == horizon.stm[k] @ (x[k] + b[k] @ u[k]) for k in range(n - 1)]
     if norm == "l2":
         cost = cp.sum(cp.norm(u, 2, axis=1))

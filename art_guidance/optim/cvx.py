@@ -30,6 +30,7 @@ from art_guidance.dynamics import Horizon
 from art_guidance.errors import InputError
 from art_guidance.optim.results import ConvexSolution, ScpStatus
 from art_guidance.optim.solvers import Cones, make_solver
+from art_guidance.optim.terminal_set import TerminalSet
 
 NORMS = ("l2", "l1")
 L1_REG_S_PER_M = 1e-3
@@ -56,8 +57,37 @@ ConicData = tuple[sp.csc_matrix, np.ndarray, sp.csc_matrix, np.ndarray, Cones]
 
 
 def condensed_tpbvp(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
-                    norm: str = "l2") -> ConicData:
-    """Conic data (P, q, A, b, cones) of the condensed TPBVP; variables [u (3N), cost aux]."""
+                    norm: str = "l2", terminal_set: TerminalSet | None = None) -> ConicData:
+    """Conic data (P, q, A, b, cones) of the condensed TPBVP; variables [u (3N), cost aux].
+
+    With a `terminal_set` the six terminal equality rows become its two 4-row cones (head
+    row h, then ``R (x_f - M_0 x_0) - R G u`` with (R, h) = `TerminalSet.cone`), after every
+    other row."""
+    data = _condensed_equality(horizon, roe0_m, roe_f_m, norm)
+    if terminal_set is None:
+        return data
+    p, q, a, b, cones = data
+    n = horizon.n_nodes
+    maps = terminal_maps(horizon)
+    g = np.einsum("kij,kjl->ikl", maps, horizon.b).reshape(6, -1)  # (6, 3N)
+    # the cones on ROE in units of 1/n [s]: O(1) entries on controls in m/s (`cone`)
+    scale_s = (horizon.epochs_s[-1] - horizon.epochs_s[0]) / (2.0 * np.pi) if n > 1 else 1.0
+    rows, heads = terminal_set.cone(horizon.psi[-1], scale_s)
+    rows = rows / scale_s
+    term_a = np.zeros((8, a.shape[1]))
+    term_b = np.zeros(8)
+    for i, part in enumerate((slice(0, 3), slice(3, 6))):
+        term_a[4 * i + 1:4 * i + 4, :g.shape[1]] = rows[part] @ g
+        term_b[4 * i + 1:4 * i + 4] = rows[part] @ (roe_f_m - maps[0] @ roe0_m)
+        term_b[4 * i] = heads[i]
+    a = sp.vstack([a[6:], sp.csr_matrix(term_a)], format="csc")
+    b = np.concatenate([b[6:], term_b])
+    return p, q, a, b, Cones(0, cones.n_nonneg, (*cones.soc_sizes, 4, 4))
+
+
+def _condensed_equality(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
+                        norm: str) -> ConicData:
+    """`condensed_tpbvp` with the terminal equality (its first six rows)."""
     n = horizon.n_nodes
     maps = terminal_maps(horizon)
     # Terminal rows scaled by the mean motion: B ~ 1/n [s], so n*G is O(1) and n*rhs is in m/s.
@@ -89,15 +119,18 @@ def condensed_tpbvp(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
 
 
 def solve_cvx(horizon: Horizon, roe0_m: object, roe_f_m: object, norm: str = "l2",
-              solver: str = "clarabel") -> ConvexSolution:
-    """Solve the convex TPBVP from `roe0_m` to the post-burn terminal ROE `roe_f_m` [m].
+              solver: str = "clarabel", terminal_set: TerminalSet | None = None
+              ) -> ConvexSolution:
+    """Solve the convex TPBVP from `roe0_m` to the post-burn terminal ROE `roe_f_m` [m] (or,
+    with a `terminal_set`, to within it: `optim.terminal_set`).
 
     Args:
         horizon: dynamics over the N nodes.
         roe0_m: (6,) initial a-scaled ROE [m] (pre-burn at node 1).
         roe_f_m: (6,) terminal a-scaled ROE [m] after the last burn.
         norm: "l2" (sum of 2-norms, the paper's fuel) or "l1" (axis-aligned thrusters).
-        solver: "clarabel" (both norms) or "osqp" (l1 only).
+        solver: "clarabel" (both norms) or "osqp" (l1 only, no terminal set).
+        terminal_set: where the plan may end about `roe_f_m` (None: exactly there).
 
     Returns:
         ConvexSolution with the controls, the propagated states and the cost.
@@ -107,7 +140,9 @@ def solve_cvx(horizon: Horizon, roe0_m: object, roe_f_m: object, norm: str = "l2
     xf = as_finite_array("roe_f_m", roe_f_m, (6,))
     if norm not in NORMS:
         raise InputError("norm", f"must be one of {NORMS}", norm)
-    p, q, a, b, cones = condensed_tpbvp(horizon, x0, xf, norm)
+    if terminal_set is not None and solver == "osqp":
+        raise InputError("solver", "OSQP cannot solve a terminal set (a cone); use clarabel")
+    p, q, a, b, cones = condensed_tpbvp(horizon, x0, xf, norm, terminal_set)
     out = make_solver(solver, p, q, a, b, cones).solve()
     n = horizon.n_nodes
     if not out.ok:

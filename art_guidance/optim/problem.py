@@ -45,6 +45,7 @@ import scipy.sparse as sp
 from art_guidance.dynamics import DeputyLinearization, Horizon, mean_motion
 from art_guidance.errors import InputError
 from art_guidance.optim.solvers import Cones, CscPattern, SolverOutput, make_solver
+from art_guidance.optim.terminal_set import TerminalSet
 
 IDLE_BOX_MARGIN = 0.5  # control rows left out where the bound they imply is <= this * r
 
@@ -125,11 +126,18 @@ class ScpSubproblem:
 
     def __init__(self, horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
                  norm: str = "l2", solver: str = "clarabel", samples_per_node: int = 1,
-                 options: SubproblemOptions | None = None) -> None:
+                 options: SubproblemOptions | None = None,
+                 terminal_set: TerminalSet | None = None) -> None:
+        """`terminal_set`: the problem's shape ends in a terminal set's two cones instead of
+        the six terminal equality rows (its sizes: `set_boundary`; module docstring)."""
         if norm not in ("l2", "l1"):
             raise InputError("norm", "must be 'l2' or 'l1'", norm)
         if norm == "l2" and solver == "osqp":
             raise InputError("solver", "OSQP cannot solve the 2-norm problem; use clarabel")
+        if terminal_set is not None and solver == "osqp":
+            raise InputError("solver", "OSQP cannot solve a terminal set (a cone); use clarabel")
+        self.has_terminal_set = terminal_set is not None
+        self._k_term = np.eye(6)  # terminal rows' map (the set's scaled rows with a set)
         self.horizon, self.norm, self.solver_name = horizon, norm, solver
         self.k = int(samples_per_node)
         n = self.n = horizon.n_nodes
@@ -141,14 +149,15 @@ class ScpSubproblem:
         self.iz = 9 * n + n_aux + np.arange(n)
         self.n_var = 10 * n + n_aux
         self.options = options or SubproblemOptions()
-        self._assemble(np.asarray(roe0_m, float), np.asarray(roe_f_m, float))
+        self._assemble(np.asarray(roe0_m, float), np.asarray(roe_f_m, float), terminal_set)
         self._solvers: dict = {}  # one per form: False = every row, True = no control box
         self._ref_x = np.zeros(6 * n)  # (6N,) reference scaled states
         self._ref_u = np.zeros((n, 3))  # (N, 3) reference controls [m/s]
         self._radius = 0.0
 
     # ------------------------------------------------------------------ assembly
-    def _assemble(self, roe0_m: np.ndarray, roe_f_m: np.ndarray) -> None:
+    def _assemble(self, roe0_m: np.ndarray, roe_f_m: np.ndarray,
+                  terminal_set: TerminalSet | None) -> None:
         h, n, sx, trip = self.horizon, self.n, self.sx, _Triplets()
         eye6 = np.eye(6)
         trip.add(np.arange(6)[:, None], self.ix[0][None, :], eye6)
@@ -158,10 +167,9 @@ class ScpSubproblem:
         self._slot_dx = trip.add(r, self.ix[:-1][:, None, :], -h.stm)
         self._slot_du = trip.add(r, self.iu[:-1][:, None, :], -(h.stm @ h.b[:-1]) / sx)
         row = 6 * n
-        r = row + np.arange(6)[:, None]
-        self._slot_fx = trip.add(r, self.ix[n - 1][None, :], eye6)
-        self._slot_fu = trip.add(r, self.iu[n - 1][None, :], h.b[n - 1] / sx)
-        row += 6
+        if not self.has_terminal_set:
+            self._add_terminal_rows(trip, row + np.arange(6))
+            row += 6
         n_zero = row
         # post-burn model z = e x + bu u - jx used by the safety rows (`set_dynamics`)
         self._e = np.broadcast_to(eye6, (n, 6, 6))
@@ -197,7 +205,13 @@ class ScpSubproblem:
             trip.add(r_cone[:, None] + 1 + np.arange(3), self.iu, -1.0)
             row += 4 * n
             soc = (4,) * n
-        self.cones = Cones(n_zero, row - n_zero - 4 * len(soc), soc)
+        n_nonneg = row - n_zero - 4 * len(soc)
+        if self.has_terminal_set:  # cones (1, R[:3] ...), (1, R[3:] ...): head rows 0, 4
+            self._add_terminal_rows(trip, row + np.r_[1:4, 5:8])
+            self._row_head = row + np.array([0, 4])
+            row += 8
+            soc = (*soc, 4, 4)
+        self.cones = Cones(n_zero, n_nonneg, soc)
         rows, cols, vals = trip.arrays()
         self._pattern = CscPattern(rows, cols, (row, self.n_var))
         self._a_vals = vals
@@ -206,10 +220,19 @@ class ScpSubproblem:
                                     self.cones),
                        True: self._without_control_box(rows, cols, row)}
         self._b = np.zeros(row)
-        self.set_boundary(roe0_m, roe_f_m)
+        self.set_boundary(roe0_m, roe_f_m, terminal_set)
         self._q = np.zeros(self.n_var)
         self._q[self.ic] = 1.0
         self._p_diag = np.zeros(self.n_var)
+
+    def _add_terminal_rows(self, trip: _Triplets, rows: np.ndarray) -> None:
+        """The terminal rows ``K (E_N x~_N + B_N u_N / s_x) = K (x_f + j_N) / s_x`` at `rows`
+        (K: the identity, or the terminal set's cone rows, `TerminalSet.cone`)."""
+        n = self.n
+        self._row_term = rows
+        r = rows[:, None]
+        self._slot_fx = trip.add(r, self.ix[n - 1][None, :], np.eye(6))
+        self._slot_fu = trip.add(r, self.iu[n - 1][None, :], self.horizon.b[n - 1] / self.sx)
 
     def _without_control_box(self, rows: np.ndarray, cols: np.ndarray, n_rows: int
                              ) -> "_Form":
@@ -225,13 +248,20 @@ class ScpSubproblem:
                      cones)
 
     # ------------------------------------------------------------------ updates
-    def set_boundary(self, roe0_m: np.ndarray, roe_f_m: np.ndarray) -> None:
-        """Initial state and terminal post-burn state [m] (the terminal rows take the latter at
-        the next `set_dynamics`)."""
-        n = self.n
+    def set_boundary(self, roe0_m: np.ndarray, roe_f_m: np.ndarray,
+                     terminal_set: TerminalSet | None = None) -> None:
+        """Initial state and terminal post-burn state [m], and the terminal set about the
+        latter of a subproblem shaped for one (the terminal rows take them at the next
+        `set_dynamics`)."""
+        if (terminal_set is not None) != self.has_terminal_set:
+            raise InputError("terminal_set", "does not match the subproblem's shape",
+                             terminal_set)
         self._b[:6] = np.asarray(roe0_m, float) / self.sx
         self._roe_f_m = np.asarray(roe_f_m, float)
-        self._b[6 * n:6 * n + 6] = self._roe_f_m / self.sx
+        if terminal_set is not None:
+            self._k_term, self._b[self._row_head] = terminal_set.cone(self.horizon.psi[-1],
+                                                                      self.sx)
+        self._b[self._row_term] = self._k_term @ self._roe_f_m / self.sx
 
     def set_reference(self, roe_m: np.ndarray, dv_rtn_mps: np.ndarray, radius: float) -> None:
         """Trust region ||x - xbar||_inf <= r [m], ||u - ubar||_inf <= r [m/s]."""
@@ -260,12 +290,12 @@ class ScpSubproblem:
         pb = lin.p @ lin.b[:-1]  # (N-1, 6, 3)
         self._a_vals[self._slot_dx] = -pe
         self._a_vals[self._slot_du] = -pb / sx
-        self._a_vals[self._slot_fx] = lin.e[-1]
-        self._a_vals[self._slot_fu] = lin.b[-1] / sx
+        self._a_vals[self._slot_fx] = self._k_term @ lin.e[-1]
+        self._a_vals[self._slot_fu] = self._k_term @ lin.b[-1] / sx
         zj = lin.z[:-1] + lin.jx[:-1]
         rem = lin.roe_m[1:] - (lin.p @ zj[:, :, None])[:, :, 0]  # (N-1, 6) [m]
         self._b[6:6 * self.n] = rem.ravel() / sx
-        self._b[6 * self.n:6 * self.n + 6] = (self._roe_f_m + lin.jx[-1]) / sx
+        self._b[self._row_term] = self._k_term @ (self._roe_f_m + lin.jx[-1]) / sx
         self._e, self._bu, self._jx = lin.e, lin.b, lin.jx
         self._u_gain, self._x_gain = _control_box_gains(lin.p, lin.e, lin.b)
 
@@ -289,7 +319,10 @@ class ScpSubproblem:
     # ------------------------------------------------------------------ solve
     def control_box_idle(self) -> bool:
         """True when the state rows of the trust region and the dynamics rows imply the control
-        rows with margin at the current numbers (module docstring)."""
+        rows with margin at the current numbers (module docstring); never with a terminal
+        set (its cones do not fix the last burn)."""
+        if self.has_terminal_set:
+            return False
         v = np.zeros(self.n_var)  # the reference point (zeta, cost auxiliaries: 0)
         v[self.ix.ravel()] = self._ref_x
         v[self.iu.ravel()] = self._ref_u.ravel()
@@ -375,14 +408,17 @@ class SubproblemPool:
 
     def get(self, horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
             norm: str = "l2", solver: str = "clarabel", samples_per_node: int = 1,
-            options: SubproblemOptions | None = None) -> ScpSubproblem:
-        """The subproblem of this shape over `horizon`: the last one built, or a new one."""
+            options: SubproblemOptions | None = None,
+            terminal_set: TerminalSet | None = None) -> ScpSubproblem:
+        """The subproblem of this shape over `horizon` (a terminal set or the equality):
+        the last one built, or a new one."""
         options = options or SubproblemOptions()
-        key = (norm, solver, int(samples_per_node), options)
+        key = (norm, solver, int(samples_per_node), options, terminal_set is not None)
         sub = self._subproblems.get(key)
         if sub is None or sub.horizon is not horizon:
             sub = self._subproblems[key] = ScpSubproblem(horizon, roe0_m, roe_f_m, norm, solver,
-                                                         samples_per_node, options)
+                                                         samples_per_node, options,
+                                                         terminal_set)
         return sub
 
     def __len__(self) -> int:

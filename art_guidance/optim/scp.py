@@ -46,6 +46,7 @@ from art_guidance.deadline import Deadline
 from art_guidance.optim.cvx import control_cost, terminal_maps
 from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
 from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus, Trajectory
+from art_guidance.optim.terminal_set import TerminalSet
 from art_guidance.safety import PassiveSafety
 
 
@@ -131,6 +132,24 @@ def to_terminal(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
     return Trajectory(dv, roe)
 
 
+def onto_terminal_set(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
+                      terminal_set: TerminalSet, dv_rtn_mps: np.ndarray,
+                      lin: DeputyLinearization | None = None, project_first: bool = False
+                      ) -> Trajectory:
+    """Controls onto a terminal set about `roe_f_m` (`optim.terminal_set`): as they are when
+    they end in it (deputy-aware model), else corrected onto the set's point nearest to their
+    end (`TerminalSet.aim`) by `to_terminal` (`terminal_warm_start` with `project_first`)."""
+    dv = np.array(dv_rtn_mps, float)
+    roe = horizon.propagate_nonlinear(roe0_m, dv)
+    z_f = horizon.final_post_burn_nonlinear(roe, dv)
+    if terminal_set.contains(horizon.psi[-1], roe_f_m, z_f):
+        return Trajectory(dv, roe)
+    aim = terminal_set.aim(horizon.psi[-1], roe_f_m, z_f)
+    if project_first:
+        return terminal_warm_start(horizon, roe0_m, aim, dv, lin)
+    return to_terminal(horizon, roe0_m, aim, dv, lin)
+
+
 @dataclass
 class ScvxState:
     """The loop state of one SCVx* run: the reference iterate and its linearisations, the
@@ -169,6 +188,10 @@ class ScvxProblem(Protocol):
     def roe_f_m(self) -> np.ndarray:
         """(6,) terminal post-burn a-scaled ROE [m], float."""
 
+    @property
+    def terminal_set(self) -> TerminalSet | None:
+        """Where the plan may end about `roe_f_m` (None: exactly there)."""
+
 
 class Scvx:
     """SCVx* bound to one problem instance (`ScvxProblem`, e.g. `optim.transfer.
@@ -206,8 +229,10 @@ class Scvx:
         self.k = int(min(k + 2 if k > 1 else 1, problem.safety.n_samples))
         # The convex model is tightened so converged plans keep a nonlinear margin >= 0.
         self.tighten = self.cfg.tightening
+        self.terminal_set = getattr(problem, "terminal_set", None)
         self.sub = (pool if pool is not None else SubproblemPool()).get(
-            problem.horizon, problem.roe0_m, problem.roe_f_m, norm, solver, self.k, subproblem)
+            problem.horizon, problem.roe0_m, problem.roe_f_m, norm, solver, self.k, subproblem,
+            self.terminal_set)
 
     # ------------------------------------------------------------------ iterates
     def _iterate(self, dv_rtn_mps: np.ndarray, roe_m: np.ndarray | None = None) -> _Iterate:
@@ -256,11 +281,17 @@ class Scvx:
         linearisations, the multipliers; the subproblem set to this problem."""
         p, cfg = self.problem, self.cfg
         n = p.horizon.n_nodes
-        ref = self._iterate(*(projected if projected is not None else terminal_warm_start(
-            p.horizon, p.roe0_m, p.roe_f_m, np.asarray(dv_warm_rtn_mps, float).reshape(n, 3))))
+        if projected is None:
+            dv = np.asarray(dv_warm_rtn_mps, float).reshape(n, 3)
+            projected = (terminal_warm_start(p.horizon, p.roe0_m, p.roe_f_m, dv)
+                         if self.terminal_set is None else onto_terminal_set(
+                             p.horizon, p.roe0_m, p.roe_f_m, self.terminal_set, dv,
+                             project_first=True))
+        ref = self._iterate(*projected)
         m = multipliers or {}
         lin_dyn = p.horizon.linearize_nonlinear(ref.roe_m, ref.dv_rtn_mps)
-        self.sub.set_boundary(p.roe0_m, p.roe_f_m)  # a pooled one held another problem
+        # a pooled one held another problem
+        self.sub.set_boundary(p.roe0_m, p.roe_f_m, self.terminal_set)
         self.sub.set_dynamics(lin_dyn)
         return ScvxState(ref, ref if ref.violation <= cfg.eps_feas else None,
                          np.asarray(m.get("mu", np.zeros(n)), float).copy(),
@@ -279,8 +310,13 @@ class Scvx:
         if not sol.output.ok:
             st.status = ScpStatus.SOLVER_ERROR
             return False
-        cand = self._iterate(*to_terminal(p.horizon, p.roe0_m, p.roe_f_m, sol.dv_rtn_mps,
-                                          st.lin_dyn))
+        if self.terminal_set is None:
+            cand = self._iterate(*to_terminal(p.horizon, p.roe0_m, p.roe_f_m, sol.dv_rtn_mps,
+                                              st.lin_dyn))
+        else:
+            cand = self._iterate(*onto_terminal_set(p.horizon, p.roe0_m, p.roe_f_m,
+                                                    self.terminal_set, sol.dv_rtn_mps,
+                                                    st.lin_dyn))
         mu, w = st.mu, st.w
         j_ref = self._merit(ref, mu, w)
         l_cand = sol.cost_mps + float(mu @ sol.zeta) + 0.5 * w * float(sol.zeta @ sol.zeta)

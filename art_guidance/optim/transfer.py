@@ -18,7 +18,8 @@ from art_guidance.dynamics import DeputyLinearization, Horizon
 from art_guidance.optim.cvx import solve_cvx
 from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
 from art_guidance.optim.results import ConvexSolution, Trajectory
-from art_guidance.optim.scp import Scvx, terminal_warm_start
+from art_guidance.optim.scp import Scvx, onto_terminal_set, terminal_warm_start
+from art_guidance.optim.terminal_set import TerminalSet
 from art_guidance.safety import PassiveSafety
 
 
@@ -43,12 +44,15 @@ class TransferProblem:
         roe_f_m: (6,) terminal post-burn a-scaled ROE [m] (likewise).
         target_rtn: (6,) the RTN target [m, m/s] `roe_f_m` was solved from (the learned
             proposal's goal), or None for a problem given in ROE.
+        terminal_set: where the plan may end about `roe_f_m` (`optim.terminal_set`; None:
+            exactly there).
     """
 
     safety: PassiveSafety
     roe0_m: np.ndarray
     roe_f_m: np.ndarray
     target_rtn: np.ndarray | None = None
+    terminal_set: TerminalSet | None = None
 
     def __post_init__(self) -> None:
         """Boundary conditions as float arrays (the same objects when they are already)."""
@@ -56,11 +60,12 @@ class TransferProblem:
         object.__setattr__(self, "roe_f_m", np.asarray(self.roe_f_m, float))
 
     @classmethod
-    def to_target(cls, safety: PassiveSafety, roe0_m: np.ndarray,
-                  target_rtn: np.ndarray) -> "TransferProblem":
+    def to_target(cls, safety: PassiveSafety, roe0_m: np.ndarray, target_rtn: np.ndarray,
+                  terminal_set: TerminalSet | None = None) -> "TransferProblem":
         """The problem from `roe0_m` to the RTN target `target_rtn` (`terminal_roe`, solved
-        once here)."""
-        return cls(safety, roe0_m, terminal_roe(safety.horizon, target_rtn), target_rtn)
+        once here), or to within `terminal_set` of it."""
+        return cls(safety, roe0_m, terminal_roe(safety.horizon, target_rtn), target_rtn,
+                   terminal_set)
 
     @property
     def horizon(self) -> Horizon:
@@ -69,7 +74,8 @@ class TransferProblem:
 
     def cvx(self, norm: str = "l2", solver: str = "clarabel") -> ConvexSolution:
         """The convex TPBVP of this transfer (`cvx.solve_cvx`)."""
-        return solve_cvx(self.horizon, self.roe0_m, self.roe_f_m, norm, solver)
+        return solve_cvx(self.horizon, self.roe0_m, self.roe_f_m, norm, solver,
+                         self.terminal_set)
 
     def scvx(self, scp_config: ScpConfig | None = None, samples_per_node: int = 1,
              subproblem: SubproblemOptions | None = None, pool: SubproblemPool | None = None,
@@ -82,7 +88,11 @@ class TransferProblem:
     def terminal_warm_start(self, dv_rtn_mps: np.ndarray,
                             lin: DeputyLinearization | None = None) -> Trajectory:
         """Controls (N, 3) [m/s] corrected onto the terminal condition, and their states
-        (`scp.terminal_warm_start`): where SCVx* starts from them."""
+        (`scp.terminal_warm_start`; with a terminal set `scp.onto_terminal_set`: unchanged
+        when they end in it): where SCVx* starts from them."""
+        if self.terminal_set is not None:
+            return onto_terminal_set(self.horizon, self.roe0_m, self.roe_f_m, self.terminal_set,
+                                     dv_rtn_mps, lin, project_first=True)
         return terminal_warm_start(self.horizon, self.roe0_m, self.roe_f_m, dv_rtn_mps, lin)
 
     def propagate(self, dv_rtn_mps: np.ndarray) -> Trajectory:

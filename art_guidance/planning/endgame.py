@@ -20,6 +20,12 @@ error) is not put in force while the plan in force is still passively safe from 
 that ignored the error would keep a plan in force that misses by kilometres after a missed
 burn (measured: seed 3, its largest burn missed, 19 km off).
 
+With `terminal_set_nodes` > 0 a replan the end game makes with that many nodes left or fewer
+ends anywhere within `terminal_set_share` of the terminal tolerances (at the waypoint's, not
+widened) instead of on the waypoint: a terminal set (`optim.terminal_set`), two second-order
+cones in CVX and SCVx*. It restores safety or removes what is beyond the tolerances without
+paying to null what they accept.
+
 `none` is the behaviour before the end game existed, bit for bit.
 """
 from __future__ import annotations
@@ -31,6 +37,7 @@ import numpy as np
 
 from art_guidance.config import PlanningConfig
 from art_guidance.dynamics import Horizon
+from art_guidance.optim import TerminalSet
 from art_guidance.planning.carry import CarriedPlan
 from art_guidance.planning.transfer import Transfer
 
@@ -125,6 +132,22 @@ def tolerance_scale(growth_nodes: int, n_nodes: int) -> float:
     model's drift that later fixes re-measure; near the waypoint the tolerance is the one
     the flight is flown to."""
     return max(1.0, n_nodes / growth_nodes) if growth_nodes > 0 else 1.0
+
+
+def in_set_under(planning: PlanningConfig, n_nodes: int) -> TerminalSet | None:
+    """The terminal set a replan the end game makes with `n_nodes` nodes left ends in:
+    `terminal_set_share` of the terminal tolerances at the waypoint when `n_nodes` <=
+    `terminal_set_nodes`; else None (the waypoint exactly). Not widened, and a share of them:
+    a plan ending on the boundary of the keep check's own tolerances fails the next fix's
+    check at the first drift and is replanned at every fix."""
+    if not (Endgame(planning.endgame).keeps and 0 < n_nodes <= planning.terminal_set_nodes):
+        return None
+    share = planning.terminal_set_share
+    if share <= 0.0 or planning.terminal_tolerance_m <= 0.0 \
+            or planning.terminal_tolerance_mps <= 0.0:
+        return None
+    return TerminalSet(share * planning.terminal_tolerance_m,
+                       share * planning.terminal_tolerance_mps)
 
 
 def check_in_force(transfer: Transfer, carry: CarriedPlan,

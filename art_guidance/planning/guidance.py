@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from art_guidance.deadline import Deadline
-from art_guidance.planning.endgame import Endgame
+from art_guidance.planning.endgame import Endgame, in_set_under
 from art_guidance.planning.pipeline import GuidancePipeline
 from art_guidance.planning.replan import (
     Action, Decision, ReplanPolicy, ReplanSettings, ReplanWindow, check_target, request_for,
@@ -120,7 +120,7 @@ class GuidanceCore:
         self.policy = ReplanPolicy(settings)
         self.target = target
         self.stats = {"nav": 0, "rejected": 0, "plans": 0, "superseded": 0, "kept": 0,
-                      "capped": 0, "aimed": 0}
+                      "capped": 0, "aimed": 0, "in_set": 0}
         # why the last `on_nav` stayed on the plan in force although the fix deviates ("" =
         # it did not: read by its caller right after the call)
         self.why_on_plan = ""
@@ -169,7 +169,8 @@ class GuidanceCore:
         to solve: as it is, or, when the plan in force is on target but not safe from the fix
         and `aim_within_tolerance` is set, aimed at the plan in force's own predicted end
         (within the tolerance of the waypoint: the replan restores passive safety without
-        paying to null an error that does not matter)."""
+        paying to null an error that does not matter); with `terminal_set_nodes` nodes left
+        or fewer, ending within the terminal set of the tolerances (`endgame.in_set_under`)."""
         planning = self.pipeline.config.planning
         if not Endgame(planning.endgame).keeps:
             return job, ""
@@ -184,6 +185,11 @@ class GuidanceCore:
             self.stats["aimed"] += 1
             return dataclasses.replace(job, request=dataclasses.replace(
                 job.request, target_rtn=check.terminal_rtn)), ""
+        terminal_set = in_set_under(planning, n_left)
+        if terminal_set is not None and not job.request.window_nodes:
+            self.stats["in_set"] += 1
+            return dataclasses.replace(job, request=dataclasses.replace(
+                job.request, terminal_set=terminal_set)), ""
         return job, ""
 
     def _capped(self, job: Job, result: PlanResult) -> str:

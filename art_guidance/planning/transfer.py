@@ -75,7 +75,8 @@ class Transfers:
         """The transfer problem of `request` (its horizon and safety model cached)."""
         _, safety = self._models(request)
         return Transfer(request, TransferProblem.to_target(safety, request.roe0_m,
-                                                           request.target_rtn))
+                                                           request.target_rtn,
+                                                           request.terminal_set))
 
     def in_roe(self, request: PlanRequest, roe_f_m: np.ndarray) -> Transfer:
         """The transfer of `request` to the post-burn state `roe_f_m` [m] given in ROE (a

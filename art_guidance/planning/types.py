@@ -15,7 +15,9 @@ from art_guidance.config import PlanningConfig
 from art_guidance.deadline import Deadline
 from art_guidance.dynamics import check_chief, check_deputy_inclination, mean_motion
 from art_guidance.errors import InputError
-from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Trajectory, TransferProblem
+from art_guidance.optim import (
+    ConvexSolution, ScpResult, ScpStatus, TerminalSet, Trajectory, TransferProblem,
+)
 from art_guidance.planning.carry import CarriedPlan, CarryReport
 
 
@@ -163,6 +165,9 @@ class PlanRequest:
         context: the steps flown before node 0, given to the learned proposal (None: none).
         carry: the plan in force's burns at the request's nodes (`planning.carry`; None: none).
         no_carry: why the guidance carried none ("" = no plan in force).
+        terminal_set: where the plan may end about `target_rtn` (`optim.terminal_set`: the
+            end game's last replans, `planning.endgame`); None: exactly on it. A window
+            shorter than the remainder ends on its own state whatever this says.
     """
 
     chief_oe: np.ndarray
@@ -178,6 +183,7 @@ class PlanRequest:
     context: RolloutContext | None = None
     carry: CarriedPlan | None = None
     no_carry: str = ""
+    terminal_set: TerminalSet | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "chief_oe", check_chief(self.chief_oe))
@@ -210,19 +216,26 @@ class PlanRequest:
                              f"benchmark's reference {REFERENCE_TARGETS})", self.terminal_target)
         if self.carry is not None and not isinstance(self.carry, CarriedPlan):
             raise InputError("carry", "must be a CarriedPlan or None", type(self.carry).__name__)
+        if self.terminal_set is not None and not isinstance(self.terminal_set, TerminalSet):
+            raise InputError("terminal_set", "must be a TerminalSet or None",
+                             type(self.terminal_set).__name__)
 
     def to_json(self) -> dict:
-        """Everything needed to solve this request again (see `from_json`)."""
-        return {"chief_oe": self.chief_oe.tolist(), "roe0_m": self.roe0_m.tolist(),
-                "target_rtn": self.target_rtn.tolist(),
-                "chance_constrained": bool(self.chance_constrained),
-                "warm_start": self.warm_start, "n_nodes": self.n_nodes,
-                "n_orbits": self.n_orbits, "koz_switch_node": self.koz_switch_node,
-                "window_nodes": int(self.window_nodes),
-                "terminal_target": self.terminal_target,
-                "context": None if self.context is None else self.context.to_json(),
-                "carry": None if self.carry is None else self.carry.to_json(),
-                "no_carry": self.no_carry}
+        """Everything needed to solve this request again (see `from_json`; `terminal_set`
+        only when there is one: a request without it reads as before)."""
+        out = {"chief_oe": self.chief_oe.tolist(), "roe0_m": self.roe0_m.tolist(),
+               "target_rtn": self.target_rtn.tolist(),
+               "chance_constrained": bool(self.chance_constrained),
+               "warm_start": self.warm_start, "n_nodes": self.n_nodes,
+               "n_orbits": self.n_orbits, "koz_switch_node": self.koz_switch_node,
+               "window_nodes": int(self.window_nodes),
+               "terminal_target": self.terminal_target,
+               "context": None if self.context is None else self.context.to_json(),
+               "carry": None if self.carry is None else self.carry.to_json(),
+               "no_carry": self.no_carry}
+        if self.terminal_set is not None:
+            out["terminal_set"] = self.terminal_set.to_json()
+        return out
 
     @classmethod
     def from_json(cls, data: dict) -> "PlanRequest":
@@ -237,7 +250,8 @@ class PlanRequest:
                        else RolloutContext.from_json(data["context"]),
                        None if data.get("carry") is None
                        else CarriedPlan.from_json(data["carry"]),
-                       str(data.get("no_carry", "")))
+                       str(data.get("no_carry", "")),
+                       TerminalSet.from_json(data.get("terminal_set")))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError("request_json", f"malformed: {exc!r}") from exc
 
