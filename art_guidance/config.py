@@ -293,7 +293,7 @@ class PlanningConfig:
     aim_within_tolerance: bool = False
     endgame_cost_cap_mps: float = 0.05
     endgame_cost_per_m: float = 0.01
-    terminal_set_nodes: int = 0
+    terminal_set_nodes: int = 10
     terminal_set_share: float = 0.5
 
     def __post_init__(self) -> None:

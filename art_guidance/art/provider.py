@@ -95,6 +95,19 @@ def resolve_model_path(spec: str | None, chance_constrained: bool = True) -> Pat
     return Path(spec).expanduser()
 
 
+def _without_onnx_runtime(path: Path, runtime: str) -> tuple[Path, str]:
+    """On "auto", an exported (.onnx) `path` where ONNX Runtime is not installed gives way to
+    the checkpoint beside it on torch (where it is there and torch is installed), as a refused
+    exported file does: (the file to load, why it is not `path`; "" = it is)."""
+    if runtime != "auto" or path.suffix != ONNX_SUFFIX or installed("onnxruntime"):
+        return path, ""
+    beside = checkpoint_beside(path)
+    if not beside.is_file() or not installed("torch"):
+        return path, ""
+    return beside, (f"{path.name} refused: it runs on ONNX Runtime, which is not installed; "
+                    f"the checkpoint beside it, {beside.name}, flies on torch")
+
+
 def resolve_runtime(runtime: str, path: str | Path) -> str:
     """The runtime a model file flies on: "torch" or "onnx" (module docstring).
 
@@ -241,6 +254,7 @@ class ArtWarmStart:
         """
         t0 = time.perf_counter()
         path = Path(path or default_model_path())
+        path, moved = _without_onnx_runtime(path, runtime)
         asked, runtime = runtime, resolve_runtime(runtime, path)
         expected = expected_sha256 or pinned_sha256(
             checkpoint_beside(path) if path.suffix == ONNX_SUFFIX else path)
@@ -249,7 +263,7 @@ class ArtWarmStart:
         else:
             art, note = _load_file(path, runtime, expected), ""
         provider = cls(art, 1e3 * (time.perf_counter() - t0), threads, reward_scales)
-        provider.note = note
+        provider.note = "; ".join(filter(None, (moved, note)))
         return provider
 
     def describe(self) -> str:

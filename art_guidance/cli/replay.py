@@ -9,7 +9,9 @@ def run(args: argparse.Namespace) -> int:
     """Re-solve every request recorded in an MCAP log (file or bag folder) and compare plans."""
     from art_guidance.record.replay import OTHER_MODEL, replay
 
-    report = replay(args.log, args.model, args.allow_uncompared)
+    # --numerics (given before the command) replays every solve on that path; else each solve
+    # replays on the path it ran on
+    report = replay(args.log, args.model, args.allow_uncompared, args.numerics)
     print(f"model: {report['model']}")
     if report["config_check"] != "ok":
         print(f"CONFIGURATION: {report['config_check']}")
@@ -80,7 +82,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        "where the file's header says its writer seals, is an alteration. A log "
                        "recorded with another model than the one replayed is reported as such "
                        "and its ART solves are not compared; solves that hit their deadline "
-                       "cannot be reproduced and are not compared either. Exit codes: 0 every "
+                       "cannot be reproduced and are not compared either. Each solve is "
+                       "replayed on the numerics path it ran on (numpy while the kernels "
+                       "compiled on a cold cache, else compiled; `art-guidance --numerics "
+                       "numpy replay` replays all on one path). Exit codes: 0 every "
                        "compared solve matches (cost to 1e-6 relative, delta-v to 1e-5 m/s; "
                        "where ART proposed: its rollout to 1e-6 m/s, the same post hoc decision "
                        "and warm start) and nothing was lost; 1 a compared solve does not "

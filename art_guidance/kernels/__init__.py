@@ -25,6 +25,7 @@ too). This package imports only numpy and numba (and the standard library).
 """
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import subprocess
@@ -41,7 +42,9 @@ _LOG = logging.getLogger("art_guidance.kernels")
 # phase: "idle" (not loaded yet), "ready" (compiled path in use), "background" (numpy path
 # while the kernels compile in the background), "numpy" (the compiled path is not usable)
 _state: dict = {"mode": None, "error": None, "ready_s": None, "phase": "idle", "note": "",
-                "thread": None}
+                "thread": None, "cache_problem": ""}
+# what writing the cache fails with where the cache cannot be written (not a damaged cache)
+UNWRITABLE = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG}
 _lock = threading.RLock()
 
 
@@ -217,6 +220,10 @@ def cache_status() -> str:
         return f"the kernels do not import ({type(exc).__name__}: {exc})"
     state = ("damaged: " + ", ".join(p.name for p in damaged) + " do not load") if damaged \
         else "warm: every kernel is there" if warm else "cold: the kernels compile at first use"
+    where = cache.folder()
+    pid = None if where is None else cache.filler_pid(where)
+    if pid:
+        state += f"; being filled by process {pid}"
     return f"kernel cache {cache_note()}: {state}"
 
 
@@ -256,7 +263,8 @@ def _move_aside(cache, why: str) -> None:
 
 def _compile(cache) -> None:
     """Compile into the cache (one process per folder at a time), or in memory where the
-    cache cannot be written or a damaged file gets in the way."""
+    cache cannot be written (a full disk, a quota, a read-only file system: the files written
+    so far stay where they are) or a damaged file gets in the way (moved aside)."""
     where = cache.folder()
     try:
         if where is None:
@@ -265,9 +273,44 @@ def _compile(cache) -> None:
         with cache.fill_lock(where):
             if not _load_cached(cache):
                 cache.load()
-    except Exception as exc:  # damage found while compiling, an unwritable folder
-        _move_aside(cache, f"compiling failed ({type(exc).__name__}: {str(exc)[:200]})")
+    except cache.LockBusy as exc:  # a stalled filler: compile here, do not wait for ever
+        cache.in_memory()
+        note = f"{exc}: gave up waiting, compiled in memory"
+        _state.update(note=note, cache_problem=note)
+        _LOG.warning(note)
         cache.load()
+    except Exception as exc:  # damage found while compiling, an unwritable folder
+        full = unwritable(exc)
+        if full is None:
+            _move_aside(cache, f"compiling failed ({type(exc).__name__}: {str(exc)[:200]})")
+        else:
+            cache.in_memory()
+            note = (f"the kernel cache in {where} cannot be written "
+                    f"({errno.errorcode.get(full.errno, full.errno)}: "
+                    f"{os.strerror(full.errno or 0)}: a full disk, a quota or a read-only "
+                    "file system): compiled in memory, the cache left as it is")
+            _state.update(note=note, cache_problem=note)
+            _LOG.warning(note)
+        cache.load()
+
+
+def unwritable(exc: BaseException) -> OSError | None:
+    """The OSError in `exc`'s chain that says the cache cannot be written (`UNWRITABLE`), or
+    None."""
+    seen: BaseException | None = exc
+    for _ in range(16):
+        if seen is None:
+            return None
+        if isinstance(seen, OSError) and seen.errno in UNWRITABLE:
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
+def cache_problem() -> str:
+    """Why this process compiled the kernels in memory instead of into their cache (the cache
+    cannot be written, or another filler held it too long; "" = it did not)."""
+    return _state["cache_problem"]
 
 
 def _start_background(cache, t0: float) -> threading.Thread:
@@ -276,20 +319,15 @@ def _start_background(cache, t0: float) -> threading.Thread:
     where = cache.folder()
     child = None
     if where is not None:
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-            [str(_HERE.parent.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}
-        try:
-            child = subprocess.Popen([sys.executable, "-m", "art_guidance.kernels", "--quiet"],
-                                     env=env, stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                     start_new_session=True)  # outlives a one-shot command
-        except OSError:
-            child = None
+        child = _start_filler(cache, where)
 
     def finish() -> None:  # never under the lock: `compiled` keeps answering meanwhile
         try:
             if child is not None:
-                child.wait()
+                code = child.wait()
+                if code != 0:  # killed, or failed: this process compiles, and says so
+                    _LOG.warning("kernels: the background filler (pid %d) ended with exit "
+                                 "code %d: this process compiles the kernels", child.pid, code)
             if not _load_cached(cache):
                 _compile(cache)
             with _lock:
@@ -303,6 +341,31 @@ def _start_background(cache, t0: float) -> threading.Thread:
     thread.start()
     _LOG.info("kernels: %s", status())
     return thread
+
+
+def _start_filler(cache, where: Path) -> subprocess.Popen | None:
+    """The background filler of `where` (`python -m art_guidance.kernels`), started with the
+    folder's fill lock taken for it; None where another filler holds the lock (one filler per
+    folder: this process then waits for that one's kernels) or none could be started."""
+    fd = cache.try_lock(where)
+    if fd is None and cache.filler_pid(where):
+        _LOG.info("kernels: process %s fills %s; waiting for its kernels",
+                  cache.filler_pid(where), where)
+        return None
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(_HERE.parent.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    if fd is not None:
+        env[cache.LOCK_FD_ENV] = str(fd)
+    try:
+        return subprocess.Popen([sys.executable, "-m", "art_guidance.kernels", "--quiet"],
+                                env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, pass_fds=() if fd is None else (fd,),
+                                start_new_session=True)  # outlives a one-shot command
+    except OSError:
+        return None
+    finally:
+        if fd is not None:
+            os.close(fd)  # the filler's copy holds the lock now
 
 
 def _ready(t0: float) -> str:

@@ -1,5 +1,7 @@
 """`python -m art_guidance.kernels`: compile the kernels into their cache (or load them from
-it) and say where; exit 0 when the compiled path is ready, 1 when the numpy path is taken.
+it) and say where; exit 0 when the compiled path is ready from the cache, 1 when the numpy path
+is taken or the cache is not filled (it cannot be written: a full disk, a quota, read-only;
+or another filler held its lock too long, named by its pid).
 
 The node and the one-shot commands start it in the background on a cold cache; a flight image
 runs it once at build time, so that no flight computer ever compiles (`art-guidance kernels`
@@ -27,7 +29,11 @@ def main(argv: list[str] | None = None) -> int:
         text = kernels.prepare("compiled", wait=True)
     if not args.quiet:
         print(text)
-    return 0 if args.status or kernels.ready_s() is not None else 1
+    if args.status:
+        return 0
+    # the cache not filled (a full disk, a read-only folder, a stalled filler holding its lock)
+    # fails the build step, though this process compiled in memory
+    return 0 if kernels.ready_s() is not None and not kernels.cache_problem() else 1
 
 
 if __name__ == "__main__":

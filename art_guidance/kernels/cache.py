@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import time
 from pathlib import Path
 from typing import Iterator
 
@@ -26,6 +27,31 @@ from art_guidance.kernels import drift, drift_bounds, horizon
 ENTRY_POINTS = ("drift.violated", "drift.minimum", "horizon.propagate_nonlinear")
 DAMAGED_FOLDER = "damaged"
 LOCK_NAME = ".art_guidance_fill.lock"
+# a filler started by a process that took the fill lock for it inherits the locked file as this
+# descriptor (one filler per folder: a process that finds the lock held starts none)
+LOCK_FD_ENV = "ART_GUIDANCE_FILL_LOCK_FD"
+# how long a process waits for another's fill lock before it compiles in memory [s] (a compile
+# takes 12-15 s on a desktop core, a few minutes on a slow flight computer)
+LOCK_WAIT_ENV = "ART_GUIDANCE_FILL_LOCK_WAIT_S"
+LOCK_WAIT_S = 600.0
+
+
+class LockBusy(Exception):
+    """Another process held the cache folder's fill lock for longer than the wait allowed."""
+
+    def __init__(self, where: Path, pid: int | None, waited_s: float) -> None:
+        holder = f"process {pid}" if pid else "another process"
+        super().__init__(f"{holder} has held the fill lock of {where} for more than "
+                         f"{waited_s:.0f} s ({LOCK_WAIT_ENV})")
+        self.pid = pid
+
+
+def lock_wait_s() -> float:
+    """The bound of a wait for the fill lock [s] (`LOCK_WAIT_ENV`, else `LOCK_WAIT_S`)."""
+    try:
+        return max(float(os.environ.get(LOCK_WAIT_ENV, LOCK_WAIT_S)), 0.0)
+    except ValueError:
+        return LOCK_WAIT_S
 
 
 def dispatchers() -> dict[str, CPUDispatcher]:
@@ -97,18 +123,48 @@ def load() -> None:
     horizon.warm_up()
 
 
+def try_lock(where: Path) -> int | None:
+    """Take the fill lock of `where` without waiting: the descriptor holding it (to be handed
+    to the filler it is taken for: `LOCK_FD_ENV`), or None (held by another filler, or no lock
+    file can be made there)."""
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        fd = os.open(where / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
+
+
 @contextlib.contextmanager
 def fill_lock(where: Path) -> Iterator[None]:
     """Hold the cache folder's fill lock (one process compiles into a folder at a time; the
-    others wait, then find the kernels there)."""
+    others wait, at most `lock_wait_s`, then find the kernels there). A filler started with the
+    lock taken for it (`LOCK_FD_ENV`) holds that one.
+
+    Raises:
+        LockBusy: the lock was not free within `lock_wait_s` (naming its holder's pid).
+    """
+    inherited = os.environ.pop(LOCK_FD_ENV, "")
     try:
-        where.mkdir(parents=True, exist_ok=True)
-        f = open(where / LOCK_NAME, "a+b")
-    except OSError:  # a read-only folder: nothing to fill, nobody to wait for
-        yield
-        return
+        f = os.fdopen(int(inherited), "r+b") if inherited else None
+    except (OSError, ValueError):
+        f = None
+    held = f is not None  # taken for this process by the one that started it
+    if f is None:
+        try:
+            where.mkdir(parents=True, exist_ok=True)
+            f = open(where / LOCK_NAME, "a+b")
+        except OSError:  # a read-only folder: nothing to fill, nobody to wait for
+            yield
+            return
     with f:
-        fcntl.flock(f, fcntl.LOCK_EX)
+        if not held:
+            _wait_for_lock(f, where)
         try:
             f.seek(0)
             f.truncate()
@@ -117,6 +173,20 @@ def fill_lock(where: Path) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _wait_for_lock(f, where: Path) -> None:
+    """Take the lock on the open lock file `f`, waiting at most `lock_wait_s`."""
+    bound = lock_wait_s()
+    t0 = time.monotonic()
+    while True:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() - t0 >= bound:
+                raise LockBusy(where, filler_pid(where), bound) from None
+            time.sleep(0.05)
 
 
 def filler_pid(where: Path) -> int | None:

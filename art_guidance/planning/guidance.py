@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from art_guidance.deadline import Deadline
-from art_guidance.planning.endgame import Endgame, in_set_under
+from art_guidance.planning.endgame import Endgame, InForceCheck, in_set_under
 from art_guidance.planning.pipeline import GuidancePipeline
 from art_guidance.planning.replan import (
     Action, Decision, ReplanPolicy, ReplanSettings, ReplanWindow, check_target, request_for,
@@ -77,6 +77,9 @@ class Job:
         trigger: "nav" (a fix) or "request" (a new target).
         nav_payload, request_payload: what the caller attached to the fix and to the target
             (the node: the ROS messages it records with the solve).
+        in_force: the end game's check of the plan in force from the fix, made when it
+            decided this replan (`planning.endgame`; None: not made), read again by the cost
+            cap instead of being made a second time.
     """
 
     nav: NavState
@@ -84,6 +87,7 @@ class Job:
     trigger: str
     nav_payload: Any = None
     request_payload: Any = None
+    in_force: InForceCheck | None = None
 
 
 @dataclass(frozen=True)
@@ -180,6 +184,7 @@ class GuidanceCore:
         n_left = len(job.request.carry.dv_rtn_mps)
         if check.kept_under(planning, n_left):
             return job, f"endgame {planning.endgame}: the error does not matter, {check.text()}"
+        job = dataclasses.replace(job, in_force=check)
         if planning.aim_within_tolerance and check.on_target_under(planning, n_left) \
                 and not job.request.window_nodes:
             self.stats["aimed"] += 1
@@ -205,7 +210,7 @@ class GuidanceCore:
         growth = float(result.cost_mps) - carry.remaining_mps
         if growth <= planning.endgame_cost_cap_mps:
             return ""
-        check = self.pipeline.check_in_force(job.request)
+        check = job.in_force or self.pipeline.check_in_force(job.request)
         if check is None or not check.safe:
             return ""
         worth = check.worth_mps(planning)

@@ -28,15 +28,18 @@ from typing import Iterator
 
 import numpy as np
 
+from art_guidance import kernels
 from art_guidance.config import GuidanceConfig
 from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, InputError
+from art_guidance.optim import ScpStatus
 from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions, SubproblemPool
 from art_guidance.planning import window
 from art_guidance.planning.carry import refusal
 from art_guidance.planning.choice import choose
 from art_guidance.planning.config_record import config_json_sha256
 from art_guidance.planning.endgame import InForceCheck, check_in_force
+from art_guidance.planning.learned import DEADLINE_REASON
 from art_guidance.planning.producers import Producers
 from art_guidance.planning.runs import carried_run, fresh_runs, plan_result
 from art_guidance.planning.transfer import Transfer, Transfers
@@ -153,6 +156,18 @@ class GuidancePipeline:
         t0 = time.perf_counter()
         if deadline is None and self.deadline_s is not None:
             deadline = Deadline(t0 + self.deadline_s)
+        before = kernels.compiled()
+        result = self._plan_request(request, deadline, t0)
+        after = kernels.compiled()
+        path = ("compiled" if before else "numpy") if before == after else "mixed"
+        hit = ((deadline is not None and deadline.hit)
+               or result.scp.status is ScpStatus.TIMEOUT or DEADLINE_REASON in
+               result.warm_start_reason)
+        return dataclasses.replace(result, numerics=path, deadline_hit=bool(hit))
+
+    def _plan_request(self, request: PlanRequest, deadline: Deadline | None,
+                      t0: float) -> PlanResult:
+        """`plan` without the record of how it ran (its numerics, a deadline hit)."""
         transfer = self.transfer(request)
         n_nodes = transfer.horizon.n_nodes
         h, why = window.window_size(request, n_nodes, self.scenario.n_orbits,
@@ -164,6 +179,8 @@ class GuidancePipeline:
             if windowed is not None:
                 why = (f"the window's plan ended {windowed.status.name}: the whole remainder "
                        "is planned")
+                if deadline is not None and deadline.passed():
+                    why += " (its retry cut by the plan's deadline, solve_deadline_s)"
             whole = self._plan(transfer, deadline, pool, t0)
         if request.window_nodes == 0:
             return whole

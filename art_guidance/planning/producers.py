@@ -20,7 +20,7 @@ from art_guidance.planning.learned import (
     Learned, cvx_is_safe, error_text, timed_learned_warm_start,
 )
 from art_guidance.planning.proposal_process import (
-    GRACE_S, NO_DEADLINE_TIMEOUT_S, ProposalProcess, WorkerScvx, model_key,
+    NO_DEADLINE_TIMEOUT_S, ProposalProcess, WorkerScvx, model_key,
 )
 from art_guidance.planning.transfer import Transfer
 from art_guidance.planning.types import WarmStart, WarmStartProvider
@@ -103,7 +103,9 @@ class Producers:
             except BaseException as exc:  # the worker is freed on every path
                 worker.abandon(f"SCVx* from CVX failed meanwhile ({error_text(exc)})")
                 raise
-            wait = NO_DEADLINE_TIMEOUT_S if deadline is None else deadline.left_s() + GRACE_S
+            # until the deadline, not past it: a late or stalled worker is given up and the
+            # plan is the best at hand (SCVx* from CVX, solved meanwhile)
+            wait = NO_DEADLINE_TIMEOUT_S if deadline is None else max(deadline.left_s(), 0.0)
             answer = worker.collect(wait)
             if answer is not None:
                 return Proposed(early, answer.learned, answer.wall_ms,

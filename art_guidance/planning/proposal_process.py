@@ -39,7 +39,6 @@ from art_guidance.planning.worker_messages import (
 )
 
 STARTUP_TIMEOUT_S = 120.0  # importing torch and loading the model in the spawned process
-GRACE_S = 5.0  # a job's answer may come this long after its deadline before it is abandoned
 NO_DEADLINE_TIMEOUT_S = 120.0  # the longest wait for a job without a deadline
 # A worker that failed to start is started again after RESTART_AFTER_S, doubled after every
 # further failed start up to RESTART_MAX_S (reset by a start that succeeds) [s].
@@ -47,9 +46,11 @@ RESTART_AFTER_S = 5.0
 RESTART_MAX_S = 300.0
 LOCK_WAIT_S = 1.0  # a job waits this long for the one before it to be collected [s]
 CLOSE_WAIT_S = 5.0  # `close` waits this long for a job in flight, then stops the worker [s]
-# A cancelled SCVx* run in the worker stops at its next iteration; its answer is awaited this
-# long before the next job (else the worker is stopped and started anew) [s].
+# A cancelled SCVx* run in the worker stops at its next iteration (tens of ms); the next job
+# awaits its answer at most DRAIN_SHARE of that job's time left (DRAIN_WAIT_S without a
+# deadline), else the worker is taken for stalled: stopped, and started anew on a later job.
 DRAIN_WAIT_S = 5.0
+DRAIN_SHARE = 0.05
 
 
 def restart_delay_s(failed_starts: int) -> float:
@@ -88,8 +89,10 @@ class ProposalProcess:
     Attributes:
         error: why the last job was declined or failed ("" = it was not): the planner then
             proposes in line; a failed worker is stopped and started anew on the next job.
-        deaths: how many times a running worker was found dead or broken (it is started
-            again on the next job).
+        deaths: how many times a running worker was found dead, broken or stalled (no answer
+            by the plan's deadline: a stopped, swapped-out or starved process; it is stopped
+            and started again on the next job).
+        stalls: how many of those were stalls.
         scvx_runs: (made, taken): SCVx* runs from the proposal the worker answered with, and
             those of them a plan took (`scvx_result`).
     """
@@ -106,6 +109,7 @@ class ProposalProcess:
         self._failed_starts = 0  # failed starts in a row
         self.error = ""
         self.deaths = 0
+        self.stalls = 0
         self.scvx_runs = (0, 0)
 
     @property
@@ -164,7 +168,9 @@ class ProposalProcess:
         """`submit` with the lock held: the job's id once it is sent."""
         if self._follow is not None and self.alive:  # a dismissed run's answer: drain it
             self._follow = None
-            answer = self._receive(DRAIN_WAIT_S)
+            wait = DRAIN_WAIT_S if job.time_left_s is None \
+                else min(DRAIN_WAIT_S, DRAIN_SHARE * max(job.time_left_s, 0.0))
+            answer = self._receive(wait)
             if answer is None:
                 self.error = f"a cancelled SCVx* run did not stop: {self.error}"
             elif isinstance(answer, ScvxAnswer) and answer.result is not None:  # ended first
@@ -268,7 +274,13 @@ class ProposalProcess:
         counts in `deaths` when `dying` (not while it loads: that is a failed start)."""
         try:
             if not self._conn.poll(max(timeout_s, 0.0)):
-                self._fail(f"no answer within {timeout_s:.1f} s")
+                why = f"no answer within {max(timeout_s, 0.0):.2f} s"
+                if dying:  # a running worker that does not answer in time: a stall
+                    self.stalls += 1
+                    self._died(f"the worker stalled ({why}): stopped, started anew on a "
+                               "later job")
+                else:
+                    self._fail(why)
                 return None
             answer = self._conn.recv()
         except Exception as exc:  # the worker died (EOF) or the pipe broke
@@ -333,10 +345,10 @@ class WorkerScvx:
         self._taken = False
 
     def result(self, deadline: Deadline | None) -> Any:
-        """The worker's run (an `ScpResult`, waited for within the plan's deadline and
-        `GRACE_S`), or None: the plan solves it in line."""
+        """The worker's run (an `ScpResult`, waited for until the plan's deadline, not past
+        it), or None: the plan solves it in line."""
         self._taken = True
-        wait = NO_DEADLINE_TIMEOUT_S if deadline is None else deadline.left_s() + GRACE_S
+        wait = NO_DEADLINE_TIMEOUT_S if deadline is None else max(deadline.left_s(), 0.0)
         return self._worker.scvx_result(self._job_id, wait)
 
     def dismiss(self) -> None:

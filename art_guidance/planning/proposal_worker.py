@@ -116,7 +116,8 @@ def _solve_art(job: PlanJob, state: dict, answer: Any, slot: CancelSlot | None) 
         # the first run of the plan: a share of what is left, the rest for the run from CVX
         deadline = deadline.share(config.planning.art_deadline_share)
     at_s = math.inf if deadline is None else deadline.at_s
-    until = Deadline(at_s) if slot is None else CancellableDeadline(at_s, slot, job.job_id)
+    until = Deadline(at_s) if slot is None \
+        else CancellableDeadline(at_s, slot=slot, job_id=job.job_id)
     pool = state.setdefault("pool", SubproblemPool())  # the worker's own, as a pipeline's
     scvx = transfer.scvx(config, SubproblemOptions(**job.subproblem), pool)
     result = scvx.solve(learned.dv, deadline=until, projected=learned.warm_start)

@@ -334,6 +334,10 @@ class PlanResult:
     window: Any = None  # `planning.window.PlanWindow` of a windowed replan (None: not one)
     carry: CarryReport | None = None  # what the plan did with the plan in force
     scp_iterations_all: int = 0  # iterations of every SCVx* run of this plan, kept or not
+    # the path its numerics ran on: "compiled", "numpy", or "mixed" (the kernels became ready
+    # during the plan); "" = not said (a result not made by `GuidancePipeline.plan`)
+    numerics: str = ""
+    deadline_hit: bool = False  # a stage found the plan's deadline passed (`deadline`)
 
     @property
     def art_dv_rtn_mps(self) -> np.ndarray | None:
@@ -368,6 +372,8 @@ class PlanResult:
             "constraint_margin_m": self.constraint_margin_m,
             "window": None if self.window is None else self.window.to_json(),
             "carry": None if self.carry is None else self.carry.to_json(),
+            "numerics_path": self.numerics,
+            "deadline_hit": self.deadline_hit,
         }
 
 

@@ -31,7 +31,7 @@ from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_T
 from art_guidance.record.replay_rows import ROLLOUT_ABS_TOL_MPS, art_rows, window_rows
 from art_guidance.record.scan import Damage, FileScan, lend_channels, scan_file
 from art_guidance.record.seal import (
-    SEAL_KEY, SEALING_LIBRARY, seal_problems, shown, shown_name, unknown_fields,
+    SEAL_KEY, seal_problems, shown, shown_name, unknown_fields, writer_seals,
 )
 
 COST_REL_TOL = 1e-6     # relative cost agreement of a re-solve
@@ -43,6 +43,9 @@ EXIT_UNCOMPARED = 4  # no compared solve differs, but solves recorded with anoth
 #                      the one replayed were not compared (without `allow_uncompared`)
 OTHER_MODEL = "recorded with a different model"
 DEADLINE_HIT = "recorded solve hit its deadline"
+MIXED_NUMERICS = ("recorded while the kernels became ready: part of it on the numpy path, "
+                  "part compiled")
+NO_COMPILED = "recorded on the compiled path, which is not available here"
 NOT_REPLAYED = "the recording was altered and no longer reads"
 
 
@@ -89,7 +92,7 @@ class RecordedLog:
         problems, unsealed = [], []
         last = next(reversed(self.metadata_records), None)
         for name, record in self.metadata_records.items():
-            found = seal_problems(record, self.writers.get(name) == SEALING_LIBRARY)
+            found = seal_problems(record, writer_seals(self.writers.get(name)))
             if found is None:
                 unsealed.append(name)
             problems += [f"{name}: {problem}" for problem in found or []]
@@ -318,8 +321,25 @@ def _recorded_config(log: RecordedLog, path: str | Path) -> dict:
     return recorded
 
 
+def _recorded_path(record: object, pipeline: GuidancePipeline | None) -> str:
+    """The numerics path to replay a solve on, set for the process (`kernels.prepare`, the
+    compiled kernels waited for): the record's (`numerics`), the configuration's for records
+    before the field; or why it cannot be replayed faithfully (MIXED_NUMERICS, NO_COMPILED)."""
+    recorded = str(getattr(record, "numerics", ""))
+    if recorded == "mixed":
+        return MIXED_NUMERICS
+    if recorded not in kernels.NUMERICS:
+        if pipeline is None:
+            return ""
+        recorded = pipeline.config.planning.numerics
+    kernels.prepare(recorded, wait=True)
+    if recorded == "compiled" and not kernels.compiled():
+        return NO_COMPILED
+    return recorded
+
+
 def replay(path: str | Path, model: str | Path | None = None,
-           allow_uncompared: bool = False) -> dict:
+           allow_uncompared: bool = False, numerics: str | None = None) -> dict:
     """Re-solve every recorded request; returns a JSON-ready report with a per-solve verdict.
 
     A solve matches when the replayed plan's cost agrees to COST_REL_TOL and every delta-v
@@ -327,7 +347,15 @@ def replay(path: str | Path, model: str | Path | None = None,
     agrees to ROLLOUT_ABS_TOL_MPS and the post hoc decision and the warm start kept are the
     same. A solve that used the learned warm start of another model than the one replayed is
     not compared (`uncompared`); nor is a solve that hit its deadline (`deadline_hit`: replays
-    are not time-boxed, so it cannot be reproduced).
+    are not time-boxed, so it cannot be reproduced; the record's flag, or for records before
+    it a TIMEOUT in the texts).
+
+    Each solve is replayed on the numerics path it ran on (the record's `numerics`: the numpy
+    path while the kernels compiled on a cold cache, or compiled): the two paths make the same
+    decisions, not the same floats. A solve recorded on the compiled path where the kernels
+    cannot be used here, or recorded while they became ready (`mixed`), is not compared (its
+    reason says why). `numerics` replays every solve on that path instead; records made before
+    the field replay on the recorded configuration's path.
 
     The report also says what could not be read (`damaged`, `truncated`: torn ends), what was
     lost against metadata.yaml (`lost`), which records or plans lack their partner
@@ -347,6 +375,8 @@ def replay(path: str | Path, model: str | Path | None = None,
         model: checkpoint to replay learned warm starts with (default: the shipped model if it
             is the recorded one; see the report's "model" note otherwise).
         allow_uncompared: solves left uncompared for another model do not set the exit code.
+        numerics: "compiled" or "numpy": the path of every replayed solve (None: each solve's
+            recorded path).
 
     Raises:
         InputError: no such log, no configuration in it, or a recorded value that cannot be
@@ -362,8 +392,8 @@ def replay(path: str | Path, model: str | Path | None = None,
         # the pipeline as recorded: configuration, ranking of the candidates, model; replays
         # are not time-boxed (timed-out solves are flagged)
         pipeline = GuidancePipeline.from_config_json(recorded, provider, time_boxed=False)
-        # the replay plans on the recorded numerics (chosen here, its entry)
-        kernels.set_numerics(pipeline.config.planning.numerics)
+        # the replay plans on the recorded numerics (chosen here, its entry), or as asked
+        kernels.set_numerics(numerics or pipeline.config.planning.numerics)
     except GuidanceError as exc:
         if not (metadata_problems or config_problem):
             raise  # nothing says it was altered: the log cannot be replayed as it is
@@ -375,8 +405,14 @@ def replay(path: str | Path, model: str | Path | None = None,
         row = {"plan_id": plan.plan_id, "status": plan.status_text.split(":")[0],
                "cost_mps": cost, "request_stamp_ns": request_stamp_ns(record)}
         reason = str(getattr(record, "warm_start_reason", ""))
-        if plan.status_text.startswith("TIMEOUT") or "TIMEOUT" in reason:
+        if bool(getattr(record, "deadline_hit", False)) or plan.status_text.startswith(
+                "TIMEOUT") or "TIMEOUT" in reason:
             row.update(match=None, reason=DEADLINE_HIT)
+            rows.append(row)
+            continue
+        path = numerics or _recorded_path(record, pipeline)
+        if path in (MIXED_NUMERICS, NO_COMPILED):
+            row.update(match=None, reason=path)
             rows.append(row)
             continue
         if pipeline is None:
@@ -387,6 +423,7 @@ def replay(path: str | Path, model: str | Path | None = None,
             row.update(match=None, reason=OTHER_MODEL)
             rows.append(row)
             continue
+        row["numerics"] = path
         result = pipeline.plan(PlanRequest.from_json(json.loads(record.request_json)))
         d_cost = abs(result.cost_mps - cost) / max(abs(cost), 1e-12)
         d_dv = (float(np.max(np.abs(result.dv_rtn_mps - dv)))

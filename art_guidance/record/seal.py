@@ -11,9 +11,11 @@ damaged. A recording from before the seal has no `metadata_seal` and is reported
 (its configuration is still sealed by its own `record_sha256`).
 
 A record without `metadata_seal` must still have one where its file says that its writer seals
-every record (the MCAP header's `library` is `SEALING_LIBRARY`; the package version in
+every record (the MCAP header's `library` is `SEALING_LIBRARY`, one character damaged or not:
+`writer_seals`; the package version in
 `versions` is the same with and without the seal, and files sealed before that header say
-"art_guidance") or where another field holds a seal (its key was altered): `seal_problems` then
+"art_guidance") or where another field holds a seal (its key was altered; a seal is known by
+its shape, one of its own keys damaged or not): `seal_problems` then
 reports the seal as altered, checks the values against a seal found under another key, and
 names every field that is not run metadata (`RUN_METADATA_KEYS`).
 """
@@ -57,12 +59,35 @@ def unknown_fields(metadata: dict[str, str]) -> list[str]:
     return sorted(set(metadata) - RUN_METADATA_KEYS - {SEAL_KEY})
 
 
+SEAL_FIELDS = frozenset({"format", "fields", "sha256"})
+
+
 def _reads_as_seal(value: str) -> bool:
+    """Whether `value` is a seal by its shape: a JSON object of three keys, at least two of
+    them the seal's (one key damaged outside any CRC does not make it something else)."""
     try:
         body = json.loads(value)
     except ValueError:
         return False
-    return isinstance(body, dict) and set(body) == {"format", "fields", "sha256"}
+    return isinstance(body, dict) and len(body) == 3 and len(set(body) & SEAL_FIELDS) >= 2
+
+
+def _one_edit(a: str, b: str) -> bool:
+    """`a` and `b` differ by at most one character changed, inserted or removed."""
+    if abs(len(a) - len(b)) > 1:
+        return False
+    if len(a) == len(b):
+        return sum(x != y for x, y in zip(a, b)) <= 1
+    short, long_ = sorted((a, b), key=len)
+    i = next((k for k, (x, y) in enumerate(zip(short, long_)) if x != y), len(short))
+    return short[i:] == long_[i + 1:]
+
+
+def writer_seals(library: str | None) -> bool:
+    """Whether a file whose MCAP header names `library` was written by a recorder that seals
+    every record: `SEALING_LIBRARY`, also with one character damaged (the header lies outside
+    every CRC)."""
+    return library is not None and _one_edit(str(library), SEALING_LIBRARY)
 
 
 def seal(metadata: dict[str, str]) -> dict[str, str]:

@@ -177,6 +177,7 @@ def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str, trigger: s
     msg.timing_scp_ms, msg.timing_total_ms = float(t.get("scp", 0.0)), float(t.get("total", 0.0))
     msg.request_json = json.dumps(result.request.to_json() if result.request else {})
     msg.window_json = "" if result.window is None else json.dumps(result.window.to_json())
+    msg.numerics, msg.deadline_hit = result.numerics, bool(result.deadline_hit)
     return msg
 
 

@@ -114,7 +114,7 @@ class GuidanceNodeBase:
             terminal_tolerance_m=p.terminal_tolerance_m,
             terminal_tolerance_mps=p.terminal_tolerance_mps,
             endgame_cost_cap_mps=p.endgame_cost_cap_mps,
-            endgame_cost_per_m=p.endgame_cost_per_m))
+            endgame_cost_per_m=p.endgame_cost_per_m, terminal_set_nodes=p.terminal_set_nodes))
         self.scenario = config.scenario
         if p.default_waypoint not in self.scenario.waypoints_rtn:
             raise ConfigError(f"default_waypoint {shown_value(p.default_waypoint)} is not one of "
@@ -321,7 +321,8 @@ class GuidanceNodeBase:
         if not state:
             return {}
         if deaths > self._worker_deaths:
-            self._log().warning(f"the proposal worker process died ({deaths} in all): "
+            self._log().warning(f"the proposal worker process died or stalled ({deaths} in "
+                                f"all): "
                                 f"{self.pipeline.proposal_worker_error}; proposals are made "
                                 f"in line until it runs again")
             self._worker_deaths = deaths

@@ -234,11 +234,17 @@ SPECS: dict[str, ParamSpec] = {
     "endgame_cost_per_m": ParamSpec("endgame keep_cap: what a metre of predicted terminal "
                                     "error is worth [m/s per m] (default: planning.yaml)",
                                     "float", minimum=0.0),
+    "terminal_set_nodes": ParamSpec("endgame: a replan it makes with this many nodes left or "
+                                    "fewer ends anywhere within terminal_set_share of the "
+                                    "terminal tolerances of the waypoint (a terminal set: two "
+                                    "second-order cones in CVX and SCVx*) instead of on it; 0: "
+                                    "every plan ends on the waypoint (default: planning.yaml)",
+                                    "int", minimum=0),
 }
 # parameters whose defaults come from planning.yaml, not guidance_node.yaml
 PLANNING_PARAMETERS = ("samples_per_node", "numerics", "replan_warm_start", "endgame",
                        "terminal_tolerance_m", "terminal_tolerance_mps", "endgame_cost_cap_mps",
-                       "endgame_cost_per_m")
+                       "endgame_cost_per_m", "terminal_set_nodes")
 # the replan policy's parameters (`planning.replan.ReplanSettings`)
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
@@ -285,6 +291,7 @@ class NodeParameters:
     terminal_tolerance_mps: float
     endgame_cost_cap_mps: float
     endgame_cost_per_m: float
+    terminal_set_nodes: int
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any]) -> "NodeParameters":

@@ -259,3 +259,24 @@ def test_an_unsealed_bag_is_checked_by_its_configuration_seal_first(tmp_path, fl
     _rewrite(bag, lambda m: {**m, "config": config, "art_runtime": "onny"})
     assert cli_main(["replay", str(bag)]) == 2
     assert "onny" in capsys.readouterr().err
+
+
+def test_three_damages_outside_any_crc_do_not_unseal_a_sealed_bag(tmp_path, flown, capsys):
+    """One character of the MCAP header's library, one of the key metadata_seal and one of a
+    key inside the seal's JSON, together: the seal is still known by its shape (and the writer
+    by its library, one character off), so the bag is altered, not unsealed: exit 1, naming
+    the seal."""
+    bag = _bag(tmp_path, flown)
+
+    def damage(m: dict) -> dict:
+        inner = m[SEAL_KEY].replace('"fields"', '"fieldz"')
+        return {**_unsealed(m), "metadata_seaX": inner}
+
+    _rewrite(bag, damage, library=SEALING_LIBRARY.replace("writes", "wrltes"))
+    assert cli_main(["replay", str(bag)]) == EXIT_MISMATCH
+    out = capsys.readouterr().out
+    assert "unsealed" not in out
+    for name in ("guidance_0.mcap", "guidance_1.mcap"):
+        assert (f"METADATA: {name}: no metadata_seal, but metadata_seaX holds a seal: its key "
+                "was altered after recording") in out, out
+        assert f"METADATA: {name}: metadata_seal = " in out and "does not read" in out

@@ -171,3 +171,96 @@ def test_replay_on_a_truncated_cache_exits_as_without_damage(template, tmp_path)
             assert "moved to" in out.stderr, out.stderr
             _stop_filler(where)
     assert codes == [0, 0], codes
+
+
+def test_a_full_disk_compiles_in_memory_and_moves_nothing(tmp_path):
+    """ENOSPC while the cache is written (here: the third data file; a 600 kB folder behaves
+    alike) is not damage: the files written so far stay where they are, nothing moves to
+    `damaged/`, the kernels are compiled in memory (the compiled path in use), the message
+    names the full disk, and `art-guidance kernels` (the flight image's build step) exits 1."""
+    code = """
+import errno, sys
+from numba.core import caching
+saved = []
+original = caching.IndexDataCacheFile._save_data
+def save_data(self, name, data):
+    if len(saved) >= 2:
+        raise OSError(errno.ENOSPC, "No space left on device")
+    saved.append(name)
+    return original(self, name, data)
+caching.IndexDataCacheFile._save_data = save_data
+from art_guidance import kernels
+from art_guidance.kernels.__main__ import main
+code = main([])
+print("COMPILED" if kernels.compiled() else "NUMPY")
+sys.exit(code)
+"""
+    cache_dir = tmp_path / "numba"
+    out = _python(code, cache_dir)
+    assert out.returncode == 1, out.stdout + out.stderr
+    assert "cannot be written (ENOSPC" in out.stdout, out.stdout
+    assert "compiled in memory" in out.stdout and "COMPILED" in out.stdout
+    assert "Traceback" not in out.stderr
+    assert not list(cache_dir.rglob(cache.DAMAGED_FOLDER))
+    assert len(list(cache_dir.rglob("*.nbc"))) == 2  # what was written stays
+
+
+def _hold_lock(where: Path):
+    """The fill lock of `where` taken by this process, as a stalled filler holds it."""
+    import fcntl
+
+    where.mkdir(parents=True, exist_ok=True)
+    f = open(where / cache.LOCK_NAME, "a+b")
+    fcntl.flock(f, fcntl.LOCK_EX)
+    f.seek(0)
+    f.truncate()
+    f.write(str(os.getpid()).encode())
+    f.flush()
+    return f
+
+
+def test_a_stalled_filler_s_lock_is_waited_for_within_a_bound_naming_its_pid(
+        tmp_path, monkeypatch):
+    """A filler that stalls holding the fill lock: a waiter gives up after the bound
+    (`LOCK_WAIT_ENV`; it then compiles in memory and `art-guidance kernels` exits 1), naming
+    the holder's pid, and `kernels --status` names the filler in progress."""
+    root = tmp_path / "numba"
+    out = _python("from art_guidance.kernels import cache; print(cache.folder())", root)
+    where = Path(out.stdout.strip().splitlines()[-1])
+    held = _hold_lock(where)
+    try:
+        monkeypatch.setenv(cache.LOCK_WAIT_ENV, "0.3")
+        with pytest.raises(cache.LockBusy, match=f"process {os.getpid()} has held the fill "
+                           "lock"):
+            with cache.fill_lock(where):
+                pass
+        status = _python("from art_guidance import kernels; print(kernels.cache_status())",
+                         root)
+        assert f"being filled by process {os.getpid()}" in status.stdout, status.stdout
+    finally:
+        held.close()
+    with cache.fill_lock(where):  # free again: taken at once
+        assert cache.filler_pid(where) == os.getpid()
+
+
+def test_one_filler_per_folder(tmp_path):
+    """A process that finds the folder's fill lock held starts no filler of its own (it waits
+    for that one's kernels); one that finds it free starts one, holding the lock for it."""
+    code = ("import sys; from pathlib import Path; from art_guidance import kernels; "
+            "from art_guidance.kernels import cache; "
+            "child = kernels._start_filler(cache, Path(sys.argv[1])); "
+            "print('NONE' if child is None else 'STARTED'); "
+            "child is None or (child.kill(), child.wait())")
+    where = tmp_path / "kernels"
+
+    def start() -> str:
+        return subprocess.run([sys.executable, "-c", code, str(where)],
+                              env=_env(tmp_path / "numba"), capture_output=True, text=True,
+                              timeout=120).stdout.strip()
+
+    held = _hold_lock(where)
+    try:
+        assert start() == "NONE"
+    finally:
+        held.close()
+    assert start() == "STARTED"

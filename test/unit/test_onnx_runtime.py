@@ -250,14 +250,23 @@ def test_plan_flies_the_learned_warm_start_where_torch_cannot_be_imported(tmp_pa
 
 
 def test_a_missing_onnxruntime_is_named_and_auto_keeps_torch(tmp_path):
+    """Without ONNX Runtime, "auto" flies the checkpoint on torch, also where the .onnx itself
+    is given as the model (the checkpoint beside it, the reason in the note), as a damaged
+    .onnx does; "onnx" names the missing package."""
     code = ("from art_guidance.art.provider import ArtWarmStart, default_model_path\n"
             "from art_guidance.errors import ModelError\n"
             "assert ArtWarmStart.load(default_model_path(), runtime='auto').runtime == 'torch'\n"
+            "p = ArtWarmStart.load(default_model_path().with_suffix('.onnx'), runtime='auto')\n"
+            "assert p.runtime == 'torch', p.runtime\n"
+            "print('NOTE', p.note)\n"
             "try:\n    ArtWarmStart.load(default_model_path(), runtime='onnx')\n"
             "except ModelError as exc:\n    print(exc)\n")
     run = _python(code, "onnxruntime", tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "onnxruntime" in run.stdout and "not installed" in run.stdout
+    assert ("NOTE art_slim1e40_chance_rtn.onnx refused: it runs on ONNX Runtime, which is not "
+            "installed; the checkpoint beside it, art_slim1e40_chance_rtn.pt, flies on torch"
+            in run.stdout), run.stdout
 
 
 def test_export_writes_whole_files_and_never_overwrites_without_force(tmp_path, capsys):

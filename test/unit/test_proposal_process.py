@@ -89,6 +89,51 @@ def test_a_plan_that_fails_while_the_proposal_is_out_frees_the_worker(concurrent
     assert result.scp.feasible and result.proposal is not None, result.warm_start_reason
 
 
+@pytest.mark.parametrize("when", ["after a plan", "mid-job"])
+def test_a_stalled_worker_never_holds_a_plan_past_its_deadline(concurrent, monkeypatch, when):
+    """The worker stopped (SIGSTOP: a swapped-out or starved process behaves alike) after a
+    plan, or while it makes the plan's proposal: the plan is published by its deadline (4 s;
+    slack 1 s for one SCVx* iteration's overrun and the kill) with a usable plan (SCVx* from
+    CVX, solved meanwhile), the stall is counted as a death with its reason, and a later plan
+    has a worker again."""
+    import os
+    import signal
+
+    worker = concurrent.producers.worker()
+    assert worker.alive or concurrent.start_proposal_worker(), concurrent.proposal_worker_error
+    requests = heldout_requests(12, DEFAULT_MODELS["chance"])
+    request = next(r for r in requests if concurrent.plan(r).proposal is not None)
+    pid, deaths, stalls = worker._proc.pid, worker.deaths, worker.stalls
+    try:
+        if when == "after a plan":
+            os.kill(pid, signal.SIGSTOP)
+        else:
+            solve = Scvx.solve
+
+            def stop_then_solve(self, *args, **kwargs):
+                os.kill(pid, signal.SIGSTOP)
+                return solve(self, *args, **kwargs)
+
+            monkeypatch.setattr(Scvx, "solve", stop_then_solve)
+        t0 = time.perf_counter()
+        result = concurrent.plan(request)
+        took_s = time.perf_counter() - t0
+        monkeypatch.undo()
+    finally:
+        try:
+            os.kill(pid, signal.SIGCONT)  # a worker not given up is let go on
+        except ProcessLookupError:
+            pass
+    assert took_s <= 4.0 + 1.0, took_s
+    assert result.scp.feasible, result.scp.status
+    assert worker.deaths == deaths + 1 and worker.stalls == stalls + 1
+    assert "stalled" in concurrent.proposal_worker_error
+    assert worker._proc is None or worker._proc.pid != pid  # the stopped one is gone
+    assert concurrent.start_proposal_worker(), concurrent.proposal_worker_error
+    assert any(concurrent.plan(r).proposal is not None for r in requests)
+    assert concurrent.proposal_worker_error == ""
+
+
 def test_close_is_bounded_while_a_job_is_out(concurrent, monkeypatch):
     """A job never collected (a caller stuck elsewhere) does not hold the shutdown: `close`
     kills the worker after CLOSE_WAIT_S."""
@@ -132,7 +177,7 @@ def test_a_cancel_stops_its_own_job_only():
     from art_guidance.planning.worker_messages import CancellableDeadline, CancelSlot
 
     slot = CancelSlot(multiprocessing.get_context("spawn"))
-    first, second = (CancellableDeadline(math.inf, slot, j) for j in (1, 2))
+    first, second = (CancellableDeadline(math.inf, slot=slot, job_id=j) for j in (1, 2))
     assert not first.passed() and not second.passed()
     slot.cancel(1)
     assert first.passed() and not second.passed()
