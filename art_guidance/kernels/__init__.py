@@ -357,10 +357,15 @@ def _start_filler(cache, where: Path) -> subprocess.Popen | None:
     if fd is not None:
         env[cache.LOCK_FD_ENV] = str(fd)
     try:
-        return subprocess.Popen([sys.executable, "-m", "art_guidance.kernels", "--quiet"],
-                                env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, pass_fds=() if fd is None else (fd,),
-                                start_new_session=True)  # outlives a one-shot command
+        child = subprocess.Popen([sys.executable, "-m", "art_guidance.kernels", "--quiet"],
+                                 env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.DEVNULL,
+                                 pass_fds=() if fd is None else (fd,),
+                                 start_new_session=True)  # outlives a one-shot command
+        if fd is not None:  # who fills (`cache.filler_pid`), from now on
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, str(child.pid).encode(), 0)
+        return child
     except OSError:
         return None
     finally:

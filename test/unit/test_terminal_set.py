@@ -162,7 +162,7 @@ def test_the_end_game_puts_the_set_on_its_last_replans_only():
     planning = PlanningConfig(terminal_set_nodes=5, terminal_set_share=0.5)
     assert in_set_under(planning, 5) == TerminalSet(5.0, 0.01)
     assert in_set_under(planning, 6) is None and in_set_under(planning, 0) is None
-    assert in_set_under(PlanningConfig(), 3) is None  # terminal_set_nodes 0: off
+    assert in_set_under(PlanningConfig(terminal_set_nodes=0), 3) is None  # 0: off
     assert in_set_under(dataclasses.replace(planning, endgame="none"), 3) is None
     for bad in ({"terminal_set_nodes": -1}, {"terminal_set_share": 0.0},
                 {"terminal_set_share": 1.5}, {"terminal_set_nodes": 2.5}):
