@@ -297,24 +297,16 @@ class PlanningConfig:
     terminal_set_share: float = 0.5
 
     def __post_init__(self) -> None:
-        if self.endgame not in ENDGAMES:
-            raise ConfigError(f"endgame must be one of {ENDGAMES}, got {self.endgame!r}")
-        if self.replan_warm_start not in REPLAN_WARM_STARTS:
-            raise ConfigError(f"replan_warm_start must be one of {REPLAN_WARM_STARTS}, got "
-                              f"{self.replan_warm_start!r}")
-        if self.numerics not in NUMERICS:
-            raise ConfigError(f"numerics must be one of {NUMERICS}, got {self.numerics!r}")
-        if self.posthoc_subject not in POSTHOC_SUBJECTS:
-            raise ConfigError(f"posthoc_subject must be one of {POSTHOC_SUBJECTS}, got "
-                              f"{self.posthoc_subject!r}")
-        for name in ("tolerance_growth_nodes", "terminal_set_nodes"):
+        for name, choices in (("endgame", ENDGAMES), ("replan_warm_start", REPLAN_WARM_STARTS),
+                              ("numerics", NUMERICS), ("posthoc_subject", POSTHOC_SUBJECTS)):
+            if getattr(self, name) not in choices:
+                raise ConfigError(f"{name} must be one of {choices}, got "
+                                  f"{getattr(self, name)!r}")
+        for name, least in (("tolerance_growth_nodes", 0), ("terminal_set_nodes", 0),
+                            ("samples_per_node", 1)):
             g = getattr(self, name)
-            if isinstance(g, bool) or not isinstance(g, int) or g < 0:
-                raise ConfigError(f"{name} must be an integer >= 0, got {g!r}")
-        k = self.samples_per_node
-        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-            raise ConfigError(f"samples_per_node must be an integer >= 1, "
-                              f"got {self.samples_per_node!r}")
+            if isinstance(g, bool) or not isinstance(g, int) or g < least:
+                raise ConfigError(f"{name} must be an integer >= {least}, got {g!r}")
         for name in ("also_solve_from_cvx", "also_solve_from_art", "propose_concurrently",
                      "skip_art_when_cvx_safe", "aim_within_tolerance", "first_plan_from_both"):
             if not isinstance(getattr(self, name), bool):
@@ -329,14 +321,12 @@ class PlanningConfig:
             if isinstance(gain, bool) or not isinstance(gain, (int, float)) \
                     or not 0.0 <= gain < float("inf"):
                 raise ConfigError(f"{name} must be a finite number >= 0 [{unit}], got {gain!r}")
-        share = self.terminal_set_share
-        if isinstance(share, bool) or not isinstance(share, (int, float)) \
-                or not 0.0 < share <= 1.0:
-            raise ConfigError(f"terminal_set_share must be in (0, 1], got {share!r}")
-        share = self.art_deadline_share
-        if isinstance(share, bool) or not isinstance(share, (int, float)) \
-                or not 0.0 < share < 1.0:
-            raise ConfigError(f"art_deadline_share must be in (0, 1), got {share!r}")
+        for name, shut in (("terminal_set_share", True), ("art_deadline_share", False)):
+            share = getattr(self, name)
+            if isinstance(share, bool) or not isinstance(share, (int, float)) \
+                    or not (0.0 < share < 1.0 or (shut and share == 1.0)):
+                raise ConfigError(f"{name} must be in (0, 1{']' if shut else ')'}, got "
+                                  f"{share!r}")
         if isinstance(self.posthoc, Mapping):
             thresholds = _from_mapping(PosthocThresholds, self.posthoc, "posthoc")
             object.__setattr__(self, "posthoc", thresholds)

@@ -96,9 +96,8 @@ def resolve_model_path(spec: str | None, chance_constrained: bool = True) -> Pat
 
 
 def _without_onnx_runtime(path: Path, runtime: str) -> tuple[Path, str]:
-    """On "auto", an exported (.onnx) `path` where ONNX Runtime is not installed gives way to
-    the checkpoint beside it on torch (where it is there and torch is installed), as a refused
-    exported file does: (the file to load, why it is not `path`; "" = it is)."""
+    """On "auto", an .onnx `path` without ONNX Runtime gives way to the checkpoint beside it on
+    torch (where torch is there), as a refused .onnx does: (file to load, why not `path`)."""
     if runtime != "auto" or path.suffix != ONNX_SUFFIX or installed("onnxruntime"):
         return path, ""
     beside = checkpoint_beside(path)

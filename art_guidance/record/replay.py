@@ -28,7 +28,9 @@ from art_guidance.planning.config_record import recorded_config_problem
 from art_guidance.record.bag_metadata import bag_files
 from art_guidance.record.loss import account
 from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE
-from art_guidance.record.replay_rows import ROLLOUT_ABS_TOL_MPS, art_rows, window_rows
+from art_guidance.record.replay_rows import (  # noqa: F401 (the reasons, as before)
+    MIXED_NUMERICS, NO_COMPILED, ROLLOUT_ABS_TOL_MPS, art_rows, recorded_path, window_rows,
+)
 from art_guidance.record.scan import Damage, FileScan, lend_channels, scan_file
 from art_guidance.record.seal import (
     SEAL_KEY, seal_problems, shown, shown_name, unknown_fields, writer_seals,
@@ -43,9 +45,6 @@ EXIT_UNCOMPARED = 4  # no compared solve differs, but solves recorded with anoth
 #                      the one replayed were not compared (without `allow_uncompared`)
 OTHER_MODEL = "recorded with a different model"
 DEADLINE_HIT = "recorded solve hit its deadline"
-MIXED_NUMERICS = ("recorded while the kernels became ready: part of it on the numpy path, "
-                  "part compiled")
-NO_COMPILED = "recorded on the compiled path, which is not available here"
 NOT_REPLAYED = "the recording was altered and no longer reads"
 
 
@@ -321,23 +320,6 @@ def _recorded_config(log: RecordedLog, path: str | Path) -> dict:
     return recorded
 
 
-def _recorded_path(record: object, pipeline: GuidancePipeline | None) -> str:
-    """The numerics path to replay a solve on, set for the process (`kernels.prepare`, the
-    compiled kernels waited for): the record's (`numerics`), the configuration's for records
-    before the field; or why it cannot be replayed faithfully (MIXED_NUMERICS, NO_COMPILED)."""
-    recorded = str(getattr(record, "numerics", ""))
-    if recorded == "mixed":
-        return MIXED_NUMERICS
-    if recorded not in kernels.NUMERICS:
-        if pipeline is None:
-            return ""
-        recorded = pipeline.config.planning.numerics
-    kernels.prepare(recorded, wait=True)
-    if recorded == "compiled" and not kernels.compiled():
-        return NO_COMPILED
-    return recorded
-
-
 def replay(path: str | Path, model: str | Path | None = None,
            allow_uncompared: bool = False, numerics: str | None = None) -> dict:
     """Re-solve every recorded request; returns a JSON-ready report with a per-solve verdict.
@@ -410,7 +392,8 @@ def replay(path: str | Path, model: str | Path | None = None,
             row.update(match=None, reason=DEADLINE_HIT)
             rows.append(row)
             continue
-        path = numerics or _recorded_path(record, pipeline)
+        path = numerics or recorded_path(record, None if pipeline is None
+                                         else pipeline.config.planning.numerics)
         if path in (MIXED_NUMERICS, NO_COMPILED):
             row.update(match=None, reason=path)
             rows.append(row)

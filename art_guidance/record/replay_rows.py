@@ -1,12 +1,35 @@
-"""One replayed solve against its record: the learned step (rollout, post hoc decision, warm
-start kept) and the window (`record.replay`)."""
+"""One replayed solve against its record: the numerics path it is replayed on, the learned
+step (rollout, post hoc decision, warm start kept) and the window (`record.replay`)."""
 from __future__ import annotations
 
 import json
 
 import numpy as np
 
+from art_guidance import kernels
+
 ROLLOUT_ABS_TOL_MPS = 1e-6  # largest ART rollout control difference [m/s] (same model, CPU)
+MIXED_NUMERICS = ("recorded while the kernels became ready: part of it on the numpy path, "
+                  "part compiled")
+NO_COMPILED = "recorded on the compiled path, which is not available here"
+
+
+def recorded_path(record: object, configured: str | None) -> str:
+    """The numerics path to replay a solve on, set for the process (`kernels.prepare`, the
+    compiled kernels waited for): the record's (`numerics`), the `configured` one for records
+    before the field (None: no configuration, ""); or why it cannot be replayed faithfully
+    (MIXED_NUMERICS, NO_COMPILED)."""
+    recorded = str(getattr(record, "numerics", ""))
+    if recorded == "mixed":
+        return MIXED_NUMERICS
+    if recorded not in kernels.NUMERICS:
+        if configured is None:
+            return ""
+        recorded = configured
+    kernels.prepare(recorded, wait=True)
+    if recorded == "compiled" and not kernels.compiled():
+        return NO_COMPILED
+    return recorded
 
 
 def window_rows(record: object, result: object) -> dict:

@@ -194,8 +194,9 @@ def test_a_failing_job_is_answered_with_its_error(tmp_path, pipeline, shipped):
 
 
 def test_a_worker_that_stalls_or_dies_holding_a_job(pipeline, shipped):
-    """A worker that does not answer within the wait is stopped ("no answer within"); one
-    that dies holding a job is found dead when its answer is collected (a death, counted).
+    """A worker that does not answer within the wait is stopped as stalled ("no answer
+    within", a death and a stall, counted); one that dies holding a job is found dead when its
+    answer is collected (a death, counted).
     Either way the caller gets None and the reason, and the next job starts a new worker.
     The worker is held with SIGSTOP, so the job cannot be answered before it is stopped."""
     _, key = shipped
@@ -209,15 +210,17 @@ def test_a_worker_that_stalls_or_dies_holding_a_job(pipeline, shipped):
             os.kill(pid, signal.SIGSTOP)
             assert worker.submit(job) is not None
             if ending == "late":
-                assert worker.collect(0.5) is None
-                assert worker.error == "no answer within 0.5 s" and worker.deaths == 0
+                assert worker.collect(0.5) is None  # a stall: counted with the deaths
+                assert worker.error == ("the worker stalled (no answer within 0.50 s): "
+                                        "stopped, started anew on a later job")
+                assert worker.deaths == 1 and worker.stalls == 1
             else:
                 os.kill(pid, signal.SIGKILL)  # its end of the pipe closes as it dies
                 assert worker.collect(30.0) is None
                 # EOF, or a reset where the job was still unread in the dead worker's socket
                 assert re.match(r"the worker stopped: (EOFError|ConnectionResetError)",
                                 worker.error), worker.error
-                assert worker.deaths == 1
+                assert worker.deaths == 2 and worker.stalls == 1
             assert not worker.alive
         assert worker.submit(job) is None and worker.alive  # started again
         assert worker.error == "the worker process is starting"
