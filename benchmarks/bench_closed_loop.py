@@ -61,7 +61,7 @@ from art_guidance.planning import GuidancePipeline, WarmStartSource
 from art_guidance.planning.learned import CVX_SAFE_REASON
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
 from art_guidance.sim.inprocess import InProcessGuidance
-from common import warm_up
+from common import hard_seeds, warm_up  # noqa: F401 (hard_seeds: as before)
 
 _LOG = logging.getLogger("bench_closed_loop")
 
@@ -142,33 +142,6 @@ def run(repeats: int = 30, warm_starts: bool = True, first_seed: int = 0,
     out["warm_up_ms"] = warm_up_ms
     out["wall_s"] = time.perf_counter() - t0
     return out
-
-
-def hard_seeds(pipeline: GuidancePipeline, first: int, n: int, min_c: int
-               ) -> tuple[list[int], list[int], int]:
-    """The first `n` seeds from `first` whose initial transfer's CVX warm start has
-    C_CVX >= `min_c`; (seeds, their C_CVX, seeds screened)."""
-    from art_guidance.dynamics import roe_from_rtn_linear
-    from art_guidance.planning import PlanRequest
-    from art_guidance.scenarios import sample_scenario
-
-    scenario = pipeline.scenario
-    chief = np.array(scenario.chief_oe)
-    target = np.asarray(scenario.waypoints_rtn[PARAMETERS["waypoint"]], float)
-    seeds, c_cvx, seed = [], [], first
-    while len(seeds) < n and seed < first + 100 * n:
-        rtn0 = sample_scenario(scenario, seed).rtn0
-        request = PlanRequest(chief, roe_from_rtn_linear(chief, rtn0), target,
-                              chance_constrained=True)
-        transfer = pipeline.transfer(request)
-        cvx = transfer.problem.cvx()
-        if cvx.status.feasible:
-            c = int(transfer.safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0])
-            if c >= min_c:
-                seeds.append(seed)
-                c_cvx.append(c)
-        seed += 1
-    return seeds, c_cvx, seed - first
 
 
 def compare_warm_starts(seeds: list[int], runs_cvx: list[dict], model: str | None = None

@@ -22,7 +22,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from art_guidance.ros.env import isolated_ros_env
-from common import REPO, helper_module
+from common import REPO, use_test_helpers
 
 
 def run(repeats: int = 900, first_seed: int = 0) -> dict:
@@ -30,10 +30,10 @@ def run(repeats: int = 900, first_seed: int = 0) -> dict:
     ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_fuzz_"),
                            100 + (os.getpid() + 37) % 100)
     os.environ.update(ros)
-    run_campaign = helper_module("fuzz_messages").run_campaign
-    processes = helper_module("processes")
-    interrupt, process_stats = processes.interrupt, processes.process_stats
-    Client = helper_module("ros_client").Client
+    use_test_helpers()
+    from helpers.fuzz_messages import run_campaign
+    from helpers.processes import interrupt, process_stats
+    from helpers.ros_client import Client
 
     record_dir = tempfile.mkdtemp(prefix="art_guidance_fuzz_bag_")
     env = {**os.environ, **ros, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from art_guidance.ros.env import isolated_ros_env
-from common import REPO, helper_module
+from common import REPO, use_test_helpers
 
 MAX_DELAY_S = 8.0
 TORN_SOLVES = 500
@@ -38,7 +38,8 @@ def torn_window(solves: int = TORN_SOLVES) -> dict:
     from art_guidance.ros.adapters import plan_to_msg, solve_record_msg
     from art_guidance.scenarios import sample_scenario
 
-    nav_msg = helper_module("ros_client").nav_msg
+    use_test_helpers()
+    from helpers.ros_client import nav_msg
     scenario = ScenarioConfig.from_yaml()
     pipeline = GuidancePipeline(GuidanceConfig.load().replace(scenario=scenario))
     chief, s = np.array(scenario.chief_oe), sample_scenario(scenario, 0)
@@ -64,7 +65,8 @@ def run(repeats: int = 50, first_seed: int = 0) -> dict:
     ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_kill_"),
                            100 + (os.getpid() + 53) % 100)
     os.environ.update(ros)
-    kill_once = helper_module("kill_campaign").kill_once
+    use_test_helpers()
+    from helpers.kill_campaign import kill_once
 
     env = {**os.environ, **ros, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1",
            "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}

@@ -130,7 +130,7 @@ def run(repeats: int = 30, first_seed: int = 1000, min_c_cvx: int | None = None,
         seeds = list(range(int(first_seed), int(first_seed) + n))
         out: dict = {}
     else:
-        from bench_closed_loop import hard_seeds
+        from common import hard_seeds
 
         seeds, c_cvx, screened = hard_seeds(GuidancePipeline(), int(first_seed), n,
                                             int(min_c_cvx))
@@ -145,7 +145,7 @@ def run(repeats: int = 30, first_seed: int = 1000, min_c_cvx: int | None = None,
     jobs = [(s, h, t, model, trigger, c) for _, h, t, c in configs for s in seeds]
     from flights import fly_all  # benchmarks/ is on the path
 
-    flights = fly_all("bench_mpc", jobs, workers, "bench mpc")
+    flights = fly_all(_fly_job, jobs, workers, "bench mpc")
     by = {name: flights[i * len(seeds):(i + 1) * len(seeds)]
           for i, (name, *_) in enumerate(configs)}
     full = by["full"]

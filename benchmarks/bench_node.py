@@ -31,7 +31,7 @@ from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.planning import GuidancePipeline, PlanRequest, WarmStartSource
 from art_guidance.ros.env import isolated_ros_env
-from common import helper_module, warm_up
+from common import use_test_helpers, warm_up
 
 
 def _states(repeats: int) -> list[np.ndarray]:
@@ -125,7 +125,8 @@ def run(repeats: int = 30, model: str | None = None) -> dict:
     ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_bench_"),
                            150 + os.getpid() % 50)
     os.environ.update(ros)  # this process is the client
-    ros_client = helper_module("ros_client")  # the tests' DDS client
+    use_test_helpers()
+    from helpers import ros_client  # the tests' DDS client
 
     from art_guidance.art.provider import ArtWarmStart
 

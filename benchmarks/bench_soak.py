@@ -31,7 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 from art_guidance.ros.env import isolated_ros_env
-from common import REPO, helper_module
+from common import REPO, use_test_helpers
 
 MAX_BYTES = 1 << 20
 CAP_BYTES = 8 << 20
@@ -97,8 +97,8 @@ def run(repeats: int = 150, first_seed: int = 0) -> dict:
     ros = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_soak_"),
                            100 + (os.getpid() + 53) % 100)
     os.environ.update(ros)
-    processes = helper_module("processes")
-    interrupt, process_stats = processes.interrupt, processes.process_stats
+    use_test_helpers()
+    from helpers.processes import interrupt, process_stats
 
     work = Path(tempfile.mkdtemp(prefix="art_guidance_soak_run_"))
     bag = work / "bag"

@@ -21,12 +21,13 @@ from art_guidance.scenarios import sample_scenario
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.optim import ScpStatus, TransferProblem
 from art_guidance.safety import PassiveSafety
-from common import warm_up
-from cvxpy_reference import cvxpy_tpbvp
+from common import use_test_helpers, warm_up
 
 
 def run(repeats: int = 50) -> dict:
     """Time the solvers over `repeats` scenarios; returns medians [ms] and ratios."""
+    use_test_helpers()
+    from helpers.cvxpy_reference import cvxpy_tpbvp  # the tests' oracle, the reference here
     warm_up_ms = warm_up()  # the kernels, before the first timed build and solve
     scenario = ScenarioConfig.from_yaml()
     chief = np.array(scenario.chief_oe)

@@ -219,7 +219,7 @@ def compare_configs(configs: str, repeats: int = 30, first_seed: int = 0,
     if min_c_cvx is None:
         seeds = list(range(int(first_seed), int(first_seed) + n))
     else:
-        from bench_closed_loop import hard_seeds
+        from common import hard_seeds
 
         seeds, c_cvx, screened = hard_seeds(GuidancePipeline(), int(first_seed), n,
                                             int(min_c_cvx))
@@ -229,8 +229,7 @@ def compare_configs(configs: str, repeats: int = 30, first_seed: int = 0,
     jobs = [(s, name, model) for s in seeds for name in names]
     from flights import fly_all  # benchmarks/ is on the path
 
-    flights = fly_all("closed_loop_configs", jobs, workers, "bench closed_loop", engine,
-                      ray_address)
+    flights = fly_all(_fly_job, jobs, workers, "bench closed_loop", engine, ray_address)
     by = {name: flights[i::len(names)] for i, name in enumerate(names)}
     summaries = {name: summarise(runs, by[REFERENCE], name) for name, runs in by.items()}
     if TODAY in by:  # the default before the end game: every configuration paired against it

@@ -1,6 +1,7 @@
 """What several benchmarks share: CPU timing, the alternated A/B loop, the decoder's step timer,
-the screen of CVX-unsafe scenarios, the warm-up before the first timed solve, and the tests'
-helpers (test/helpers) the node benchmarks drive a node with.
+the screen of CVX-unsafe scenarios, the hard family's seeds (`hard_seeds`), the warm-up before
+the first timed solve, and the tests' helpers (test/helpers) the node benchmarks drive a node
+with.
 
 Not a benchmark: `art-guidance bench` runs the `bench_*.py` modules only; this one is imported
 by them (benchmarks/ is on the path: the bench command puts it there, pytest's `pythonpath`
@@ -8,12 +9,10 @@ too).
 """
 from __future__ import annotations
 
-import importlib
 import importlib.util
 import sys
 import time
 from pathlib import Path
-from types import ModuleType
 from typing import TYPE_CHECKING, Callable
 
 if TYPE_CHECKING:
@@ -104,11 +103,12 @@ def warm_up(pipeline: GuidancePipeline | None = None, *throwaway: Callable[[], o
     return 1e3 * (time.perf_counter() - t0)
 
 
-def helper_module(name: str) -> ModuleType:
-    """test/helpers/`name`.py, the tests' module the node benchmarks share with them (the DDS
+def use_test_helpers() -> None:
+    """Make test/helpers, the tests' modules the node benchmarks share with them (the DDS
     client `ros_client`, `processes`, the `fuzz_messages` and `kill_campaign` campaigns),
-    imported as `helpers.<name>` without putting test/ on sys.path: the package `helpers` is
-    registered from its folder unless it is imported already (as under pytest)."""
+    importable as the package `helpers` without putting test/ on sys.path: registered from
+    its folder unless it is imported already (as under pytest). The benchmark then imports
+    what it needs by name (`from helpers.ros_client import Client`)."""
     if "helpers" not in sys.modules:
         spec = importlib.util.spec_from_file_location(
             "helpers", TEST_HELPERS / "__init__.py", submodule_search_locations=[
@@ -116,4 +116,33 @@ def helper_module(name: str) -> ModuleType:
         package = importlib.util.module_from_spec(spec)
         sys.modules["helpers"] = package
         spec.loader.exec_module(package)
-    return importlib.import_module(f"helpers.{name}")
+
+
+def hard_seeds(pipeline: GuidancePipeline, first: int, n: int, min_c: int
+               ) -> tuple[list[int], list[int], int]:
+    """The first `n` seeds from `first` whose initial transfer's CVX warm start has
+    C_CVX >= `min_c`; (seeds, their C_CVX, seeds screened)."""
+    import numpy as np
+
+    from art_guidance.dynamics import roe_from_rtn_linear
+    from art_guidance.planning import PlanRequest
+    from art_guidance.scenarios import sample_scenario
+    from art_guidance.sim.closed_loop import PARAMETERS
+
+    scenario = pipeline.scenario
+    chief = np.array(scenario.chief_oe)
+    target = np.asarray(scenario.waypoints_rtn[PARAMETERS["waypoint"]], float)
+    seeds, c_cvx, seed = [], [], first
+    while len(seeds) < n and seed < first + 100 * n:
+        rtn0 = sample_scenario(scenario, seed).rtn0
+        request = PlanRequest(chief, roe_from_rtn_linear(chief, rtn0), target,
+                              chance_constrained=True)
+        transfer = pipeline.transfer(request)
+        cvx = transfer.problem.cvx()
+        if cvx.status.feasible:
+            c = int(transfer.safety.evaluate(cvx.roe_m, cvx.dv_rtn_mps).constraint_to_go[0])
+            if c >= min_c:
+                seeds.append(seed)
+                c_cvx.append(c)
+        seed += 1
+    return seeds, c_cvx, seed - first

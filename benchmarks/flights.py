@@ -2,10 +2,10 @@
 the figures in the order of the jobs."""
 from __future__ import annotations
 
-import importlib
 import multiprocessing
 import os
 from pathlib import Path
+from typing import Callable
 
 from tqdm import tqdm
 
@@ -15,10 +15,14 @@ from art_guidance.jobs import ENGINES
 HERE = str(Path(__file__).resolve().parent)
 
 
-def fly_all(module: str, jobs: list[tuple], workers: int, desc: str, engine: str = "local",
-            address: str | None = None) -> list[dict]:
-    """The figures of every job, in order: `module`'s `_fly_job(job)` on `workers` spawned
-    processes (the module as they import it: benchmarks/ is on the path), in this one
+FlyJob = Callable[[tuple], dict]
+
+
+def fly_all(fly_job: FlyJob, jobs: list[tuple], workers: int, desc: str,
+            engine: str = "local", address: str | None = None) -> list[dict]:
+    """The figures of every job, in order: `fly_job(job)` (a benchmark module's top-level
+    function, pickled by reference) on `workers` spawned processes (which import its module:
+    benchmarks/ is on the path), in this one
     (`workers` <= 1), or, with `engine` "ray", as Ray tasks of one CPU each (a local instance
     of `workers` CPUs, or the cluster at `address`; benchmarks/ travels on the tasks'
     PYTHONPATH, so every node needs this checkout at the same path).
@@ -30,8 +34,7 @@ def fly_all(module: str, jobs: list[tuple], workers: int, desc: str, engine: str
     if engine not in ENGINES:
         raise InputError("--engine", f"must be one of {ENGINES}", engine)
     if engine == "ray":
-        return _fly_ray(module, jobs, workers, desc, address)
-    fly_job = importlib.import_module(module)._fly_job
+        return _fly_ray(fly_job, jobs, workers, desc, address)
     if int(workers) > 1:
         with multiprocessing.get_context("spawn").Pool(int(workers)) as pool:
             return list(tqdm(pool.imap(fly_job, jobs, chunksize=1), total=len(jobs),
@@ -39,12 +42,7 @@ def fly_all(module: str, jobs: list[tuple], workers: int, desc: str, engine: str
     return [fly_job(j) for j in tqdm(jobs, desc=desc, unit="flight")]
 
 
-def _fly(module: str, job: tuple) -> dict:
-    """One job in a Ray task (benchmarks/ is on its PYTHONPATH)."""
-    return importlib.import_module(module)._fly_job(job)
-
-
-def _fly_ray(module: str, jobs: list[tuple], workers: int, desc: str,
+def _fly_ray(fly_job: FlyJob, jobs: list[tuple], workers: int, desc: str,
              address: str | None) -> list[dict]:
     try:
         import ray
@@ -59,8 +57,8 @@ def _fly_ray(module: str, jobs: list[tuple], workers: int, desc: str,
                  runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}},
                  **kwargs)
     try:
-        remote = ray.remote(num_cpus=1)(_fly)
-        refs = [remote.remote(module, job) for job in jobs]
+        remote = ray.remote(num_cpus=1)(fly_job)  # benchmarks/ is on the tasks' PYTHONPATH
+        refs = [remote.remote(job) for job in jobs]
         index = {ref: i for i, ref in enumerate(refs)}
         out: list[dict | None] = [None] * len(refs)
         pending = list(refs)

@@ -10,7 +10,7 @@ from art_guidance.files import write_json_atomic
 
 def run(args: argparse.Namespace) -> int:
     """Run benchmarks from benchmarks/ and print medians and ratios against references."""
-    import importlib.util
+    import importlib
     import inspect
     from pathlib import Path
 
@@ -27,9 +27,8 @@ def run(args: argparse.Namespace) -> int:
         path = root / f"bench_{name}.py"
         if not path.is_file():
             raise InputError("bench", f"unknown benchmark; choose from {names + ['all']}", name)
-        spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
+        # imported as itself (benchmarks/ on the path): its workers import it by that name
+        module = importlib.import_module(f"bench_{name}")
         kwargs = {"repeats": args.repeats} if args.repeats else {}
         accepted = inspect.signature(module.run).parameters
         for dest, value in extra.items():

@@ -152,3 +152,34 @@ def test_the_planner_middle_stays_small():
     assert lines <= 40, f"_plan is {lines} lines"
     path = PACKAGE / "planning" / "pipeline.py"
     assert len(path.read_text().splitlines()) <= 350
+
+
+BENCHMARKS = PACKAGE.parent / "benchmarks"
+
+
+def benchmark_graph() -> dict[str, set[str]]:
+    """benchmarks/' modules (each on the path under its file's name) -> those of them it
+    imports, deferred imports included."""
+    files = {p.stem: p for p in sorted(BENCHMARKS.glob("*.py"))}
+    return {name: imported_by_source(name, path.read_text(), set(files), filename=str(path))
+            for name, path in files.items()}
+
+
+def test_the_benchmarks_import_each_other_without_a_circle():
+    graph = benchmark_graph()
+    assert "common" in graph["bench_closed_loop"]  # the graph sees them
+    found = circles(graph)
+    assert found == [], f"{len(found)} import circle(s) in benchmarks/: " + "; ".join(
+        " <-> ".join(circle) for circle in found)
+
+
+def test_no_benchmark_loads_another_module_by_a_string():
+    """A benchmark names the modules it uses in import statements (the graph above sees
+    them), never through importlib with a string; `art-guidance bench` alone picks a benchmark
+    by its name."""
+    import re
+
+    loads = {p.name for p in BENCHMARKS.glob("*.py")
+             if re.search(r"import_module\(|spec_from_file_location\(", p.read_text())
+             and p.name != "common.py"}
+    assert loads == set()

@@ -11,7 +11,7 @@ from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.optim import ScpStatus, TransferProblem, control_cost, solve_cvx, terminal_roe
 from art_guidance.optim.cvx import L1_REG_S_PER_M
-from cvxpy_reference import cvxpy_tpbvp
+from helpers.cvxpy_reference import cvxpy_tpbvp
 from helpers.oracles import final_post_burn_linear
 from art_guidance.safety import PassiveSafety
 

@@ -24,7 +24,7 @@ from art_guidance.planning.replan import Action, Decision
 from art_guidance.planning.types import PlanRequest
 from art_guidance.safety import PassiveSafety
 from art_guidance.scenarios import sample_scenario
-from cvxpy_reference import cvxpy_tpbvp
+from helpers.cvxpy_reference import cvxpy_tpbvp
 
 SET = TerminalSet(10.0, 0.02)
 

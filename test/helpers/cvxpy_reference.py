@@ -1,4 +1,5 @@
-"""cvxpy formulations used only as slower references in tests and benchmarks.
+"""cvxpy formulations used only as slower references in tests (and by `bench solvers`, as its
+reference).
 
 They state the problems the way a modelling language user would (states and controls as
 variables, dynamics as constraints), independently of the condensed/sparse assemblies.
