@@ -27,7 +27,7 @@ import numpy as np
 
 from art_guidance.errors import InputError
 from art_guidance.planning import GuidancePipeline
-from art_guidance.planning.replan import ReplanSettings
+from art_guidance.guidance.replan import ReplanSettings
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
 from art_guidance.sim.inprocess import InProcessGuidance, default_settings
 from common import warm_up

@@ -1,6 +1,6 @@
 """The carried warm start: a replan starts from the plan in force (receding-horizon shift).
 
-At a replan with a plan in force, the guidance (`planning.replan.ReplanPolicy.carry_at`) puts
+At a replan with a plan in force, the guidance (`guidance.replan.ReplanPolicy.carry_at`) puts
 that plan's burns at the replan's nodes into the request (`CarriedPlan`; the replan's horizon is
 the plan in force's remaining nodes). With `replan_warm_start: carry` (planning.yaml) the
 pipeline corrects them onto the terminal condition from the new fix

@@ -1,7 +1,7 @@
 """The learned warm-start step of a plan: ask the provider, validate, check post hoc, decide.
 
 `learned_warm_start` is the whole step: the pipeline calls it in line, and its proposal worker
-process (`planning.proposal_process`) calls the same function on another core, so the decision
+process (`planning.worker`) calls the same function on another core, so the decision
 (`Learned`: the warm start SCVx* starts from, and why in words) is the same bit for bit
 wherever it is made. It never raises for model trouble: a provider that fails, answers with
 something that is not a finite (N, 3) control sequence, or runs out of time leaves the plan to

@@ -3,7 +3,7 @@
 `Producers.learned` is the planner process's one call site of the learned step
 (`planning.learned`): the plan's proposal, its in-line fallback and a window's learned target
 all go through it. `Producers.propose` chooses where the plan's proposal is made: in the worker
-process (`proposal_process`) while this thread solves SCVx* from CVX, or in line.
+process (`worker.process`) while this thread solves SCVx* from CVX, or in line.
 """
 from __future__ import annotations
 
@@ -19,12 +19,12 @@ from art_guidance.optim.problem import SubproblemOptions
 from art_guidance.planning.learned import (
     Learned, cvx_is_safe, error_text, timed_learned_warm_start,
 )
-from art_guidance.planning.proposal_process import (
+from art_guidance.planning.worker.process import (
     NO_DEADLINE_TIMEOUT_S, ProposalProcess, WorkerScvx, model_key,
 )
 from art_guidance.planning.transfer import Transfer
 from art_guidance.planning.types import WarmStart, WarmStartProvider
-from art_guidance.planning.worker_messages import PlanJob
+from art_guidance.planning.worker.messages import PlanJob
 
 
 @dataclass(frozen=True)

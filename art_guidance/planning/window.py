@@ -18,7 +18,7 @@ remainder:
 The terminal condition is hard: the window's post-burn state at node H equals the reference's
 (within SCVx*'s terminal tolerance), so the plan published is the window's plan followed by
 the reference's burns from node H + 1 to the waypoint: it always ends at the waypoint, and the
-guidance replans before the window runs out (`planning.replan`: at the latest when fewer than
+guidance replans before the window runs out (`guidance.replan`: at the latest when fewer than
 H / 2 of its nodes are left). A remainder that fits in the window is planned whole, to the
 waypoint, as without a window. `PlanResult.window` says which, with the target's source and why.
 

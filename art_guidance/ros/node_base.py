@@ -1,6 +1,6 @@
 """The ROS wiring the guidance node's two forms share (`GuidanceNodeBase`): parameters,
 publishers and subscriptions, the worker thread, the recorder, diagnostics and visualisation
-around a `planning.guidance.GuidanceCore`. The forms are `guidance_node.GuidanceNode` (plain)
+around a `guidance.core.GuidanceCore`. The forms are `guidance_node.GuidanceNode` (plain)
 and `managed_node.ManagedGuidanceNode` (lifecycle); `guidance_node` runs either (its docstring
 holds the node's interface).
 """
@@ -23,8 +23,8 @@ from art_guidance.config import GuidanceConfig, ScenarioConfig, node_parameter_d
 from art_guidance.deadline import Deadline
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.planning import GuidancePipeline, Target
-from art_guidance.planning.guidance import GuidanceCore, Job, ReplanBudget
-from art_guidance.planning.replan import Action
+from art_guidance.guidance.core import GuidanceCore, Job, ReplanBudget
+from art_guidance.guidance.replan import Action
 from art_guidance.ros.adapters import (
     nav_from_msg, plan_to_msg, status_plan_msg, target_from_msg,
 )
@@ -52,7 +52,7 @@ def solver_error_text(exc: BaseException, active_id: str) -> str:
 
 
 class GuidanceNodeBase:
-    """The ROS wiring of a `planning.guidance.GuidanceCore`, mixed into an rclpy `Node`
+    """The ROS wiring of a `guidance.core.GuidanceCore`, mixed into an rclpy `Node`
     (`GuidanceNode`) or a `LifecycleNode` (`ManagedGuidanceNode`): parameters, publishers and
     subscriptions, the worker thread, the recorder, diagnostics and visualisation. The decision
     sequence itself is the core's.

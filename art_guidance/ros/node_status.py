@@ -8,7 +8,7 @@ from typing import Any
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 
-from art_guidance.planning.guidance import GuidanceCore
+from art_guidance.guidance.core import GuidanceCore
 
 
 def load_model(params: Any, log: Any) -> tuple[object | None, str]:

@@ -18,7 +18,7 @@ from typing import Any, Mapping
 from art_guidance.config import ENDGAMES, NUMERICS, REPLAN_WARM_STARTS
 from art_guidance.errors import ConfigError
 from art_guidance.planning import WARM_STARTS
-from art_guidance.planning.replan import STAMP_CHECKS, ReplanSettings
+from art_guidance.guidance.replan import STAMP_CHECKS, ReplanSettings
 from art_guidance.planning.types import TERMINAL_TARGETS
 from art_guidance.record.seal import SHOWN_CHARS, shown
 
@@ -245,7 +245,7 @@ SPECS: dict[str, ParamSpec] = {
 PLANNING_PARAMETERS = ("samples_per_node", "numerics", "replan_warm_start", "endgame",
                        "terminal_tolerance_m", "terminal_tolerance_mps", "endgame_cost_cap_mps",
                        "endgame_cost_per_m", "terminal_set_nodes")
-# the replan policy's parameters (`planning.replan.ReplanSettings`)
+# the replan policy's parameters (`guidance.replan.ReplanSettings`)
 POLICY_PARAMETERS = ("replan_sigma_threshold", "replan_period_s", "stamp_check",
                      "max_nav_age_s", "max_nav_future_s", "max_stamp_jump_s",
                      "min_remaining_nodes", "replan_window_nodes", "terminal_target",

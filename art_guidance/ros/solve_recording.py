@@ -15,7 +15,7 @@ from typing import Any, Callable
 
 from art_guidance import topics
 from art_guidance.planning import GuidancePipeline, PlanResult
-from art_guidance.planning.guidance import Job
+from art_guidance.guidance.core import Job
 from art_guidance.record.recorder import (
     NAV_TYPE, PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE, McapRecorder, check_cap,
     check_record_dir, default_log_dir, free_bag_dir,

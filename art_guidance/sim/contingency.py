@@ -41,7 +41,7 @@ from art_guidance.data.storage import DatasetWriter
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.files import write_json_atomic
 from art_guidance.jobs import check_run_options, run_missing
-from art_guidance.planning.replan import ReplanSettings
+from art_guidance.guidance.replan import ReplanSettings
 # the names below are also imported from here
 from art_guidance.sim.contingency_figures import render
 from art_guidance.sim.contingency_spec import (  # noqa: F401

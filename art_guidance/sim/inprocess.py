@@ -16,8 +16,8 @@ from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import check_oe
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, NavState, PlanResult, Target
-from art_guidance.planning.guidance import GuidanceCore
-from art_guidance.planning.replan import Action, Decision, ReplanSettings
+from art_guidance.guidance.core import GuidanceCore
+from art_guidance.guidance.replan import Action, Decision, ReplanSettings
 from art_guidance.sim.link import LinkPlan
 
 _EMPTY = np.zeros(0)

@@ -22,7 +22,7 @@ from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import Horizon, propagate_mean_oe, roe_from_rtn_linear, time_grid_s
 from art_guidance.errors import InputError
 from art_guidance.planning import GuidancePipeline, NavState, PlanRequest
-from art_guidance.planning.replan import ReplanPolicy, ReplanSettings
+from art_guidance.guidance.replan import ReplanPolicy, ReplanSettings
 from art_guidance.planning.types import RolloutContext
 from art_guidance.safety import PassiveSafety
 

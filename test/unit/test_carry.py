@@ -23,7 +23,7 @@ from art_guidance.planning import GuidancePipeline, NavState, PlanRequest, Targe
 from art_guidance.planning.carry import CarriedPlan, CarryReport, guard_reason, refusal
 from art_guidance.planning.choice import CarryStep, Fresh, choose
 from art_guidance.planning.learned import Learned
-from art_guidance.planning.replan import ReplanPolicy, ReplanSettings, request_for
+from art_guidance.guidance.replan import ReplanPolicy, ReplanSettings, request_for
 from art_guidance.planning.types import WarmStartSource
 from art_guidance.scenarios import sample_scenario
 

@@ -143,7 +143,7 @@ class _Result:
 
 
 def test_growth_counts_the_plans_put_in_force_by_nodes_left():
-    from art_guidance.planning.replan import Action
+    from art_guidance.guidance.replan import Action
 
     c = _configs()
     put, kept = Action.ACTIVATED, Action.KEPT_ACTIVE_PLAN

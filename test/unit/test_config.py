@@ -49,7 +49,7 @@ def test_node_parameter_table_is_the_params_file():
     params = node_parameter_defaults()
     assert params["default_waypoint"] == "plus_vbar" and params["stamp_check"] == "wallclock"
     assert "samples_per_node" not in params  # one default: planning.yaml's
-    from art_guidance.planning.replan import ReplanSettings
+    from art_guidance.guidance.replan import ReplanSettings
 
     # the switch node and the horizon's length are the scenario's, not parameters
     scenario_fields = {"ae_to_koz_node", "horizon_nodes"}

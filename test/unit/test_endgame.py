@@ -21,8 +21,8 @@ from art_guidance.dynamics import propagate_mean_oe, roe_from_rtn_linear
 from art_guidance.errors import ConfigError
 from art_guidance.planning import GuidancePipeline, NavState, Target
 from art_guidance.planning.endgame import Endgame, InForceCheck, tolerance_scale
-from art_guidance.planning.guidance import GuidanceCore
-from art_guidance.planning.replan import Action, Decision, ReplanSettings
+from art_guidance.guidance.core import GuidanceCore
+from art_guidance.guidance.replan import Action, Decision, ReplanSettings
 from art_guidance.scenarios import sample_scenario
 
 T0_NS = 10**18

@@ -25,12 +25,12 @@ from art_guidance.planning import (
 )
 from art_guidance.planning.choice import better_plan
 from art_guidance.planning.learned import carried_warm_start, learned_warm_start
-from art_guidance.planning.proposal_process import ProposalProcess, model_key
-from art_guidance.planning.proposal_worker import serve
-from art_guidance.planning.worker_messages import (
+from art_guidance.planning.worker.process import ProposalProcess, model_key
+from art_guidance.planning.worker.serve import serve
+from art_guidance.planning.worker.messages import (
     Failure, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
 )
-from art_guidance.planning.replan import check_window
+from art_guidance.guidance.replan import check_window
 from art_guidance.planning.types import RolloutContext
 
 SCENARIO = ScenarioConfig()

@@ -206,7 +206,7 @@ def test_monte_carlo_identity_records_the_replan_policy(monkeypatch):
     parameters, e.g. min_remaining_nodes from guidance_node.yaml): a resume under another
     policy is refused like one with other options, and the summary says which it was."""
     from art_guidance.config import GuidanceConfig
-    from art_guidance.planning.replan import ReplanSettings
+    from art_guidance.guidance.replan import ReplanSettings
     from art_guidance.sim import contingency, inprocess
 
     spec, config = ContingencySpec(), GuidanceConfig.load()

@@ -1,4 +1,4 @@
-"""The guidance's decision sequence without ROS (`planning.guidance.GuidanceCore`): the stamp
+"""The guidance's decision sequence without ROS (`guidance.core.GuidanceCore`): the stamp
 check, the newest-wins mailbox, a new target, a solve putting a plan in force, a blocked worker
 woken by a fix and released by `stop` (the same core the node and the in-process link run)."""
 from __future__ import annotations
@@ -13,8 +13,8 @@ from art_guidance.deadline import Deadline
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, NavState, Target
-from art_guidance.planning.guidance import GuidanceCore, ReplanBudget
-from art_guidance.planning.replan import Action, Decision, ReplanSettings
+from art_guidance.guidance.core import GuidanceCore, ReplanBudget
+from art_guidance.guidance.replan import Action, Decision, ReplanSettings
 
 SC = ScenarioConfig()
 CHIEF = np.array(SC.chief_oe)
@@ -32,7 +32,11 @@ def _target(name: str = "plus_vbar") -> Target:
 
 @pytest.fixture(scope="module")
 def pipeline():
-    return GuidancePipeline()
+    """The planner, its one-time costs paid (the kernels' load, the solver's set-up: they are
+    no part of a deadline test's solve, whichever test plans first)."""
+    pipeline = GuidancePipeline()
+    pipeline.warm_up()
+    return pipeline
 
 
 def test_mailbox_keeps_the_newest_job_and_refuses_stale_stamps(pipeline):

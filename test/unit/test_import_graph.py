@@ -183,3 +183,11 @@ def test_no_benchmark_loads_another_module_by_a_string():
              if re.search(r"import_module\(|spec_from_file_location\(", p.read_text())
              and p.name != "common.py"}
     assert loads == set()
+
+
+def test_the_planner_never_imports_the_guidance_loop():
+    """`guidance/` (the receding-horizon loop) sits one floor above `planning/` (one plan)."""
+    graph = import_graph()
+    up = {(a, b) for a, targets in graph.items() if a.startswith(f"{ROOT}.planning")
+          for b in targets if b.startswith(f"{ROOT}.guidance")}
+    assert up == set()

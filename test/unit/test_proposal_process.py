@@ -12,9 +12,10 @@ import pytest
 from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart, default_model_path
 from art_guidance.config import GuidanceConfig
 from art_guidance.optim import Scvx
-from art_guidance.planning import GuidancePipeline, proposal_process
-from art_guidance.planning.proposal_process import ProposalProcess, restart_delay_s
-from art_guidance.planning.worker_messages import PlanJob
+from art_guidance.planning import GuidancePipeline
+from art_guidance.planning.worker import process as proposal_process
+from art_guidance.planning.worker.process import ProposalProcess, restart_delay_s
+from art_guidance.planning.worker.messages import PlanJob
 from helpers.shipped import heldout_requests
 
 
@@ -142,7 +143,7 @@ def test_close_is_bounded_while_a_job_is_out(concurrent, monkeypatch):
     monkeypatch.setattr(proposal_process, "CLOSE_WAIT_S", 0.5)
     worker = ProposalProcess()
     config = concurrent.config
-    from art_guidance.planning.proposal_process import model_key
+    from art_guidance.planning.worker.process import model_key
 
     assert worker.start(config.to_json(), config.sha256(), model_key(concurrent.provider))
     request = heldout_requests(1, DEFAULT_MODELS["chance"])[0]
@@ -176,7 +177,7 @@ def test_a_cancel_stops_its_own_job_only():
     import math
     import multiprocessing
 
-    from art_guidance.planning.worker_messages import CancellableDeadline, CancelSlot
+    from art_guidance.planning.worker.messages import CancellableDeadline, CancelSlot
 
     slot = CancelSlot(multiprocessing.get_context("spawn"))
     first, second = (CancellableDeadline(math.inf, slot=slot, job_id=j) for j in (1, 2))

@@ -11,7 +11,7 @@ from art_guidance.dynamics import propagate_mean_oe, roe_from_rtn_linear
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.optim import ScpStatus
 from art_guidance.planning import GuidancePipeline, NavState, PlanRequest
-from art_guidance.planning.replan import (
+from art_guidance.guidance.replan import (
     Action, Decision, ReplanPolicy, ReplanSettings, ReplanWindow, unusable_text,
 )
 

@@ -15,7 +15,7 @@ from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ScpStatus
 from art_guidance.optim.scp import TERMINAL_TOL_M
 from art_guidance.planning import GuidancePipeline, NavState, PlanRequest
-from art_guidance.planning.replan import Decision, ReplanPolicy, ReplanSettings
+from art_guidance.guidance.replan import Decision, ReplanPolicy, ReplanSettings
 from art_guidance.planning.window import window_request
 from art_guidance.ros.parameters import NodeParameters
 from art_guidance.scenarios import sample_scenario

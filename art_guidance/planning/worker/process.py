@@ -33,8 +33,8 @@ import time
 from typing import Any
 
 from art_guidance.deadline import Deadline
-from art_guidance.planning.proposal_worker import serve
-from art_guidance.planning.worker_messages import (
+from art_guidance.planning.worker.serve import serve
+from art_guidance.planning.worker.messages import (
     CancelSlot, Failure, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
 )
 

@@ -29,7 +29,7 @@ from typing import Any
 from art_guidance.deadline import Deadline
 from art_guidance.planning.endgame import Endgame, InForceCheck, in_set_under
 from art_guidance.planning.pipeline import GuidancePipeline
-from art_guidance.planning.replan import (
+from art_guidance.guidance.replan import (
     Action, Decision, ReplanPolicy, ReplanSettings, ReplanWindow, check_target, request_for,
     unusable_text,
 )

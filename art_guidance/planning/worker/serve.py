@@ -15,7 +15,7 @@ from typing import Any
 
 from art_guidance import kernels
 from art_guidance.deadline import Deadline
-from art_guidance.planning.worker_messages import (
+from art_guidance.planning.worker.messages import (
     CancellableDeadline, CancelSlot, Failure, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
 )
 
