@@ -42,7 +42,7 @@ from art_guidance.art.rollout import rollout
 from art_guidance.config import ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.optim import TransferProblem
-from art_guidance.planning.types import PlanRequest
+from art_guidance.planning.request import PlanRequest
 from common import warm_up
 
 

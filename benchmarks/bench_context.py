@@ -4,7 +4,7 @@ On `repeats` fresh chance-constrained scenarios whose CVX plan is unsafe (seeds 
 `first_seed`, `bench proposal`'s screen), the plan of the whole transfer is made (CVX warm
 start) and flown on paper to node k (`nodes`, default 50): the replan from its state there
 over the remaining nodes is proposed by the default model (or `model`) with no context and
-with the k flown steps as its context (`planning.types.RolloutContext`: the plan's states and
+with the k flown steps as its context (`planning.request.RolloutContext`: the plan's states and
 burns, R from -J_CVX). CPU time of each proposal (paired medians, alternating order), and how
 often the proposal changed. With the KV cache the context costs one multi-token call at the
 first step; keeping the cache from one replan to the next would save at most that call.
@@ -22,7 +22,7 @@ from tqdm import tqdm
 from art_guidance.art.provider import ArtWarmStart
 from art_guidance.dynamics import propagate_mean_oe
 from art_guidance.planning import GuidancePipeline, PlanRequest
-from art_guidance.planning.types import RolloutContext
+from art_guidance.planning.request import RolloutContext
 from common import alternate, unsafe_cases, warm_up
 
 

@@ -42,7 +42,7 @@ class History(NamedTuple):
 
 
 def fitted_context(context: object, room: int) -> object:
-    """The last `room` flown steps of a replan's context (`planning.types.RolloutContext`;
+    """The last `room` flown steps of a replan's context (`planning.request.RolloutContext`;
     all of them where they fit), or None where there are none or no room is left before the
     horizon."""
     if context is None or room <= 0 or context.n_steps == 0:

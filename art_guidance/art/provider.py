@@ -10,7 +10,7 @@ Conditioning sweep: one batched rollout per reward-to-go R(t_1) = -s J_CVX for e
 `reward_scales` (default `DEFAULT_REWARD_SCALES`; (1.0,) is the paper's single rollout). The
 candidates differ in where and how much they burn, and the one proposed is the best by the
 post hoc criteria, judged as the pipeline's check judges them (by default on each candidate's
-terminal warm start, `planning.posthoc`; E_R against R_des = -J_CVX whatever s was): inside
+terminal warm start, `planning.learned`; E_R against R_des = -J_CVX whatever s was): inside
 the acceptance region first, then the smallest E_C, then the smallest |E_R|; when no candidate
 is inside, the cheapest passively safe one, else the cheapest (`best_candidate`). On 300 held-out
 scenarios eight scales give a passively safe rollout in 67 % (one rollout: 38 %) and one inside
@@ -52,8 +52,8 @@ from art_guidance.deadline import Deadline
 from art_guidance.dynamics import orbital_period_s
 from art_guidance.errors import CheckpointError, InputError, ModelError
 from art_guidance.optim import ConvexSolution, Trajectory, TransferProblem
-from art_guidance.planning.posthoc import judged_trajectory
-from art_guidance.planning.types import WarmStartProposal
+from art_guidance.planning.learned import judged_trajectory
+from art_guidance.planning.result import WarmStartProposal
 from art_guidance.safety import PassiveSafety
 
 # The shipped default per passive-safety mode (the mode of the model's training data), chosen
@@ -298,7 +298,7 @@ class ArtWarmStart:
             deadline: the plan's deadline: the rollout stops at its first step after it
                 (None: none).
             context: the steps flown before the horizon's first node
-                (`planning.types.RolloutContext`), fed to the model before them (the last
+                (`planning.request.RolloutContext`), fed to the model before them (the last
                 K - N of them where they do not all fit the context K), or None.
 
         Raises:
@@ -362,7 +362,7 @@ def judged_candidates(res: RolloutResult, problem: TransferProblem,
 def judge_candidates(res: RolloutResult, problem: TransferProblem,
                      subject: str) -> JudgedCandidates:
     """The candidates of a rollout as the post hoc check judges them
-    (`planning.posthoc.judged_trajectory`): the rollout's own figures (realised in the
+    (`planning.learned.judged_trajectory`): the rollout's own figures (realised in the
     rollout) or those of each terminal warm start (`judge_controls`)."""
     if subject == "rollout":
         return JudgedCandidates(res.cost_mps, res.realised_constraint_to_go[:, 0])
@@ -379,7 +379,7 @@ def judged_controls(problem: TransferProblem, dv_rtn_mps: np.ndarray,
 def judge_controls(problem: TransferProblem, dv_rtn_mps: np.ndarray,
                    subject: str) -> JudgedCandidates:
     """K candidate controls (K, N, 3) [m/s] of `problem` as the check judges them under
-    `subject`: the trajectory `planning.posthoc.judged_trajectory` gives (one correction
+    `subject`: the trajectory `planning.learned.judged_trajectory` gives (one correction
     each), then one sign-only safety search over the arcs of all K
     (`PassiveSafety.violations_batch`)."""
     judged = [judged_trajectory(problem, dv, subject) for dv in dv_rtn_mps]

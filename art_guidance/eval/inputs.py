@@ -141,7 +141,7 @@ def load_model(info: ModelInfo, single_rollout: bool = False) -> tuple:
 def request_of(roe0_m: np.ndarray, target_rtn: np.ndarray, safety: object) -> object:
     """The plan request from `roe0_m` (6,) [m] to `target_rtn` (6,) [m, m/s] on `safety`'s
     horizon and mode."""
-    from art_guidance.planning.types import PlanRequest
+    from art_guidance.planning.request import PlanRequest
 
     return PlanRequest(safety.horizon.chief_oe[0], roe0_m, target_rtn,
                        chance_constrained=safety.uncertainty is not None)

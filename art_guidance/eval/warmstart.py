@@ -3,7 +3,7 @@
 For each scenario (paper section V, chance-constrained or deterministic by the safety model):
 CVX is solved (J_CVX, C_CVX(t_1)); ART rolls out conditioned on R(t_1) = -J_CVX, C(t_1) = 0
 and is checked post hoc (E_R, E_C; by default those of the terminal warm start SCVx* starts
-from, `planning.posthoc.check_proposal`, with the paper's check of the rollout itself beside
+from, `planning.learned.check_proposal`, with the paper's check of the rollout itself beside
 them); SCVx* then runs once from CVX ("PS-CVX") and once from the ART rollout ("PS-ART"),
 both with the same configuration and no deadline. The `auto` plan is what the pipeline flies:
 PS-ART if the post hoc check accepts the rollout, else PS-CVX; when
@@ -33,8 +33,9 @@ from art_guidance.errors import GuidanceError
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx, TransferProblem
 from art_guidance.optim.problem import SubproblemPool
 from art_guidance.planning.choice import keep_first_plan, second_run
-from art_guidance.planning.posthoc import check_proposal, posthoc_check
-from art_guidance.planning.types import PosthocDecision, WarmStartProposal, WarmStartSource
+from art_guidance.planning.learned import check_proposal, posthoc_check
+from art_guidance.planning.request import WarmStartSource
+from art_guidance.planning.result import PosthocDecision, WarmStartProposal
 
 BINS = (0, 10, 20, 30, 40)  # the paper's cumulative C_CVX(t_1) >= value bins
 GAP_TOL_MPS = 1e-6  # J_SCP,CVX - J_CVX below this: no improvement ratio for the scenario [m/s]
@@ -53,7 +54,7 @@ class WarmStartRow:
 
     `ms_art` is the rollout plus the post hoc check; `ok_*` means feasible (`ScpStatus.feasible`),
     `st_* == ScpStatus.CONVERGED.value` converged. `e_r`, `e_c`, `accepted` are the post hoc
-    check the pipeline applies (`planning.posthoc.check_proposal`), `*_rollout` the paper's
+    check the pipeline applies (`planning.learned.check_proposal`), `*_rollout` the paper's
     check of the rollout itself (the same when the check's subject is "rollout").
     """
 

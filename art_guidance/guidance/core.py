@@ -33,7 +33,8 @@ from art_guidance.guidance.replan import (
     Action, Decision, ReplanPolicy, ReplanSettings, ReplanWindow, check_target, request_for,
     unusable_text,
 )
-from art_guidance.planning.types import NavState, PlanRequest, PlanResult, Target
+from art_guidance.planning.request import NavState, PlanRequest, Target
+from art_guidance.planning.result import PlanResult
 
 
 class ReplanBudget:

@@ -20,10 +20,11 @@ from art_guidance.dynamics import (
 )
 from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.planning.carry import GRID_TOL, CarriedPlan
-from art_guidance.planning.types import (
-    REFERENCE_TARGETS, TERMINAL_TARGETS, NavState, PlanRequest, PlanResult, RolloutContext,
-    Target, window_nodes_valid,
+from art_guidance.planning.request import (
+    REFERENCE_TARGETS, TERMINAL_TARGETS, NavState, PlanRequest, RolloutContext, Target,
+    window_nodes_valid,
 )
+from art_guidance.planning.result import PlanResult
 
 STAMP_CHECKS = ("wallclock", "order", "off")
 _NODE = node_parameter_defaults()  # the defaults are the node's: config/guidance_node.yaml

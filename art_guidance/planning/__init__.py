@@ -6,10 +6,12 @@ all plan through `GuidancePipeline.plan(request) -> PlanResult`.
 
 from art_guidance.planning.pipeline import GuidancePipeline
 from art_guidance.config import PosthocThresholds
-from art_guidance.planning.posthoc import posthoc_check
-from art_guidance.planning.types import (
-    WARM_STARTS, NavState, PlanRequest, PlanResult, PosthocDecision, ScpAttempt, Target,
-    WarmStart, WarmStartProposal, WarmStartProvider, WarmStartSource,
+from art_guidance.planning.learned import posthoc_check
+from art_guidance.planning.request import (
+    NavState, PlanRequest, Target, WARM_STARTS, WarmStart, WarmStartSource,
+)
+from art_guidance.planning.result import (
+    PlanResult, PosthocDecision, ScpAttempt, WarmStartProposal, WarmStartProvider,
 )
 
 __all__ = ["GuidancePipeline", "NavState", "PlanRequest", "PlanResult", "PosthocDecision",

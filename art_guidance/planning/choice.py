@@ -9,7 +9,8 @@ from dataclasses import dataclass
 from art_guidance.optim import ScpResult, ScpStatus
 from art_guidance.planning.carry import CarryReport
 from art_guidance.planning.learned import Learned
-from art_guidance.planning.types import ScpAttempt, WarmStartSource
+from art_guidance.planning.request import WarmStartSource
+from art_guidance.planning.result import ScpAttempt
 
 ART, CVX, CARRIED = WarmStartSource.ART, WarmStartSource.CVX, WarmStartSource.CARRIED
 

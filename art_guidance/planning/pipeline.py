@@ -4,7 +4,7 @@ Every stage solves the request's one `Transfer` (`planning.transfer`). The conve
 is always solved: it is the fallback and the post hoc reference (R_des = -J_CVX). The learned
 step (`planning.learned.learned_warm_start`, in line or in the proposal worker process) asks a
 `WarmStartProvider` (ART, `art_guidance.art.provider`) for controls, validates them and applies
-the post hoc check (`planning.posthoc.check_proposal`: accept when E_R and E_C of the warm start
+the post hoc check (`planning.learned.check_proposal`: accept when E_R and E_C of the warm start
 SCVx* would start from, or of the rollout itself, are inside the configured region); an
 accepted (or, with warm_start "art", forced) proposal warm-starts SCVx*, otherwise CVX does.
 Every plan says in words which warm start it used and why (`PlanResult.warm_start_reason`).
@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
+import json
 import threading
 import time
 from typing import Iterator
@@ -37,13 +39,13 @@ from art_guidance.optim.problem import REFERENCE_OPTIONS, SubproblemOptions, Sub
 from art_guidance.planning import window
 from art_guidance.planning.carry import refusal
 from art_guidance.planning.choice import choose
-from art_guidance.planning.config_record import config_json_sha256
 from art_guidance.planning.endgame import InForceCheck, check_in_force
 from art_guidance.planning.learned import DEADLINE_REASON
 from art_guidance.planning.producers import Producers
 from art_guidance.planning.runs import carried_run, fresh_runs, plan_result
 from art_guidance.planning.transfer import Transfer, Transfers
-from art_guidance.planning.types import PlanRequest, PlanResult, WarmStart, WarmStartProvider
+from art_guidance.planning.request import PlanRequest, WarmStart
+from art_guidance.planning.result import PlanResult, WarmStartProvider
 from art_guidance.planning.warm_up import seed_request, warm_up
 from art_guidance.safety import PassiveSafety
 
@@ -303,3 +305,35 @@ class GuidancePipeline:
         """Stop the proposal worker process, if any (the pipeline stays usable: a later
         concurrent proposal starts it again)."""
         self.producers.close()
+
+
+# The seal of a recorded configuration (`GuidancePipeline.config_json`): its fingerprint and
+# the check replay makes before it trusts it.
+_RECORD_EXTRAS = ("deadline_s", "config_sha256", "scp_subproblem", "record_sha256")
+
+
+def _canonical_sha256(data: dict) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
+def config_json_sha256(data: dict) -> str:
+    """Fingerprint of a recorded configuration (`GuidancePipeline.config_json`): the sha256 of
+    its canonical JSON without the `record_sha256` entry itself."""
+    return _canonical_sha256({k: v for k, v in data.items() if k != "record_sha256"})
+
+
+def recorded_config_problem(data: dict) -> str:
+    """Why a recorded configuration cannot be trusted ("" = it can): its `record_sha256` does
+    not match its content, or, in a record from before that seal, the configuration bundle as
+    recorded does not match its `config_sha256` (`GuidanceConfig.sha256`, computed on the
+    bundle as it was written, so a field added since does not count as a change)."""
+    sealed, bundle = data.get("record_sha256"), data.get("config_sha256")
+    if sealed is not None:
+        ok, name = sealed == config_json_sha256(data), "record_sha256"
+    elif bundle is not None:
+        recorded = {k: v for k, v in data.items() if k not in _RECORD_EXTRAS}
+        ok, name = bundle == _canonical_sha256(recorded), "config_sha256"
+    else:
+        return ""
+    return "" if ok else (f"the recorded configuration does not match its {name}: it was "
+                          "altered after recording")

@@ -23,7 +23,8 @@ from art_guidance.planning.worker.process import (
     NO_DEADLINE_TIMEOUT_S, ProposalProcess, WorkerScvx, model_key,
 )
 from art_guidance.planning.transfer import Transfer
-from art_guidance.planning.types import WarmStart, WarmStartProvider
+from art_guidance.planning.request import WarmStart
+from art_guidance.planning.result import WarmStartProvider
 from art_guidance.planning.worker.messages import PlanJob
 
 

@@ -19,7 +19,8 @@ from art_guidance.planning.choice import (
 from art_guidance.planning.learned import cvx_is_safe
 from art_guidance.planning.producers import Producers
 from art_guidance.planning.transfer import Transfer
-from art_guidance.planning.types import PlanResult, ScpAttempt, WarmStart, WarmStartSource
+from art_guidance.planning.request import WarmStart, WarmStartSource
+from art_guidance.planning.result import PlanResult, ScpAttempt
 
 ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 

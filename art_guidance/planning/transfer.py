@@ -18,7 +18,7 @@ from art_guidance.config import GuidanceConfig, ScenarioConfig, UncertaintyConfi
 from art_guidance.dynamics import Horizon, time_grid_s
 from art_guidance.optim import Scvx, TransferProblem
 from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
-from art_guidance.planning.types import PlanRequest
+from art_guidance.planning.request import PlanRequest
 from art_guidance.safety import PassiveSafety
 
 CACHE_SIZE = 8  # transfers kept; the cache is emptied when it holds more

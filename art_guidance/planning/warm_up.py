@@ -19,7 +19,7 @@ from art_guidance import kernels
 from art_guidance.config import PlanningConfig, ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.optim import TransferProblem
-from art_guidance.planning.types import PlanRequest
+from art_guidance.planning.request import PlanRequest
 from art_guidance.scenarios import sample_scenario
 
 

@@ -38,11 +38,12 @@ import numpy as np
 from art_guidance.config import ScenarioConfig
 from art_guidance.optim import ConvexSolution, Trajectory
 from art_guidance.planning.learned import Learned
-from art_guidance.planning.transfer import Transfer
-from art_guidance.planning.types import (  # noqa: F401  (targets re-exported)
-    N_ORBITS_RANGE, REFERENCE_TARGETS, TERMINAL_TARGETS, PlanRequest, PlanResult, WarmStart,
+from art_guidance.planning.request import (  # noqa: F401  (targets re-exported)
+    N_ORBITS_RANGE, REFERENCE_TARGETS, TERMINAL_TARGETS, PlanRequest, WarmStart,
     WarmStartSource,
 )
+from art_guidance.planning.result import PlanResult
+from art_guidance.planning.transfer import Transfer
 
 
 @dataclass(frozen=True)

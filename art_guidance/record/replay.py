@@ -24,7 +24,7 @@ from art_guidance import kernels
 from art_guidance.config import mode_name
 from art_guidance.errors import GuidanceError, InputError
 from art_guidance.planning import GuidancePipeline, PlanRequest
-from art_guidance.planning.config_record import recorded_config_problem
+from art_guidance.planning.pipeline import recorded_config_problem
 from art_guidance.record.bag_metadata import bag_files
 from art_guidance.record.loss import account
 from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE
@@ -342,7 +342,7 @@ def replay(path: str | Path, model: str | Path | None = None,
     The report also says what could not be read (`damaged`, `truncated`: torn ends), what was
     lost against metadata.yaml (`lost`), which records or plans lack their partner
     (`unmatched`), `advice`, `config_check` ("ok", or why the recorded configuration cannot be
-    trusted: its seal does not match, `planning.config_record.recorded_config_problem`),
+    trusted: its seal does not match, `planning.pipeline.recorded_config_problem`),
     `metadata_check` and `metadata_problems` (every run metadata value against its seal,
     `record.seal`: "ok", "unsealed: ..." for a recording from before the seal, or "altered:
     ..." with each altered field and value) and `exit_code`: EXIT_MISMATCH if a compared solve

@@ -16,7 +16,7 @@ from art_guidance.dynamics import check_chief, psi_matrix
 from art_guidance.errors import InputError
 from art_guidance.optim import ScpStatus
 from art_guidance.planning import WARM_STARTS, NavState, PlanResult, Target
-from art_guidance.planning.types import N_ORBITS_RANGE
+from art_guidance.planning.request import N_ORBITS_RANGE
 from art_guidance.sim.link import LinkPlan
 
 FRAMES = {RelativeNavState.REPRESENTATION_ROE: ("chief_roe",),

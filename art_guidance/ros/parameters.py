@@ -19,7 +19,7 @@ from art_guidance.config import ENDGAMES, NUMERICS, REPLAN_WARM_STARTS
 from art_guidance.errors import ConfigError
 from art_guidance.planning import WARM_STARTS
 from art_guidance.guidance.replan import STAMP_CHECKS, ReplanSettings
-from art_guidance.planning.types import TERMINAL_TARGETS
+from art_guidance.planning.request import TERMINAL_TARGETS
 from art_guidance.record.seal import SHOWN_CHARS, shown
 
 NAV_QOS = ("best_effort", "reliable")

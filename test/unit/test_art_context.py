@@ -23,7 +23,7 @@ from art_guidance.dynamics import Horizon, propagate_mean_oe, roe_from_rtn_linea
 from art_guidance.errors import InputError
 from art_guidance.planning import GuidancePipeline, NavState, PlanRequest
 from art_guidance.guidance.replan import ReplanPolicy, ReplanSettings
-from art_guidance.planning.types import RolloutContext
+from art_guidance.planning.request import RolloutContext
 from art_guidance.safety import PassiveSafety
 
 torch.set_num_threads(1)

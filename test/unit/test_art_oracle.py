@@ -18,7 +18,7 @@ from art_guidance.config import GuidanceConfig
 from art_guidance.data.generate import generate
 from art_guidance.data.storage import load_dataset
 from art_guidance.dynamics import Horizon, time_grid_s
-from art_guidance.planning.posthoc import posthoc_check
+from art_guidance.planning.learned import posthoc_check
 from art_guidance.safety import PassiveSafety
 
 N_SAMPLES, SEED = 24, 424242  # a seed no shipped model's dataset uses

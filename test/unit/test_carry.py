@@ -24,7 +24,7 @@ from art_guidance.planning.carry import CarriedPlan, CarryReport, guard_reason, 
 from art_guidance.planning.choice import CarryStep, Fresh, choose
 from art_guidance.planning.learned import Learned
 from art_guidance.guidance.replan import ReplanPolicy, ReplanSettings, request_for
-from art_guidance.planning.types import WarmStartSource
+from art_guidance.planning.request import WarmStartSource
 from art_guidance.scenarios import sample_scenario
 
 CARRIED, CVX = WarmStartSource.CARRIED, WarmStartSource.CVX

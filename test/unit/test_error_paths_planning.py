@@ -31,7 +31,7 @@ from art_guidance.planning.worker.messages import (
     Failure, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
 )
 from art_guidance.guidance.replan import check_window
-from art_guidance.planning.types import RolloutContext
+from art_guidance.planning.request import RolloutContext
 
 SCENARIO = ScenarioConfig()
 CHIEF = np.array(SCENARIO.chief_oe)

@@ -174,7 +174,7 @@ def test_the_recorded_configuration_is_sealed():
     before that seal is checked by its `config_sha256` over the bundle as recorded."""
     import json
 
-    from art_guidance.planning.config_record import recorded_config_problem
+    from art_guidance.planning.pipeline import recorded_config_problem
 
     data = json.loads(json.dumps(GuidancePipeline().config_json()))  # as the bag holds it
     assert recorded_config_problem(data) == ""

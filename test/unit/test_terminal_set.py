@@ -21,7 +21,7 @@ from art_guidance.optim import ScpStatus, TerminalSet, TransferProblem, solve_cv
 from art_guidance.optim.problem import ScpSubproblem
 from art_guidance.planning.endgame import in_set_under
 from art_guidance.guidance.replan import Action, Decision
-from art_guidance.planning.types import PlanRequest
+from art_guidance.planning.request import PlanRequest
 from art_guidance.safety import PassiveSafety
 from art_guidance.scenarios import sample_scenario
 from helpers.cvxpy_reference import cvxpy_tpbvp

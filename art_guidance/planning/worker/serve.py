@@ -103,7 +103,7 @@ def _solve_art(job: PlanJob, state: dict, answer: Any, slot: CancelSlot | None) 
     """SCVx* from the job's proposal as the planner would solve it (`planning.runs`), or None:
     no valid proposal, or the planner cancelled the run (before or during it)."""
     from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
-    from art_guidance.planning.types import WarmStartSource
+    from art_guidance.planning.request import WarmStartSource
 
     def cancelled() -> bool:
         return slot is not None and slot.cancelled(job.job_id)
