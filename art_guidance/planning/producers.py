@@ -7,7 +7,6 @@ process (`worker.process`) while this thread solves SCVx* from CVX, or in line.
 """
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -122,7 +121,7 @@ class Producers:
                        model_key(self.provider), transfer.request, cvx,
                        None if deadline is None else deadline.left_s(),
                        self.config.planning.skip_art_when_cvx_safe,
-                       dataclasses.asdict(self.subproblem))
+                       self.subproblem)
 
     def worker(self) -> ProposalProcess:
         """The worker process (created, not started, on first need)."""

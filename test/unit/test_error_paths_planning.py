@@ -20,6 +20,7 @@ from art_guidance.config import GuidanceConfig, ScenarioConfig
 from art_guidance.dynamics import roe_from_rtn_linear
 from art_guidance.errors import ConfigError, InputError
 from art_guidance.optim import ScpStatus, Trajectory
+from art_guidance.optim.problem import SubproblemOptions
 from art_guidance.planning import (
     GuidancePipeline, PlanRequest, WarmStartProposal, WarmStartSource,
 )
@@ -168,8 +169,8 @@ def _serve_here(jobs: list) -> list:
 
 
 def test_a_failing_job_is_answered_with_its_error(tmp_path, pipeline, shipped):
-    """The worker's loop answers a job it cannot do (its model file missing; a plan job with
-    options SCVx* does not know) with the error in words and goes on with the next job: the
+    """The worker's loop answers a job it cannot do (its model file missing; a plan job whose
+    SCVx* options are not options) with the error in words and goes on with the next job: the
     planner then proposes, or solves, in line."""
     provider, key = shipped
     config = pipeline.config
@@ -180,8 +181,7 @@ def test_a_failing_job_is_answered_with_its_error(tmp_path, pipeline, shipped):
     answers = _serve_here([
         WarmUpJob(*base, missing),
         WarmUpJob(*base, key),
-        PlanJob(7, *base, key, request, cvx, None, True, {"no_such_option": 1},
-                solve_art=True),
+        PlanJob(7, *base, key, request, cvx, None, True, "no_such_options", solve_art=True),
     ])
     assert len(answers) == 4, answers
     assert isinstance(answers[0], Failure) and "missing.onnx" in answers[0].text
@@ -189,7 +189,7 @@ def test_a_failing_job_is_answered_with_its_error(tmp_path, pipeline, shipped):
     assert isinstance(answers[2], Proposal) and answers[2].job_id == 7
     assert answers[2].learned.dv is not None, answers[2].learned.reason
     assert isinstance(answers[3], Failure) and answers[3].job_id == 7
-    assert answers[3].text.startswith("TypeError: ") and "no_such_option" in answers[3].text
+    assert answers[3].text.startswith("AttributeError: "), answers[3].text
     assert not any(isinstance(a, ScvxAnswer) for a in answers)
 
 
@@ -201,7 +201,8 @@ def test_a_worker_that_stalls_or_dies_holding_a_job(pipeline, shipped):
     The worker is held with SIGSTOP, so the job cannot be answered before it is stopped."""
     _, key = shipped
     config = pipeline.config
-    job = PlanJob(0, config.to_json(), config.sha256(), key, None, None, None, False, {})
+    job = PlanJob(0, config.to_json(), config.sha256(), key, None, None, None, False,
+                  SubproblemOptions())
     worker = ProposalProcess()
     try:
         for ending in ("late", "dead"):

@@ -1,4 +1,4 @@
-"""The messages between a planner and its proposal worker process (`proposal_process`), typed.
+"""The messages between a planner and its proposal worker process (`worker.process`), typed.
 
 The planner sends a `WarmUpJob` (load the model) and then one `PlanJob` per plan; the worker
 answers each job with a `Proposal` (the learned step's decision) or a `Failure`, and a job with
@@ -11,11 +11,27 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from art_guidance.deadline import Deadline
+from art_guidance.optim.problem import SubproblemOptions
+
+if TYPE_CHECKING:  # the envelopes' contents, for the reader and the type checker
+    from art_guidance.optim import ConvexSolution, ScpResult
+    from art_guidance.planning.learned import Learned
+    from art_guidance.planning.request import PlanRequest
 
 WARM_UP_ID = 0  # the id of a warm-up job; plan jobs count from 1
+
+
+class ModelKey(NamedTuple):
+    """What the worker needs to load the planner's model (`worker.process.model_key`)."""
+
+    path: str
+    sha256: str
+    threads: int
+    reward_scales: tuple[float, ...]
+    runtime: str
 
 
 @dataclass(frozen=True)
@@ -25,12 +41,12 @@ class WarmUpJob:
     Attributes:
         config_json: the planner's configuration (`GuidanceConfig.to_json`).
         config_sha256: its checksum (the worker keeps its state per configuration and model).
-        model: what loads the model (`proposal_process.model_key`).
+        model: what loads the model (`worker.process.model_key`).
     """
 
     config_json: dict
     config_sha256: str
-    model: tuple
+    model: ModelKey
     job_id: int = WARM_UP_ID
 
 
@@ -45,19 +61,19 @@ class PlanJob:
         cvx: its convex solution (`ConvexSolution`).
         time_left_s: what is left of the plan's deadline [s] (None: no deadline).
         cvx_unsafe: the planner found CVX not passively safe (the step does not ask again).
-        subproblem: SCVx*'s subproblem options (`dataclasses.asdict(SubproblemOptions)`).
+        subproblem: SCVx*'s subproblem options (the planner's).
         solve_art: solve SCVx* from a valid proposal after answering (`ScvxAnswer`).
     """
 
     job_id: int
     config_json: dict
     config_sha256: str
-    model: tuple
-    request: Any
-    cvx: Any
+    model: ModelKey
+    request: PlanRequest
+    cvx: ConvexSolution
     time_left_s: float | None
     cvx_unsafe: bool
-    subproblem: dict
+    subproblem: SubproblemOptions
     solve_art: bool = False
 
     def warm_up(self) -> WarmUpJob:
@@ -80,7 +96,7 @@ class Proposal:
     """
 
     job_id: int
-    learned: Any = None
+    learned: Learned | None = None
     wall_ms: float = 0.0
 
 
@@ -94,7 +110,7 @@ class ScvxAnswer:
     """
 
     job_id: int
-    result: Any = None
+    result: ScpResult | None = None
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ from typing import Any
 from art_guidance.deadline import Deadline
 from art_guidance.planning.worker.serve import serve
 from art_guidance.planning.worker.messages import (
-    CancelSlot, Failure, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
+    CancelSlot, Failure, ModelKey, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
 )
 
 STARTUP_TIMEOUT_S = 120.0  # importing torch and loading the model in the spawned process
@@ -59,16 +59,16 @@ def restart_delay_s(failed_starts: int) -> float:
     return min(RESTART_AFTER_S * 2.0 ** max(failed_starts - 1, 0), RESTART_MAX_S)
 
 
-def model_key(provider: object) -> tuple | None:
-    """What the worker needs to load the same model: (path, sha256, threads, reward scales,
-    runtime), or None when the provider is not a model loaded from a checked file."""
+def model_key(provider: object) -> ModelKey | None:
+    """What the worker needs to load the same model, or None when the provider is not a model
+    loaded from a checked file."""
     path = getattr(provider, "path", "")
     sha = getattr(provider, "sha256", "")
     if not path or not sha or not hasattr(provider, "reward_scales"):
         return None
-    return (str(path), str(sha), int(getattr(provider, "threads", 1)),
-            tuple(float(s) for s in provider.reward_scales),
-            str(getattr(provider, "runtime", "torch")))
+    return ModelKey(str(path), str(sha), int(getattr(provider, "threads", 1)),
+                    tuple(float(s) for s in provider.reward_scales),
+                    str(getattr(provider, "runtime", "torch")))
 
 
 class ProposalProcess:
@@ -117,7 +117,7 @@ class ProposalProcess:
         """Whether the worker process runs."""
         return self._proc is not None and self._proc.is_alive()
 
-    def start(self, config_json: dict, config_sha256: str, model: tuple,
+    def start(self, config_json: dict, config_sha256: str, model: ModelKey,
               timeout_s: float = STARTUP_TIMEOUT_S) -> bool:
         """Start the worker (if needed), load the model in it and wait until it is ready;
         False (see `error`) if it could not."""

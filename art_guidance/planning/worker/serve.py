@@ -1,5 +1,5 @@
-"""The proposal worker process's side (`proposal_process` starts it): one job in, its answers
-out (`worker_messages`), until the pipe closes or None comes.
+"""The proposal worker process's side (`worker.process` starts it): one job in, its answers
+out (`worker.messages`), until the pipe closes or None comes.
 
 The worker chooses its numerics once, at its warm-up (`kernels.prepare` with the planner's
 `numerics`), where it also runs the model once on a canned transfer (`planning.warm_up`: the
@@ -11,13 +11,40 @@ SCVx* run from the proposal, so its answers are the in-line ones bit for bit (te
 from __future__ import annotations
 
 import math
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 from art_guidance import kernels
 from art_guidance.deadline import Deadline
 from art_guidance.planning.worker.messages import (
-    CancellableDeadline, CancelSlot, Failure, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
+    CancellableDeadline, CancelSlot, Failure, ModelKey, PlanJob, Proposal, ScvxAnswer,
+    WarmUpJob,
 )
+
+if TYPE_CHECKING:
+    from art_guidance.config import GuidanceConfig
+    from art_guidance.optim.problem import SubproblemPool
+    from art_guidance.planning.transfer import Transfer, Transfers
+
+
+@dataclass
+class _Loaded:
+    """The worker's model and configuration (one pair at a time, by `key`)."""
+
+    key: tuple[str, ModelKey]
+    provider: Any  # `art.provider.ArtWarmStart`
+    config: GuidanceConfig
+    transfers: Transfers
+
+
+@dataclass
+class _State:
+    """What the worker keeps between jobs: the loaded pair, the last plan job's transfer and
+    deadline (for SCVx* from its proposal), its own subproblems."""
+
+    loaded: _Loaded | None = None
+    plan: tuple[Transfer, Deadline | None] | None = None
+    pool: SubproblemPool | None = None
 
 
 def serve(conn: Any, slot: CancelSlot | None = None) -> None:
@@ -29,7 +56,7 @@ def serve(conn: Any, slot: CancelSlot | None = None) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    state: dict = {}
+    state = _State()
     while True:
         try:
             job = conn.recv()
@@ -65,7 +92,7 @@ def _send(conn: Any, answer: Any) -> bool:
         return False
 
 
-def _run(job: WarmUpJob | PlanJob, state: dict) -> Proposal:
+def _run(job: WarmUpJob | PlanJob, state: _State) -> Proposal:
     """One job: a warm-up loads the model; a plan job makes the learned step."""
     from art_guidance.art.provider import ArtWarmStart
     from art_guidance.config import GuidanceConfig
@@ -74,7 +101,7 @@ def _run(job: WarmUpJob | PlanJob, state: dict) -> Proposal:
     from art_guidance.planning.warm_up import seed_request, warm_up
 
     key = (job.config_sha256, job.model)
-    if state.get("key") != key:
+    if state.loaded is None or state.loaded.key != key:
         path, sha, threads, scales, runtime = job.model
         provider = ArtWarmStart.load(path, expected_sha256=sha, threads=threads,
                                      reward_scales=scales, runtime=runtime)
@@ -82,27 +109,28 @@ def _run(job: WarmUpJob | PlanJob, state: dict) -> Proposal:
         # the numerics, chosen once at the worker's start: loaded, or the numpy path while a
         # background process compiles them (never a compile before the first fix)
         kernels.prepare(config.planning.numerics)
-        state.update(key=key, provider=provider, config=config,
-                     transfers=Transfers(config.scenario, config.uncertainty))
+        state.loaded = _Loaded(key, provider, config,
+                               Transfers(config.scenario, config.uncertainty))
+    loaded = state.loaded
     if isinstance(job, WarmUpJob):  # the runtime's first inference, not the first plan's
-        config = state["config"]
-        warm_up(state["provider"], state["transfers"].get(
-            seed_request(config.scenario)).problem, config.planning)
+        config = loaded.config
+        warm_up(loaded.provider, loaded.transfers.get(seed_request(config.scenario)).problem,
+                config.planning)
         return Proposal(job.job_id)
     left_s = job.time_left_s  # the plan's deadline, on this process's clock
     deadline = None if left_s is None else Deadline.after(left_s)
-    transfer = state["transfers"].get(job.request)
-    state["plan"] = (transfer, deadline)  # for SCVx* from the proposal (`_solve_art`)
-    learned, wall_ms = timed_learned_warm_start(state["provider"], transfer, job.cvx,
-                                                state["config"].planning, deadline,
+    transfer = loaded.transfers.get(job.request)
+    state.plan = (transfer, deadline)  # for SCVx* from the proposal (`_solve_art`)
+    learned, wall_ms = timed_learned_warm_start(loaded.provider, transfer, job.cvx,
+                                                loaded.config.planning, deadline,
                                                 job.cvx_unsafe)
     return Proposal(job.job_id, learned, wall_ms)
 
 
-def _solve_art(job: PlanJob, state: dict, answer: Any, slot: CancelSlot | None) -> Any:
+def _solve_art(job: PlanJob, state: _State, answer: Any, slot: CancelSlot | None) -> Any:
     """SCVx* from the job's proposal as the planner would solve it (`planning.runs`), or None:
     no valid proposal, or the planner cancelled the run (before or during it)."""
-    from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
+    from art_guidance.optim.problem import SubproblemPool
     from art_guidance.planning.request import WarmStartSource
 
     def cancelled() -> bool:
@@ -110,15 +138,16 @@ def _solve_art(job: PlanJob, state: dict, answer: Any, slot: CancelSlot | None) 
 
     if not isinstance(answer, Proposal) or answer.learned.dv is None or cancelled():
         return None
-    learned, config = answer.learned, state["config"]
-    transfer, deadline = state["plan"]
+    learned, config = answer.learned, state.loaded.config
+    transfer, deadline = state.plan
     if deadline is not None and learned.source is WarmStartSource.ART:
         # the first run of the plan: a share of what is left, the rest for the run from CVX
         deadline = deadline.share(config.planning.art_deadline_share)
     at_s = math.inf if deadline is None else deadline.at_s
     until = Deadline(at_s) if slot is None \
         else CancellableDeadline(at_s, slot=slot, job_id=job.job_id)
-    pool = state.setdefault("pool", SubproblemPool())  # the worker's own, as a pipeline's
-    scvx = transfer.scvx(config, SubproblemOptions(**job.subproblem), pool)
+    if state.pool is None:
+        state.pool = SubproblemPool()  # the worker's own, as a pipeline's
+    scvx = transfer.scvx(config, job.subproblem, state.pool)
     result = scvx.solve(learned.dv, deadline=until, projected=learned.warm_start)
     return None if cancelled() else result
