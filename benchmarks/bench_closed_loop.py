@@ -78,7 +78,7 @@ def fly(seed: int, errors: bool, pipeline: GuidancePipeline, warm_start: str = "
     summary["art_checked"] = len(posthoc)
     summary["art_accepted"] = sum(bool(p.accepted) for p in posthoc)
     summary["art_kept"] = sum(r.warm_start is WarmStartSource.ART for _, r in guidance.results)
-    summary["plan_ms"] = [float(r.timings_ms["total"]) for _, r in guidance.results]
+    summary["plan_ms"] = [float(r.timings.total) for _, r in guidance.results]
     summary["art_skipped_cvx_safe"] = sum(r.warm_start_reason == CVX_SAFE_REASON
                                           for _, r in guidance.results)
     # both plans solved: the CVX-warm-started plan's cost minus the ART-warm-started one's
@@ -171,7 +171,7 @@ def compare_warm_starts(seeds: list[int], runs_cvx: list[dict], model: str | Non
 
 
 def _latency(runs: list[dict]) -> dict:
-    """Per-replan planning time [ms] (`PlanResult.timings_ms["total"]`: CVX, ART, SCVx*)."""
+    """Per-replan planning time [ms] (`PlanResult.timings.total`: CVX, ART, SCVx*)."""
     return _dist(np.array([t for r in runs for t in r["plan_ms"]]))
 
 

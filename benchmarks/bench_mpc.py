@@ -75,7 +75,7 @@ def fly(seed: int, window_nodes: int, target: str, model: str | None = None,
     windows = [r.window for r in results if r.window is not None]
     return {"seed": int(seed), "reached": bool(summary["reached"]), "warm_up_ms": warm_up_ms,
             "dv_mps": float(summary["total_dv_mps"]), "miss_m": float(summary["miss_m"]),
-            "replan_ms": [float(r.timings_ms["total"]) for r in results],
+            "replan_ms": [float(r.timings.total) for r in results],
             "replans": len(results),
             "infeasible": sum(r.status.name == "INFEASIBLE" for r in results),
             "why_not_art": _why_not_art(windows),

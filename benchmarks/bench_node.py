@@ -150,8 +150,10 @@ def run(repeats: int = 30, model: str | None = None) -> dict:
             res = pipeline.plan(PlanRequest(chief, roe_from_rtn_linear(chief, rtn), target,
                                             warm_start=warm_start))
             accepted += res.warm_start is WarmStartSource.ART
-            for key in stages:
-                stages[key].append(res.timings_ms[key])
+            t = res.timings
+            for key, value in (("cvx", t.cvx), ("art", t.art), ("scp", t.scp),
+                               ("total", t.total)):
+                stages[key].append(value)
         p50 = float(np.percentile(latency, 50))
         ref50 = float(np.percentile(stages["total"], 50))
         out.update({f"{warm_start}_latency_p50_ms": p50,

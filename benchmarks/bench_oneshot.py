@@ -39,7 +39,7 @@ sc = ScenarioConfig.from_yaml(None)
 req = seed_request(sc, seed, warm_start=ws)  # art-guidance plan --seed S --warm-start W's
 prov = None if ws == "cvx" else ArtWarmStart.load(resolve_model_path("", True), runtime="auto")
 p = GuidancePipeline(GuidanceConfig.load().replace(scenario=sc), provider=prov)
-print(json.dumps([p.plan(req).timings_ms for _ in range(n)][1:]))
+print(json.dumps([p.plan(req).timings.to_json() for _ in range(n)][1:]))
 '''
 
 

@@ -61,16 +61,16 @@ def run(repeats: int = 40, first_seed: int = 0, model: str | None = None) -> dic
             request = PlanRequest(chief, roe_from_rtn_linear(chief, s.rtn0), s.target_rtn,
                                   chance_constrained=True, warm_start="auto")
             a = auto.plan(request)
-            t_con.append(concurrent.plan(request).timings_ms["total"])
-            t_pro.append(propose_only.plan(request).timings_ms["total"])
+            t_con.append(concurrent.plan(request).timings.total)
+            t_pro.append(propose_only.plan(request).timings.total)
             c = cvx_only.plan(PlanRequest(chief, request.roe0_m, s.target_rtn,
                                           chance_constrained=True, warm_start="cvx"))
             rows.append((a.posthoc is not None and a.posthoc.accepted,
                          a.warm_start is WarmStartSource.ART,
                          a.status.feasible, c.status.feasible, a.cost_mps, c.cost_mps,
-                         a.timings_ms["total"], c.timings_ms["total"],
+                         a.timings.total, c.timings.total,
                          a.posthoc.e_r if a.posthoc is not None else np.nan,
-                         a.proposal is not None, a.timings_ms["art"], a.discarded is None))
+                         a.proposal is not None, a.timings.art, a.discarded is None))
         runs_made, runs_taken = concurrent.proposal_worker_scvx_runs
     finally:
         concurrent.close()

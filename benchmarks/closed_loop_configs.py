@@ -146,7 +146,7 @@ def fly(seed: int, name: str, model: str | None = None) -> dict:
             "min_safety_margin_m": summary["min_safety_margin_m"],
             "replans": len(replans),
             "iterations": [int(r.scp_iterations_all) for r in replans],
-            "replan_ms": [float(r.timings_ms["total"]) for r in replans],
+            "replan_ms": [float(r.timings.total) for r in replans],
             "at_cap": sum(r.status is ScpStatus.MAX_ITERATIONS for r in replans),
             "carried": sum(bool(r.carry and r.carry.carried) for r in replans),
             "kept": sum(bool(r.carry and r.carry.kept) for r in replans),

@@ -32,7 +32,7 @@ def _offline_demo(args: argparse.Namespace) -> int:
     print(f"target {args.waypoint}: CVX lower bound {result.cvx.cost_mps:.4f} m/s; "
           f"chance-constrained SCP {result.status.name} in {result.scp.iterations} iterations, "
           f"{result.cost_mps:.4f} m/s, min passive-safety margin "
-          f"{result.constraint_margin_m:.2f} m, {result.timings_ms['total']:.0f} ms")
+          f"{result.constraint_margin_m:.2f} m, {result.timings.total:.0f} ms")
     print(f"{'t [s]':>8} {'r_R [m]':>9} {'r_T [m]':>9} {'r_N [m]':>8} {'|dv| [mm/s]':>12}")
     dv_mm = 1e3 * np.linalg.norm(result.dv_rtn_mps, axis=1)
     for k in range(0, horizon.n_nodes, max(1, horizon.n_nodes // 10)):

@@ -42,13 +42,13 @@ def run(args: argparse.Namespace) -> int:
                 art_runtime=getattr(provider, "runtime", None),
                 art_runtime_sha256=getattr(provider, "runtime_sha256", None))
     write_json_atomic(args.json, data)
-    t = result.timings_ms
+    t = result.timings
     print(f"warm starts: CVX {result.cvx.cost_mps:.4f} m/s"
           + (f", ART {data['art_cost_mps']:.4f} m/s" if data["art_cost_mps"] is not None
              else "") + f" -> {result.warm_start.label}: {result.warm_start_reason}")
     print(f"{result.status.name}: cost {result.cost_mps:.4f} m/s, {result.scp.iterations} SCP "
-          f"iterations, margin {result.constraint_margin_m:.2f} m, {t['total']:.0f} ms "
-          f"(CVX {t['cvx']:.0f}, ART {t['art']:.0f}, SCP {t['scp']:.0f}) -> {args.json}")
+          f"iterations, margin {result.constraint_margin_m:.2f} m, {t.total:.0f} ms "
+          f"(CVX {t.cvx:.0f}, ART {t.art:.0f}, SCP {t.scp:.0f}) -> {args.json}")
     print(f"warm-up {warm_up_ms:.0f} ms before the solve (kernels loaded, one throwaway plan: "
           "the model runtime's first inference, the solver's set-up): one-time costs, not in "
           f"the solve's times; numerics: {data['numerics']}")

@@ -45,7 +45,7 @@ from art_guidance.planning.producers import Producers
 from art_guidance.planning.runs import carried_run, fresh_runs, plan_result
 from art_guidance.planning.transfer import Transfer, Transfers
 from art_guidance.planning.request import PlanRequest, WarmStart
-from art_guidance.planning.result import PlanResult, WarmStartProvider
+from art_guidance.planning.result import PlanResult, Timings, WarmStartProvider
 from art_guidance.planning.warm_up import seed_request, warm_up
 from art_guidance.safety import PassiveSafety
 
@@ -251,8 +251,8 @@ class GuidancePipeline:
             ref = window.cvx_reference(cvx, ref, result.status.name)
             result = self._window_plan(transfer, ref, deadline, pool)
         t_end = time.perf_counter()
-        timings = {"setup": 0.0, "cvx": 1e3 * (t_cvx - t0), "art": 1e3 * (t_art - t_cvx),
-                   "scp": 1e3 * (t_end - t_art), "total": 1e3 * (t_end - t0)}
+        timings = Timings(cvx=1e3 * (t_cvx - t0), art=1e3 * (t_art - t_cvx),
+                          scp=1e3 * (t_end - t_art), total=1e3 * (t_end - t0))
         return window.splice(transfer, result, ref, cvx, timings)
 
     def _window_plan(self, transfer: Transfer, ref: window.Reference,

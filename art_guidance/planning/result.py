@@ -5,8 +5,9 @@ Frozen dataclasses; no ROS, no solver calls.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -15,6 +16,55 @@ from art_guidance.deadline import Deadline
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Trajectory, TransferProblem
 from art_guidance.planning.carry import CarryReport
 from art_guidance.planning.request import PlanRequest, WarmStartSource
+
+
+@dataclass(frozen=True)
+class Timings:
+    """A plan's wall times per stage [ms]: its transfer's set-up, CVX, the learned step, every
+    SCVx* run, the whole plan, and for a windowed replan its window's own plan (None: not
+    one). With the concurrent proposal "art" (its own wall time) overlaps "scp": their sum then
+    exceeds the total."""
+
+    setup: float = 0.0
+    cvx: float = 0.0
+    art: float = 0.0
+    scp: float = 0.0
+    total: float = 0.0
+    window: float | None = None
+
+    def to_json(self) -> dict:
+        """{"setup", "cvx", "art", "scp", "total"[, "window"]} [ms], as recorded since the
+        first plans."""
+        out = {"setup": self.setup, "cvx": self.cvx, "art": self.art, "scp": self.scp,
+               "total": self.total}
+        if self.window is not None:
+            out["window"] = self.window
+        return out
+
+
+@dataclass(frozen=True)
+class PlanWindow:
+    """How a plan used its window.
+
+    Attributes:
+        window_nodes: H, the window asked for (nodes after the first).
+        end_node: index of the window's last node in the plan (the last node when the
+            waypoint is inside the window).
+        target_source: "waypoint" (the remainder fits in the window), "art" or "cvx" (or a
+            benchmark's reference: "scvx", or "art" for "art_any").
+        reason: why this target, in words.
+        context_nodes: nodes of flown history the learned proposal was given (0: none).
+    """
+
+    window_nodes: int
+    end_node: int
+    target_source: str
+    reason: str
+    context_nodes: int = 0
+
+    def to_json(self) -> dict:
+        """JSON-ready fields."""
+        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True)
@@ -87,12 +137,12 @@ class PlanResult:
     warm_start: WarmStartSource  # the warm start of the SCP run kept
     posthoc: PosthocDecision | None  # None: no learned warm start was tried
     constraint_margin_m: float
-    timings_ms: dict = field(default_factory=dict)
+    timings: Timings = field(default_factory=Timings)  # wall times per stage [ms]
     request: PlanRequest | None = None
     proposal: WarmStartProposal | None = None  # the learned warm start, if one was proposed
     warm_start_reason: str = ""  # why this warm start, in words
     discarded: ScpAttempt | None = None  # an SCP run replaced by a better retry
-    window: Any = None  # `planning.window.PlanWindow` of a windowed replan (None: not one)
+    window: PlanWindow | None = None  # how a windowed replan used its window (None: not one)
     carry: CarryReport | None = None  # what the plan did with the plan in force
     scp_iterations_all: int = 0  # iterations of every SCVx* run of this plan, kept or not
     # the path its numerics ran on: "compiled", "numpy", or "mixed" (the kernels became ready
@@ -129,7 +179,7 @@ class PlanResult:
             "discarded_attempt": None if (d := self.discarded) is None else {
                 "warm_start": d.warm_start.value, "status": d.status.name,
                 "cost_mps": d.cost_mps, "iterations": d.iterations},
-            "timings_ms": dict(self.timings_ms),
+            "timings_ms": self.timings.to_json(),
             "constraint_margin_m": self.constraint_margin_m,
             "window": None if self.window is None else self.window.to_json(),
             "carry": None if self.carry is None else self.carry.to_json(),

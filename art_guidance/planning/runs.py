@@ -20,7 +20,7 @@ from art_guidance.planning.learned import cvx_is_safe
 from art_guidance.planning.producers import Producers
 from art_guidance.planning.transfer import Transfer
 from art_guidance.planning.request import WarmStart, WarmStartSource
-from art_guidance.planning.result import PlanResult, ScpAttempt
+from art_guidance.planning.result import PlanResult, ScpAttempt, Timings
 
 ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 
@@ -136,9 +136,9 @@ def plan_result(transfer: Transfer, cvx: ConvexSolution, run: Choice, fresh: Fre
     t0, t_setup, t_cvx, t_end = marks_s
     art_ms, propose_ms, early_ms = (0.0, 0.0, 0.0) if fresh is None else (
         fresh.art_ms, fresh.propose_ms, fresh.early_ms)
-    timings = {"setup": 1e3 * (t_setup - t0), "cvx": 1e3 * (t_cvx - t_setup),
-               "art": art_ms, "scp": 1e3 * (t_end - t_cvx) - propose_ms + early_ms,
-               "total": 1e3 * (t_end - t0)}
+    timings = Timings(setup=1e3 * (t_setup - t0), cvx=1e3 * (t_cvx - t_setup), art=art_ms,
+                      scp=1e3 * (t_end - t_cvx) - propose_ms + early_ms,
+                      total=1e3 * (t_end - t0))
     res, learned, request, horizon = run.result, run.learned, transfer.request, transfer.horizon
     margin = float(transfer.safety.evaluate(res.roe_m, res.dv_rtn_mps).margin_m.min())
     return PlanResult(
@@ -146,7 +146,7 @@ def plan_result(transfer: Transfer, cvx: ConvexSolution, run: Choice, fresh: Fre
         dv_rtn_mps=res.dv_rtn_mps, roe_m=res.roe_m, rtn=horizon.to_rtn(res.roe_m),
         cost_mps=res.cost_mps, scp=res, cvx=cvx, warm_start=run.source,
         posthoc=None if learned is None else learned.posthoc,
-        constraint_margin_m=margin, timings_ms=timings, request=request,
+        constraint_margin_m=margin, timings=timings, request=request,
         proposal=None if learned is None else learned.proposal,
         warm_start_reason=run.reason, discarded=run.discarded,
         carry=run.carry, scp_iterations_all=run.iterations)

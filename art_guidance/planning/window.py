@@ -42,33 +42,8 @@ from art_guidance.planning.request import (  # noqa: F401  (targets re-exported)
     N_ORBITS_RANGE, REFERENCE_TARGETS, TERMINAL_TARGETS, PlanRequest, WarmStart,
     WarmStartSource,
 )
-from art_guidance.planning.result import PlanResult
+from art_guidance.planning.result import PlanResult, PlanWindow, Timings
 from art_guidance.planning.transfer import Transfer
-
-
-@dataclass(frozen=True)
-class PlanWindow:
-    """How a plan used its window.
-
-    Attributes:
-        window_nodes: H, the window asked for (nodes after the first).
-        end_node: index of the window's last node in the plan (the last node when the
-            waypoint is inside the window).
-        target_source: "waypoint" (the remainder fits in the window), "art" or "cvx" (or a
-            benchmark's reference: "scvx", or "art" for "art_any").
-        reason: why this target, in words.
-        context_nodes: nodes of flown history the learned proposal was given (0: none).
-    """
-
-    window_nodes: int
-    end_node: int
-    target_source: str
-    reason: str
-    context_nodes: int = 0
-
-    def to_json(self) -> dict:
-        """JSON-ready fields."""
-        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True)
@@ -194,7 +169,7 @@ def target_roe(transfer: Transfer, ref: Reference, h: int) -> np.ndarray:
 
 
 def splice(transfer: Transfer, window: PlanResult, ref: Reference, cvx: ConvexSolution,
-           timings_ms: dict) -> PlanResult:
+           timings: Timings) -> PlanResult:
     """The plan over the whole remainder: the window's plan, then the reference's burns from
     node H + 1 to the waypoint."""
     request, horizon = transfer.request, transfer.horizon
@@ -207,7 +182,7 @@ def splice(transfer: Transfer, window: PlanResult, ref: Reference, cvx: ConvexSo
         window, epochs_s=horizon.epochs_s, dv_rtn_mps=dv, roe_m=roe, rtn=horizon.to_rtn(roe),
         cost_mps=float(np.linalg.norm(dv, axis=1).sum()), cvx=cvx,
         posthoc=None if learned is None else learned.posthoc,
-        timings_ms={**timings_ms, "window": float(window.timings_ms.get("total", 0.0))},
+        timings=dataclasses.replace(timings, window=float(window.timings.total)),
         request=request, proposal=None if learned is None else learned.proposal,
         warm_start_reason=text,
         window=PlanWindow(h, h, ref.source, ref.reason, context_steps(request)))

@@ -134,7 +134,7 @@ def plan_to_msg(result: PlanResult, stamp_ns: int, plan_id: str) -> ManeuverPlan
     msg.warm_start_reason = result.warm_start_reason[:500]
     msg.posthoc, msg.posthoc_e_r, msg.posthoc_e_c = posthoc_fields(result)
     msg.scp_iterations = int(result.scp.iterations)
-    msg.solve_time_ms = float(result.timings_ms.get("total", 0.0))
+    msg.solve_time_ms = float(result.timings.total)
     msg.constraint_margin_m = float(result.constraint_margin_m)
     return msg
 
@@ -171,10 +171,10 @@ def solve_record_msg(result: PlanResult, stamp_ns: int, plan_id: str, trigger: s
     msg.scp_cost_history_mps = [float(h.cost_mps) for h in hist]
     msg.scp_trust_radius_history = [float(h.trust_radius) for h in hist]
     msg.scp_max_violation_history = [float(h.max_violation) for h in hist]
-    t = result.timings_ms
+    t = result.timings
     msg.timing_model_load_ms = float(model_load_ms)
-    msg.timing_art_ms, msg.timing_cvx_ms = float(t.get("art", 0.0)), float(t.get("cvx", 0.0))
-    msg.timing_scp_ms, msg.timing_total_ms = float(t.get("scp", 0.0)), float(t.get("total", 0.0))
+    msg.timing_art_ms, msg.timing_cvx_ms = float(t.art), float(t.cvx)
+    msg.timing_scp_ms, msg.timing_total_ms = float(t.scp), float(t.total)
     msg.request_json = json.dumps(result.request.to_json() if result.request else {})
     msg.window_json = "" if result.window is None else json.dumps(result.window.to_json())
     msg.numerics, msg.deadline_hit = result.numerics, bool(result.deadline_hit)

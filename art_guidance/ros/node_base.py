@@ -289,19 +289,19 @@ class GuidanceNodeBase:
             self.out.publish_views(views)
             self._recorded(self.recording.record_views(views))
         level = OK if result.scp.feasible else WARN
-        t = result.timings_ms
+        t = result.timings
         self._log().info(
             f"{plan_id} ({job.trigger}): {result.status.name}, {result.cost_mps:.4f} m/s, "
             f"{result.scp.iterations} it from {result.warm_start.label}, margin "
-            f"{result.constraint_margin_m:.2f} m, {t['total']:.0f} ms; {action.value} "
+            f"{result.constraint_margin_m:.2f} m, {t.total:.0f} ms; {action.value} "
             f"(in force: {active_id or 'none'}); {result.warm_start_reason}")
         self.out.diag("art_guidance/plan", level, f"{result.status.name}: {action.value}",
                       {"plan_id": plan_id, "nav_stamp_ns": str(job.nav.stamp_ns),
                        "action": action.value, "active_plan_id": active_id,
                        "cost_mps": result.cost_mps, "warm_start": result.warm_start.value,
                        "warm_start_reason": result.warm_start_reason,
-                       "solve_time_ms": t["total"], "cvx_ms": round(t["cvx"], 2),
-                       "art_ms": round(t["art"], 2), "scp_ms": round(t["scp"], 2),
+                       "solve_time_ms": t.total, "cvx_ms": round(t.cvx, 2),
+                       "art_ms": round(t.art, 2), "scp_ms": round(t.scp, 2),
                        "record_dir": self.recording.directory,
                        **self._model_values(), **self._proposal_worker_values()})
 

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, NamedTuple
+from multiprocessing.context import BaseContext
+from typing import TYPE_CHECKING, NamedTuple
 
 from art_guidance.deadline import Deadline
 from art_guidance.optim.problem import SubproblemOptions
@@ -135,7 +136,7 @@ class CancelSlot:
     Built on the spawn context's shared integer, so it is passed to the worker at its start.
     """
 
-    def __init__(self, ctx: Any) -> None:
+    def __init__(self, ctx: BaseContext) -> None:
         self._value = ctx.Value("q", 0, lock=False)
 
     def cancel(self, job_id: int) -> None:
@@ -151,8 +152,9 @@ class CancelSlot:
 class CancellableDeadline(Deadline):
     """A deadline that has also passed once the planner cancels job `job_id` (`slot`)."""
 
-    slot: Any = None
+    slot: CancelSlot | None = None
     job_id: int = 0
 
     def passed(self) -> bool:
-        return self.slot.cancelled(self.job_id) or super().passed()
+        return (self.slot is not None and self.slot.cancelled(self.job_id)) \
+            or super().passed()
