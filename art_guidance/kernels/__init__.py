@@ -25,6 +25,8 @@ too). This package imports only numpy and numba (and the standard library).
 """
 from __future__ import annotations
 
+import contextlib
+import enum
 import errno
 import logging
 import os
@@ -33,16 +35,42 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 NUMERICS = ("compiled", "numpy")
 NUMERICS_ENV = "ART_GUIDANCE_NUMERICS"  # a parent's `choose`, inherited by its children
 _HERE = Path(__file__).resolve().parent
 _LOG = logging.getLogger("art_guidance.kernels")
-# phase: "idle" (not loaded yet), "ready" (compiled path in use), "background" (numpy path
-# while the kernels compile in the background), "numpy" (the compiled path is not usable)
-_state: dict = {"mode": None, "error": None, "ready_s": None, "phase": "idle", "note": "",
-                "thread": None, "cache_problem": ""}
+
+
+class Phase(enum.Enum):
+    """Where the kernels are in this process."""
+
+    IDLE = "idle"              # not loaded yet
+    READY = "ready"            # the compiled path in use
+    BACKGROUND = "background"  # the numpy path while the kernels compile in the background
+    NUMPY = "numpy"            # the compiled path is not usable
+
+
+@dataclass
+class _KernelState:
+    """The process's numerics: the path chosen (`mode`: None until chosen), why numba cannot
+    be used (`error`: None until asked, "" when it can), the phase, when the kernels became
+    ready [s], what the door did (`note`), the background thread, and why the cache was not
+    filled (`cache_problem`)."""
+
+    mode: str | None = None
+    error: str | None = None
+    ready_s: float | None = None
+    phase: Phase = Phase.IDLE
+    note: str = ""
+    thread: threading.Thread | None = None
+    cache_problem: str = ""
+
+
+_state = _KernelState()
 # what writing the cache fails with where the cache cannot be written (not a damaged cache)
 UNWRITABLE = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG}
 _lock = threading.RLock()
@@ -66,14 +94,14 @@ def _choose_cache_dir() -> None:
 
 def _import_error() -> str:
     """Why numba cannot be used ("" = it can); imported once, on first need."""
-    if _state["error"] is None:
+    if _state.error is None:
         try:
             _choose_cache_dir()
             import numba  # noqa: F401
-            _state["error"] = ""
+            _state.error = ""
         except Exception as exc:  # numba missing or broken: the numpy path
-            _state["error"] = f"numba is not usable ({type(exc).__name__}: {exc})"
-    return _state["error"]
+            _state.error = f"numba is not usable ({type(exc).__name__}: {exc})"
+    return _state.error
 
 
 def choose(mode: str) -> str:
@@ -87,7 +115,7 @@ def choose(mode: str) -> str:
     """
     if mode not in NUMERICS:
         raise ValueError(f"numerics must be one of {', '.join(NUMERICS)}, got {mode!r}")
-    _state["mode"] = mode
+    _state.mode = mode
     os.environ[NUMERICS_ENV] = mode  # the processes this one starts choose alike
     return mode
 
@@ -108,20 +136,20 @@ def set_numerics(mode: str) -> str:
     """
     if mode not in NUMERICS:
         raise ValueError(f"numerics must be one of {', '.join(NUMERICS)}, got {mode!r}")
-    _state["mode"] = mode if mode == "numpy" or not _import_error() else "numpy"
-    return _state["mode"]
+    _state.mode = mode if mode == "numpy" or not _import_error() else "numpy"
+    return _state.mode
 
 
 def compiled() -> bool:
     """Whether the compiled kernels are in use now (the first call goes through `prepare`:
     False while they compile in the background)."""
-    if _state["mode"] is None:
+    if _state.mode is None:
         set_numerics(_default_mode())
-    if _state["mode"] != "compiled":
+    if _state.mode != "compiled":
         return False
-    if _state["phase"] == "idle":
+    if _state.phase is Phase.IDLE:
         prepare()
-    return _state["phase"] == "ready"
+    return _state.phase is Phase.READY
 
 
 def error() -> str:
@@ -135,12 +163,12 @@ def prepare(mode: str | None = None, *, wait: bool = False) -> str:
     background (the numpy path meanwhile). Idempotent; never raises for numba or its cache.
     Returns `status()`."""
     with _lock:
-        if mode is not None or _state["mode"] is None:
+        if mode is not None or _state.mode is None:
             set_numerics(mode or _default_mode())
-        if _state["mode"] != "compiled" or _state["phase"] in ("ready", "numpy"):
+        if _state.mode != "compiled" or _state.phase in (Phase.READY, Phase.NUMPY):
             return status()
-        if _state["phase"] == "background":
-            thread = _state["thread"]
+        if _state.phase is Phase.BACKGROUND:
+            thread = _state.thread
         else:
             t0 = time.perf_counter()
             try:
@@ -159,6 +187,19 @@ def prepare(mode: str | None = None, *, wait: bool = False) -> str:
     return status()
 
 
+@contextlib.contextmanager
+def using(mode: str, *, wait: bool = True) -> Iterator[str]:
+    """The numerics path `mode` for the block (`prepare`d, waited for by default; yields
+    `status()`), and the path chosen before it again afterwards: a library call that needs one
+    path (`record.replay`) leaves the process's choice as it found it."""
+    before = _state.mode
+    try:
+        yield prepare(mode, wait=wait)
+    finally:
+        if before is not None:
+            set_numerics(before)
+
+
 def warm_up() -> float | None:
     """`prepare` and wait for the kernels: the time they took to be ready [s], or None where
     the numpy path is taken (`error` says why). Idempotent."""
@@ -168,19 +209,19 @@ def warm_up() -> float | None:
 
 def ready_s() -> float | None:
     """How long the kernels took to be ready in this process [s] (None: not in use)."""
-    return _state["ready_s"] if _state["phase"] == "ready" else None
+    return _state.ready_s if _state.phase is Phase.READY else None
 
 
 def status() -> str:
     """The numerics in use, in words (with what the door did: a damaged cache moved aside)."""
-    phase, note = _state["phase"], _state["note"]
-    if _state["mode"] == "numpy" and not error() and phase != "numpy":
+    phase, note = _state.phase, _state.note
+    if _state.mode == "numpy" and not error() and phase is not Phase.NUMPY:
         text = "numpy (as configured)"
-    elif phase == "numpy" or error():
-        text = f"numpy, the compiled kernels are not available: {_state['error']}"
-    elif phase == "ready":
-        text = f"compiled, kernels ready in {_state['ready_s']:.2f} s (cache: {cache_note()})"
-    elif phase == "background":
+    elif phase is Phase.NUMPY or error():
+        text = f"numpy, the compiled kernels are not available: {_state.error}"
+    elif phase is Phase.READY:
+        text = f"compiled, kernels ready in {_state.ready_s:.2f} s (cache: {cache_note()})"
+    elif phase is Phase.BACKGROUND:
         text = ("numpy while the kernels compile in the background (a cold cache: "
                 f"{cache_note()}); compiled once they are ready")
     else:
@@ -257,7 +298,7 @@ def _move_aside(cache, why: str) -> None:
     else:
         note = (f"damaged kernel cache in {where} ({why}): {len(moved)} files moved to "
                 f"{where / cache.DAMAGED_FOLDER}, compiled again")
-    _state["note"] = note
+    _state.note = note
     _LOG.warning(note)
 
 
@@ -276,7 +317,8 @@ def _compile(cache) -> None:
     except cache.LockBusy as exc:  # a stalled filler: compile here, do not wait for ever
         cache.in_memory()
         note = f"{exc}: gave up waiting, compiled in memory"
-        _state.update(note=note, cache_problem=note)
+        _state.note = note
+        _state.cache_problem = note
         _LOG.warning(note)
         cache.load()
     except Exception as exc:  # damage found while compiling, an unwritable folder
@@ -289,7 +331,8 @@ def _compile(cache) -> None:
                     f"({errno.errorcode.get(full.errno, full.errno)}: "
                     f"{os.strerror(full.errno or 0)}: a full disk, a quota or a read-only "
                     "file system): compiled in memory, the cache left as it is")
-            _state.update(note=note, cache_problem=note)
+            _state.note = note
+            _state.cache_problem = note
             _LOG.warning(note)
         cache.load()
 
@@ -310,7 +353,7 @@ def unwritable(exc: BaseException) -> OSError | None:
 def cache_problem() -> str:
     """Why this process compiled the kernels in memory instead of into their cache (the cache
     cannot be written, or another filler held it too long; "" = it did not)."""
-    return _state["cache_problem"]
+    return _state.cache_problem
 
 
 def _start_background(cache, t0: float) -> threading.Thread:
@@ -337,7 +380,8 @@ def _start_background(cache, t0: float) -> threading.Thread:
                 _unusable(exc)
 
     thread = threading.Thread(target=finish, name="art_guidance_kernels", daemon=True)
-    _state.update(phase="background", thread=thread)
+    _state.phase = Phase.BACKGROUND
+    _state.thread = thread
     thread.start()
     _LOG.info("kernels: %s", status())
     return thread
@@ -374,12 +418,16 @@ def _start_filler(cache, where: Path) -> subprocess.Popen | None:
 
 
 def _ready(t0: float) -> str:
-    _state.update(phase="ready", ready_s=time.perf_counter() - t0, thread=None)
+    _state.phase = Phase.READY
+    _state.ready_s = time.perf_counter() - t0
+    _state.thread = None
     return status()
 
 
 def _unusable(exc: Exception) -> str:
-    _state["error"] = f"the compiled kernels failed ({type(exc).__name__}: {exc})"
-    _state.update(mode="numpy", phase="numpy", thread=None)
+    _state.error = f"the compiled kernels failed ({type(exc).__name__}: {exc})"
+    _state.mode = "numpy"
+    _state.phase = Phase.NUMPY
+    _state.thread = None
     _LOG.warning("kernels: %s", status())
     return status()

@@ -332,12 +332,11 @@ def replay(path: str | Path, model: str | Path | None = None,
     are not time-boxed, so it cannot be reproduced; the record's flag, or for records before
     it a TIMEOUT in the texts).
 
-    Each solve is replayed on the numerics path it ran on (the record's `numerics`: the numpy
-    path while the kernels compiled on a cold cache, or compiled): the two paths make the same
-    decisions, not the same floats. A solve recorded on the compiled path where the kernels
-    cannot be used here, or recorded while they became ready (`mixed`), is not compared (its
-    reason says why). `numerics` replays every solve on that path instead; records made before
-    the field replay on the recorded configuration's path.
+    Each solve is replayed on the numerics path it ran on (the record's `numerics`; the paths
+    make the same decisions, not the same floats), the process's own path restored after it;
+    one recorded while the kernels became ready (`mixed`), or compiled where they cannot be
+    used here, is not compared. `numerics` replays every solve on that path; records before
+    the field replay on the configuration's path.
 
     The report also says what could not be read (`damaged`, `truncated`: torn ends), what was
     lost against metadata.yaml (`lost`), which records or plans lack their partner
@@ -357,8 +356,7 @@ def replay(path: str | Path, model: str | Path | None = None,
         model: checkpoint to replay learned warm starts with (default: the shipped model if it
             is the recorded one; see the report's "model" note otherwise).
         allow_uncompared: solves left uncompared for another model do not set the exit code.
-        numerics: "compiled" or "numpy": the path of every replayed solve (None: each solve's
-            recorded path).
+        numerics: "compiled" or "numpy", the path of every solve (None: each its own).
 
     Raises:
         InputError: no such log, no configuration in it, or a recorded value that cannot be
@@ -374,8 +372,6 @@ def replay(path: str | Path, model: str | Path | None = None,
         # the pipeline as recorded: configuration, ranking of the candidates, model; replays
         # are not time-boxed (timed-out solves are flagged)
         pipeline = GuidancePipeline.from_config_json(recorded, provider, time_boxed=False)
-        # the replay plans on the recorded numerics (chosen here, its entry), or as asked
-        kernels.set_numerics(numerics or pipeline.config.planning.numerics)
     except GuidanceError as exc:
         if not (metadata_problems or config_problem):
             raise  # nothing says it was altered: the log cannot be replayed as it is
@@ -407,7 +403,11 @@ def replay(path: str | Path, model: str | Path | None = None,
             rows.append(row)
             continue
         row["numerics"] = path
-        result = pipeline.plan(PlanRequest.from_json(json.loads(record.request_json)))
+        with kernels.using(path):  # the process's own choice again afterwards
+            if path == "compiled" and not kernels.compiled():  # the kernels failed here
+                rows.append({**row, "match": None, "reason": NO_COMPILED})
+                continue
+            result = pipeline.plan(PlanRequest.from_json(json.loads(record.request_json)))
         d_cost = abs(result.cost_mps - cost) / max(abs(cost), 1e-12)
         d_dv = (float(np.max(np.abs(result.dv_rtn_mps - dv)))
                 if result.dv_rtn_mps.shape == dv.shape else float("inf"))

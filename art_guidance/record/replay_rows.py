@@ -15,19 +15,15 @@ NO_COMPILED = "recorded on the compiled path, which is not available here"
 
 
 def recorded_path(record: object, configured: str | None) -> str:
-    """The numerics path to replay a solve on, set for the process (`kernels.prepare`, the
-    compiled kernels waited for): the record's (`numerics`), the `configured` one for records
-    before the field (None: no configuration, ""); or why it cannot be replayed faithfully
-    (MIXED_NUMERICS, NO_COMPILED)."""
+    """The numerics path to replay a solve on: the record's (`numerics`), the `configured` one
+    for records before the field (None: no configuration, ""); or why it cannot be replayed
+    faithfully (MIXED_NUMERICS; NO_COMPILED where the compiled kernels cannot be used here)."""
     recorded = str(getattr(record, "numerics", ""))
     if recorded == "mixed":
         return MIXED_NUMERICS
     if recorded not in kernels.NUMERICS:
-        if configured is None:
-            return ""
-        recorded = configured
-    kernels.prepare(recorded, wait=True)
-    if recorded == "compiled" and not kernels.compiled():
+        return "" if configured is None else configured
+    if recorded == "compiled" and kernels.error():
         return NO_COMPILED
     return recorded
 

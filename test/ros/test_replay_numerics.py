@@ -93,3 +93,17 @@ def test_a_deadline_hit_is_not_compared_whatever_the_texts_say(tmp_path, results
     assert "1/1 matched" in out and "1 hit their deadline" in out
     rows = replay(bag)["per_solve"]
     assert rows[1]["match"] is None and rows[1]["reason"] == DEADLINE_HIT
+
+
+def test_replay_leaves_the_process_numerics_as_it_found_them(tmp_path, results):
+    """`replay` is a library call: each solve on its recorded path, then the caller's path
+    again (here numpy, with a compiled solve replayed in between)."""
+    pipeline, plans = results
+    bag = _bag(tmp_path, pipeline, [plans[5]])
+    kernels.prepare("numpy")
+    try:
+        rows = replay(bag)["per_solve"]
+        assert rows[0]["numerics"] == "compiled" and rows[0]["match"]
+        assert not kernels.compiled() and kernels.status().startswith("numpy (as configured)")
+    finally:
+        kernels.prepare("compiled", wait=True)
