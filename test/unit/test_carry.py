@@ -4,8 +4,8 @@ A first plan is made, a fix arrives at one of its nodes off its predicted state,
 replan's request carries the plan in force's burns there (`ReplanPolicy.carry_at`). Held to:
 the carried run starts on the terminal condition and needs fewer iterations than the fresh
 solve; `replan_warm_start: fresh` is the fresh solve bit for bit; the request round-trips
-through JSON and replays bit for bit; every refusal says why; the rescue and the guard keep
-the better plan.
+through JSON and replays bit for bit; every refusal says why (the choice between the carried
+and the fresh run: `test_choice.py`).
 """
 from __future__ import annotations
 
@@ -18,11 +18,9 @@ import pytest
 from art_guidance.config import GuidanceConfig, PlanningConfig, ScenarioConfig
 from art_guidance.dynamics import propagate_mean_oe, roe_from_rtn_linear
 from art_guidance.errors import ConfigError, InputError
-from art_guidance.optim import ScpResult, ScpStatus
+from art_guidance.optim import ScpStatus
 from art_guidance.planning import GuidancePipeline, NavState, PlanRequest, Target
-from art_guidance.planning.carry import CarriedPlan, CarryReport, guard_reason, refusal
-from art_guidance.planning.choice import CarryStep, Fresh, choose
-from art_guidance.planning.learned import Learned
+from art_guidance.planning.carry import CarriedPlan, guard_reason, refusal
 from art_guidance.guidance.replan import ReplanPolicy, ReplanSettings, request_for
 from art_guidance.planning.request import WarmStartSource
 from art_guidance.scenarios import sample_scenario
@@ -173,35 +171,6 @@ def test_the_guard_needs_both_growth_and_a_gap_to_j_cvx():
     assert guard_reason(0.04, 3.0, 2.0, 0.05) == ""   # grew little since it was checked
     assert guard_reason(0.2, 2.03, 2.0, 0.05) == ""   # at the lower bound: nothing to gain
     assert "grew 200 mm/s" in guard_reason(0.2, 3.0, 2.0, 0.05)
-
-
-def _run(status: ScpStatus, cost: float, iterations: int = 2) -> ScpResult:
-    return ScpResult(status, np.zeros((3, 6)), np.zeros((3, 3)), cost, iterations, 0.0)
-
-
-def _fresh(result: ScpResult) -> Fresh:
-    return Fresh(result, CVX, "CVX warm start requested", None, Learned(CVX, "x"), 0.0, 0.0,
-                 0.0, result.iterations)
-
-
-def test_the_rescue_keeps_the_better_plan_and_the_growth():
-    report = CarryReport("carry", True, "carried plan-2", True, "", 0.3, 20)
-    step = CarryStep(report, _run(ScpStatus.MAX_ITERATIONS, 2.5, 20), "the carried run ended")
-    out = choose(step, _fresh(_run(ScpStatus.CONVERGED, 2.0, 4)), 1e-3)
-    assert out.source is CVX and not out.carry.kept and out.iterations == 24
-    assert out.carry.excess_mps == pytest.approx(0.3 - 0.5)  # the fresh plan's cost counts
-    assert out.discarded.warm_start is CARRIED
-    infeasible = CarryStep(report, _run(ScpStatus.INFEASIBLE, 1.0, 20), "ended INFEASIBLE")
-    assert choose(infeasible, _fresh(_run(ScpStatus.CONVERGED, 2.0)), 1e-3).source is CVX
-
-
-def test_the_guard_switches_only_to_a_cheaper_plan_and_starts_the_growth_afresh():
-    report = CarryReport("carry", True, "carried plan-2", True, "grew", 0.3, 2)
-    step = CarryStep(report, _run(ScpStatus.CONVERGED, 2.4), "guard: grew")
-    switched = choose(step, _fresh(_run(ScpStatus.CONVERGED, 1.7)), 1e-3)
-    assert switched.source is CVX and switched.carry.excess_mps == 0.0
-    kept = choose(step, _fresh(_run(ScpStatus.CONVERGED, 2.3995)), 1e-3)
-    assert kept.source is CARRIED and kept.carry.kept and kept.carry.excess_mps == 0.0
 
 
 def test_a_windowed_replan_tracks_the_plan_in_force(flight):
