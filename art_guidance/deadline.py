@@ -43,6 +43,11 @@ class Deadline:
         """Whether a stage found this deadline, or one of its shares, passed."""
         return bool(self.hits)
 
+    def mark_hit(self) -> None:
+        """A stage elsewhere (the proposal worker, on its copy of this deadline) found it
+        passed."""
+        self.hits.append(self.at_s)
+
     def left_s(self) -> float:
         """What is left of it [s] (0 once passed: a hit)."""
         left = self.at_s - time.perf_counter()

@@ -61,7 +61,7 @@ from art_guidance.planning import GuidancePipeline, WarmStartSource
 from art_guidance.planning.learned import CVX_SAFE_REASON
 from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
 from art_guidance.sim.inprocess import InProcessGuidance
-from common import hard_seeds, warm_up  # noqa: F401 (hard_seeds: as before)
+from common import hard_seeds, warm_up
 
 _LOG = logging.getLogger("bench_closed_loop")
 

@@ -315,26 +315,26 @@ def _compile(cache) -> None:
             if not _load_cached(cache):
                 cache.load()
     except cache.LockBusy as exc:  # a stalled filler: compile here, do not wait for ever
-        cache.in_memory()
-        note = f"{exc}: gave up waiting, compiled in memory"
-        _state.note = note
-        _state.cache_problem = note
-        _LOG.warning(note)
+        _not_filled(cache, f"{exc}: gave up waiting, compiled in memory")
         cache.load()
     except Exception as exc:  # damage found while compiling, an unwritable folder
         full = unwritable(exc)
         if full is None:
             _move_aside(cache, f"compiling failed ({type(exc).__name__}: {str(exc)[:200]})")
         else:
-            cache.in_memory()
-            note = (f"the kernel cache in {where} cannot be written "
-                    f"({errno.errorcode.get(full.errno, full.errno)}: "
-                    f"{os.strerror(full.errno or 0)}: a full disk, a quota or a read-only "
-                    "file system): compiled in memory, the cache left as it is")
-            _state.note = note
-            _state.cache_problem = note
-            _LOG.warning(note)
+            _not_filled(cache, f"the kernel cache in {where} cannot be written "
+                        f"({errno.errorcode.get(full.errno, full.errno)}: "
+                        f"{os.strerror(full.errno or 0)}: a full disk, a quota or a read-only "
+                        "file system): compiled in memory, the cache left as it is")
         cache.load()
+
+
+def _not_filled(cache, note: str) -> None:
+    """This process compiles the kernels in memory, its cache not filled: said (`note`,
+    `status`, the log) and kept as the reason (`cache_problem`)."""
+    cache.in_memory()
+    _state.note = _state.cache_problem = note
+    _LOG.warning(note)
 
 
 def unwritable(exc: BaseException) -> OSError | None:
@@ -392,9 +392,9 @@ def _start_filler(cache, where: Path) -> subprocess.Popen | None:
     folder's fill lock taken for it; None where another filler holds the lock (one filler per
     folder: this process then waits for that one's kernels) or none could be started."""
     fd = cache.try_lock(where)
-    if fd is None and cache.filler_pid(where):
-        _LOG.info("kernels: process %s fills %s; waiting for its kernels",
-                  cache.filler_pid(where), where)
+    filler = None if fd is not None else cache.filler_pid(where)
+    if filler:
+        _LOG.info("kernels: process %s fills %s; waiting for its kernels", filler, where)
         return None
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         [str(_HERE.parent.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}

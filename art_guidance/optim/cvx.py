@@ -63,37 +63,34 @@ def condensed_tpbvp(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
     With a `terminal_set` the six terminal equality rows become its two 4-row cones (head
     row h, then ``R (x_f - M_0 x_0) - R G u`` with (R, h) = `TerminalSet.cone`), after every
     other row."""
-    data = _condensed_equality(horizon, roe0_m, roe_f_m, norm)
-    if terminal_set is None:
-        return data
-    p, q, a, b, cones = data
     n = horizon.n_nodes
     maps = terminal_maps(horizon)
-    g = np.einsum("kij,kjl->ikl", maps, horizon.b).reshape(6, -1)  # (6, 3N)
+    g = np.einsum("kij,kjl->ikl", maps, horizon.b).reshape(6, 3 * n)  # (6, 3N) [s]
+    offset = roe_f_m - maps[0] @ roe0_m  # what the burns must add to the final state [m]
+    span_s = horizon.epochs_s[-1] - horizon.epochs_s[0]
+    # Terminal rows scaled by the mean motion: B ~ 1/n [s], so n*G is O(1) and n*rhs is in m/s.
+    scale = 2.0 * np.pi / span_s if n > 1 else 1.0
+    p, q, a, b, cones = _condensed_equality(n, scale * g, scale * offset, norm)
+    if terminal_set is None:
+        return p, q, a, b, cones
     # the cones on ROE in units of 1/n [s]: O(1) entries on controls in m/s (`cone`)
-    scale_s = (horizon.epochs_s[-1] - horizon.epochs_s[0]) / (2.0 * np.pi) if n > 1 else 1.0
+    scale_s = span_s / (2.0 * np.pi) if n > 1 else 1.0
     rows, heads = terminal_set.cone(horizon.psi[-1], scale_s)
     rows = rows / scale_s
     term_a = np.zeros((8, a.shape[1]))
     term_b = np.zeros(8)
     for i, part in enumerate((slice(0, 3), slice(3, 6))):
         term_a[4 * i + 1:4 * i + 4, :g.shape[1]] = rows[part] @ g
-        term_b[4 * i + 1:4 * i + 4] = rows[part] @ (roe_f_m - maps[0] @ roe0_m)
+        term_b[4 * i + 1:4 * i + 4] = rows[part] @ offset
         term_b[4 * i] = heads[i]
     a = sp.vstack([a[6:], sp.csr_matrix(term_a)], format="csc")
     b = np.concatenate([b[6:], term_b])
     return p, q, a, b, Cones(0, cones.n_nonneg, (*cones.soc_sizes, 4, 4))
 
 
-def _condensed_equality(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
-                        norm: str) -> ConicData:
-    """`condensed_tpbvp` with the terminal equality (its first six rows)."""
-    n = horizon.n_nodes
-    maps = terminal_maps(horizon)
-    # Terminal rows scaled by the mean motion: B ~ 1/n [s], so n*G is O(1) and n*rhs is in m/s.
-    scale = 2.0 * np.pi / (horizon.epochs_s[-1] - horizon.epochs_s[0]) if n > 1 else 1.0
-    g = scale * np.einsum("kij,kjl->ikl", maps, horizon.b).reshape(6, 3 * n)  # (6, 3N)
-    rhs = scale * (roe_f_m - maps[0] @ roe0_m)
+def _condensed_equality(n: int, g: np.ndarray, rhs: np.ndarray, norm: str) -> ConicData:
+    """`condensed_tpbvp` with the terminal equality ``g u = rhs`` (its first six rows; `g`
+    (6, 3N) and `rhs` (6,) scaled by the mean motion) over `n` nodes."""
     if norm == "l2":
         n_var = 4 * n
         idx = np.arange(n)

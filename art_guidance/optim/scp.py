@@ -133,21 +133,22 @@ def to_terminal(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
 
 
 def onto_terminal_set(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
-                      terminal_set: TerminalSet, dv_rtn_mps: np.ndarray,
+                      terminal_set: TerminalSet | None, dv_rtn_mps: np.ndarray,
                       lin: DeputyLinearization | None = None, project_first: bool = False
                       ) -> Trajectory:
-    """Controls onto a terminal set about `roe_f_m` (`optim.terminal_set`): as they are when
-    they end in it (deputy-aware model), else corrected onto the set's point nearest to their
-    end (`TerminalSet.aim`) by `to_terminal` (`terminal_warm_start` with `project_first`)."""
+    """Controls onto the terminal condition: with no `terminal_set`, onto `roe_f_m` itself
+    (`to_terminal`; `terminal_warm_start` with `project_first`); with one, as they are when
+    they end in it (deputy-aware model), else corrected the same way onto the set's point
+    nearest to their end (`TerminalSet.aim`)."""
+    fix = terminal_warm_start if project_first else to_terminal
+    if terminal_set is None:
+        return fix(horizon, roe0_m, roe_f_m, dv_rtn_mps, lin)
     dv = np.array(dv_rtn_mps, float)
     roe = horizon.propagate_nonlinear(roe0_m, dv)
     z_f = horizon.final_post_burn_nonlinear(roe, dv)
     if terminal_set.contains(horizon.psi[-1], roe_f_m, z_f):
         return Trajectory(dv, roe)
-    aim = terminal_set.aim(horizon.psi[-1], roe_f_m, z_f)
-    if project_first:
-        return terminal_warm_start(horizon, roe0_m, aim, dv, lin)
-    return to_terminal(horizon, roe0_m, aim, dv, lin)
+    return fix(horizon, roe0_m, terminal_set.aim(horizon.psi[-1], roe_f_m, z_f), dv, lin)
 
 
 @dataclass
@@ -282,11 +283,9 @@ class Scvx:
         p, cfg = self.problem, self.cfg
         n = p.horizon.n_nodes
         if projected is None:
-            dv = np.asarray(dv_warm_rtn_mps, float).reshape(n, 3)
-            projected = (terminal_warm_start(p.horizon, p.roe0_m, p.roe_f_m, dv)
-                         if self.terminal_set is None else onto_terminal_set(
-                             p.horizon, p.roe0_m, p.roe_f_m, self.terminal_set, dv,
-                             project_first=True))
+            projected = onto_terminal_set(p.horizon, p.roe0_m, p.roe_f_m, self.terminal_set,
+                                          np.asarray(dv_warm_rtn_mps, float).reshape(n, 3),
+                                          project_first=True)
         ref = self._iterate(*projected)
         m = multipliers or {}
         lin_dyn = p.horizon.linearize_nonlinear(ref.roe_m, ref.dv_rtn_mps)
@@ -310,13 +309,8 @@ class Scvx:
         if not sol.output.ok:
             st.status = ScpStatus.SOLVER_ERROR
             return False
-        if self.terminal_set is None:
-            cand = self._iterate(*to_terminal(p.horizon, p.roe0_m, p.roe_f_m, sol.dv_rtn_mps,
-                                              st.lin_dyn))
-        else:
-            cand = self._iterate(*onto_terminal_set(p.horizon, p.roe0_m, p.roe_f_m,
-                                                    self.terminal_set, sol.dv_rtn_mps,
-                                                    st.lin_dyn))
+        cand = self._iterate(*onto_terminal_set(p.horizon, p.roe0_m, p.roe_f_m,
+                                                self.terminal_set, sol.dv_rtn_mps, st.lin_dyn))
         mu, w = st.mu, st.w
         j_ref = self._merit(ref, mu, w)
         l_cand = sol.cost_mps + float(mu @ sol.zeta) + 0.5 * w * float(sol.zeta @ sol.zeta)

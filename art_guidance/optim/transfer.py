@@ -18,7 +18,7 @@ from art_guidance.dynamics import DeputyLinearization, Horizon
 from art_guidance.optim.cvx import solve_cvx
 from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
 from art_guidance.optim.results import ConvexSolution, Trajectory
-from art_guidance.optim.scp import Scvx, onto_terminal_set, terminal_warm_start
+from art_guidance.optim.scp import Scvx, onto_terminal_set
 from art_guidance.optim.terminal_set import TerminalSet
 from art_guidance.safety import PassiveSafety
 
@@ -90,10 +90,8 @@ class TransferProblem:
         """Controls (N, 3) [m/s] corrected onto the terminal condition, and their states
         (`scp.terminal_warm_start`; with a terminal set `scp.onto_terminal_set`: unchanged
         when they end in it): where SCVx* starts from them."""
-        if self.terminal_set is not None:
-            return onto_terminal_set(self.horizon, self.roe0_m, self.roe_f_m, self.terminal_set,
-                                     dv_rtn_mps, lin, project_first=True)
-        return terminal_warm_start(self.horizon, self.roe0_m, self.roe_f_m, dv_rtn_mps, lin)
+        return onto_terminal_set(self.horizon, self.roe0_m, self.roe_f_m, self.terminal_set,
+                                 dv_rtn_mps, lin, project_first=True)
 
     def propagate(self, dv_rtn_mps: np.ndarray) -> Trajectory:
         """Controls (N, 3) [m/s] as they are, and their states under the deputy-aware model."""

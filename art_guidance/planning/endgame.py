@@ -142,10 +142,9 @@ def in_set_under(planning: PlanningConfig, n_nodes: int) -> TerminalSet | None:
     check at the first drift and is replanned at every fix."""
     if not (Endgame(planning.endgame).keeps and 0 < n_nodes <= planning.terminal_set_nodes):
         return None
+    if planning.terminal_tolerance_m <= 0.0 or planning.terminal_tolerance_mps <= 0.0:
+        return None  # no tolerance, no set (`terminal_set_share` is > 0 by validation)
     share = planning.terminal_set_share
-    if share <= 0.0 or planning.terminal_tolerance_m <= 0.0 \
-            or planning.terminal_tolerance_mps <= 0.0:
-        return None
     return TerminalSet(share * planning.terminal_tolerance_m,
                        share * planning.terminal_tolerance_mps)
 

@@ -40,7 +40,6 @@ from art_guidance.planning import window
 from art_guidance.planning.carry import refusal
 from art_guidance.planning.choice import choose
 from art_guidance.planning.endgame import InForceCheck, check_in_force
-from art_guidance.planning.learned import DEADLINE_REASON
 from art_guidance.planning.producers import Producers
 from art_guidance.planning.runs import carried_run, fresh_runs, plan_result
 from art_guidance.planning.transfer import Transfer, Transfers
@@ -162,9 +161,7 @@ class GuidancePipeline:
         result = self._plan_request(request, deadline, t0)
         after = kernels.compiled()
         path = ("compiled" if before else "numpy") if before == after else "mixed"
-        hit = ((deadline is not None and deadline.hit)
-               or result.scp.status is ScpStatus.TIMEOUT or DEADLINE_REASON in
-               result.warm_start_reason)
+        hit = (deadline is not None and deadline.hit) or result.scp.status is ScpStatus.TIMEOUT
         return dataclasses.replace(result, numerics=path, deadline_hit=bool(hit))
 
     def _plan_request(self, request: PlanRequest, deadline: Deadline | None,

@@ -107,6 +107,8 @@ class Producers:
             # plan is the best at hand (SCVx* from CVX, solved meanwhile)
             wait = NO_DEADLINE_TIMEOUT_S if deadline is None else max(deadline.left_s(), 0.0)
             answer = worker.collect(wait)
+            if answer is not None and answer.deadline_hit and deadline is not None:
+                deadline.mark_hit()  # the worker's step found it passed: the plan hit it
             if answer is not None:
                 return Proposed(early, answer.learned, answer.wall_ms,
                                 WorkerScvx(worker, job_id) if self.solve_art_in_worker

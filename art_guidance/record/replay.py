@@ -28,7 +28,7 @@ from art_guidance.planning.pipeline import recorded_config_problem
 from art_guidance.record.bag_metadata import bag_files
 from art_guidance.record.loss import account
 from art_guidance.record.recorder import PLAN_TYPE, REQUEST_TYPE, SOLVE_RECORD_TYPE
-from art_guidance.record.replay_rows import (  # noqa: F401 (the reasons, as before)
+from art_guidance.record.replay_rows import (
     MIXED_NUMERICS, NO_COMPILED, ROLLOUT_ABS_TOL_MPS, art_rows, recorded_path, window_rows,
 )
 from art_guidance.record.scan import Damage, FileScan, lend_channels, scan_file
@@ -390,7 +390,7 @@ def replay(path: str | Path, model: str | Path | None = None,
             continue
         path = numerics or recorded_path(record, None if pipeline is None
                                          else pipeline.config.planning.numerics)
-        if path in (MIXED_NUMERICS, NO_COMPILED):
+        if path == MIXED_NUMERICS:
             row.update(match=None, reason=path)
             rows.append(row)
             continue

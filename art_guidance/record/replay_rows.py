@@ -16,15 +16,14 @@ NO_COMPILED = "recorded on the compiled path, which is not available here"
 
 def recorded_path(record: object, configured: str | None) -> str:
     """The numerics path to replay a solve on: the record's (`numerics`), the `configured` one
-    for records before the field (None: no configuration, ""); or why it cannot be replayed
-    faithfully (MIXED_NUMERICS; NO_COMPILED where the compiled kernels cannot be used here)."""
+    for records before the field (None: no configuration, ""); or MIXED_NUMERICS, a solve
+    that cannot be replayed faithfully (whether the compiled path can be used here is asked
+    where it is set, `record.replay`)."""
     recorded = str(getattr(record, "numerics", ""))
     if recorded == "mixed":
         return MIXED_NUMERICS
     if recorded not in kernels.NUMERICS:
         return "" if configured is None else configured
-    if recorded == "compiled" and kernels.error():
-        return NO_COMPILED
     return recorded
 
 

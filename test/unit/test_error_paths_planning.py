@@ -168,6 +168,31 @@ def _serve_here(jobs: list) -> list:
     return answers
 
 
+def test_a_deadline_the_worker_finds_passed_is_said_in_its_answer(pipeline, shipped):
+    """The worker's learned step finds the plan's deadline passed (no time left): its answer
+    says so in data (`Proposal.deadline_hit`), not only in the reason's words, and the planner
+    marks its own deadline from it; a job with time left says no hit."""
+    from art_guidance.deadline import Deadline
+
+    _, key = shipped
+    config = pipeline.config
+    base = (config.to_json(), config.sha256())
+    request = heldout_requests(1, DEFAULT_MODELS["chance"])[0]
+    cvx = pipeline.transfer(request).problem.cvx()
+    answers = _serve_here([
+        WarmUpJob(*base, key),
+        PlanJob(5, *base, key, request, cvx, 0.0, True, SubproblemOptions()),
+        PlanJob(6, *base, key, request, cvx, 600.0, True, SubproblemOptions()),
+    ])
+    assert [type(a) for a in answers] == [Proposal] * 3, answers
+    assert answers[1].deadline_hit and "passed before ART" in answers[1].learned.reason
+    assert not answers[2].deadline_hit
+    planner = Deadline.after(600.0)
+    assert not planner.hit
+    planner.mark_hit()
+    assert planner.hit
+
+
 def test_a_failing_job_is_answered_with_its_error(tmp_path, pipeline, shipped):
     """The worker's loop answers a job it cannot do (its model file missing; a plan job whose
     SCVx* options are not options) with the error in words and goes on with the next job: the

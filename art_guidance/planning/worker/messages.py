@@ -94,11 +94,14 @@ class Proposal:
         job_id: the job's id (`WARM_UP_ID`: the warm-up is done).
         learned: the decision (`planning.learned.Learned`; None for a warm-up).
         wall_ms: the step's wall time [ms].
+        deadline_hit: the step found the plan's deadline passed (`Deadline.hit`, on the
+            worker's copy of it; the planner marks its own).
     """
 
     job_id: int
     learned: Learned | None = None
     wall_ms: float = 0.0
+    deadline_hit: bool = False
 
 
 @dataclass(frozen=True)

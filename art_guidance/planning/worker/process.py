@@ -33,6 +33,7 @@ import time
 from typing import Any
 
 from art_guidance.deadline import Deadline
+from art_guidance.optim.results import ScpStatus
 from art_guidance.planning.worker.serve import serve
 from art_guidance.planning.worker.messages import (
     CancelSlot, Failure, ModelKey, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
@@ -346,10 +347,14 @@ class WorkerScvx:
 
     def result(self, deadline: Deadline | None) -> Any:
         """The worker's run (an `ScpResult`, waited for until the plan's deadline, not past
-        it), or None: the plan solves it in line."""
+        it), or None: the plan solves it in line. A run the deadline stopped (TIMEOUT, as the
+        planner's own runs) is a hit of the plan's deadline."""
         self._taken = True
         wait = NO_DEADLINE_TIMEOUT_S if deadline is None else max(deadline.left_s(), 0.0)
-        return self._worker.scvx_result(self._job_id, wait)
+        result = self._worker.scvx_result(self._job_id, wait)
+        if result is not None and result.status is ScpStatus.TIMEOUT and deadline is not None:
+            deadline.mark_hit()
+        return result
 
     def dismiss(self) -> None:
         """Cancel the run if the plan did not take it."""

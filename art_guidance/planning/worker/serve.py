@@ -124,7 +124,7 @@ def _run(job: WarmUpJob | PlanJob, state: _State) -> Proposal:
     learned, wall_ms = timed_learned_warm_start(loaded.provider, transfer, job.cvx,
                                                 loaded.config.planning, deadline,
                                                 job.cvx_unsafe)
-    return Proposal(job.job_id, learned, wall_ms)
+    return Proposal(job.job_id, learned, wall_ms, deadline is not None and deadline.hit)
 
 
 def _solve_art(job: PlanJob, state: _State, answer: Any, slot: CancelSlot | None) -> Any:
