@@ -23,8 +23,9 @@ What a kill -9 can leave: the write itself is the only moment the file has no va
 boundary when a fatal signal arrives; such a file ends inside the new chunk. `read_log` still
 reads every solve before it and `art-guidance bag reindex` repairs it (see `record.reindex`);
 the torn solve was never published (a plan is recorded before it is published). A kill between
-the write and the rename of `metadata.yaml` leaves `metadata.yaml` one solve behind the data
-(that solve was not published either).
+the write and the rename of `metadata.yaml` leaves `metadata.yaml` one write behind the data:
+one solve (not published either) or one published plan's visualisation messages (written after
+the plan goes out).
 
 Write failures (full disk, unwritable path, file size limit) are logged and counted; they never
 raise into the caller. A failed write is undone (the old ending is put back and the file cut

@@ -15,6 +15,7 @@ import signal
 import subprocess
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ from rosbags.highlevel import AnyReader
 from art_guidance.config import ScenarioConfig
 from art_guidance.record.recorder import PART_SUFFIX, PLAN_TYPE
 from art_guidance.record.replay import read_log
+from art_guidance.ros.node_outputs import VIZ_TYPE_NAMES
 from helpers.ros_client import Client, nav_msg
 from helpers.rosbag2_metadata import consistency_problems, metadata_problems
 
@@ -76,6 +78,19 @@ def kill_once(python_exe: str, env: dict, bag: Path, seed: int, max_delay_s: flo
     return out
 
 
+def _one_views_write_behind(per_topic: Counter, info: dict) -> bool:
+    """Whether the files hold exactly one visualisation write more than metadata.yaml counts
+    (`per_topic`: (topic, type) -> messages read): a published plan's views are written after
+    it, and a kill between their data and metadata.yaml leaves it one such write behind, as it
+    may leave it one solve behind."""
+    counted = Counter({(t["topic_metadata"]["name"], t["topic_metadata"]["type"]):
+                       t["message_count"] for t in info["topics_with_message_count"]})
+    extra = {key: per_topic[key] - counted[key] for key in per_topic | counted
+             if per_topic[key] != counted[key]}
+    return bool(extra) and {kind for _, kind in extra} <= set(VIZ_TYPE_NAMES.values()) \
+        and set(extra.values()) == {1}
+
+
 def check_bag(bag: Path, received: list[str]) -> dict:
     """What a crashed folder holds and what is wrong with it (`problems`, empty = none)."""
     problems: list[str] = []
@@ -99,7 +114,8 @@ def check_bag(bag: Path, received: list[str]) -> dict:
         with AnyReader([bag]) as reader:  # the folder as rosbag2 readers open it
             plans = [reader.deserialize(raw, c.msgtype).plan_id
                      for c, _, raw in reader.messages() if c.msgtype == PLAN_TYPE]
-            listed = sum(1 for _ in reader.messages())
+            per_topic = Counter((c.topic, c.msgtype) for c, _, _ in reader.messages())
+            listed = sum(per_topic.values())
     except Exception as exc:  # a folder rosbags refuses is the failure counted here
         problems.append(f"rosbags: {type(exc).__name__}: {exc}")
         out["problems"] = problems
@@ -115,6 +131,8 @@ def check_bag(bag: Path, received: list[str]) -> dict:
     behind = (len(plans) - meta_plans) + (len(in_log) - len(plans))
     if behind == 1 and in_log[-1] not in received:  # killed between data and metadata.yaml
         out["metadata"] = "one solve behind the data"
+    elif behind == 0 and _one_views_write_behind(per_topic, info):
+        out["metadata"] = "one plan's visualisation behind the data"
     elif behind != 0 or listed != info["message_count"]:
         problems.append(f"metadata.yaml counts {info['message_count']} messages and "
                         f"{meta_plans} plans; rosbags reads {listed} and {len(plans)}, "
