@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import enum
 import hashlib
 import json
 import math
@@ -260,8 +261,17 @@ class PosthocThresholds:
 # terminal condition (`optim.terminal_warm_start`, what SCVx* starts from), or "rollout", the
 # rollout as the model produced it (the paper's check; the rollout misses the target).
 POSTHOC_SUBJECTS = ("warm_start", "rollout")
-# a replan with a plan in force starts from it (`planning.carry`) or solves afresh
-REPLAN_WARM_STARTS = ("carry", "fresh")
+
+
+class ReplanWarmStart(enum.StrEnum):
+    """A replan with a plan in force starts from it (CARRY, `planning.carry`) or solves afresh
+    (FRESH): planning.yaml's `replan_warm_start`, a string that equals its value."""
+
+    CARRY = "carry"
+    FRESH = "fresh"
+
+
+REPLAN_WARM_STARTS = tuple(r.value for r in ReplanWarmStart)
 NUMERICS = ("compiled", "numpy")  # `art_guidance.kernels`: numba kernels or their numpy oracles
 # the end-game policy (`planning.endgame`): every replan put in force as before, or a replan
 # the deviation triggers made only when the error matters (and, keep_cap, capped in cost)
@@ -283,7 +293,7 @@ class PlanningConfig:
     skip_art_when_cvx_safe: bool = True
     propose_concurrently: bool = False
     numerics: str = "compiled"
-    replan_warm_start: str = "carry"
+    replan_warm_start: ReplanWarmStart = ReplanWarmStart.CARRY
     carry_guard_mps: float = 0.05
     endgame: str = "keep_cap"
     terminal_tolerance_m: float = 10.0
@@ -302,6 +312,7 @@ class PlanningConfig:
             if getattr(self, name) not in choices:
                 raise ConfigError(f"{name} must be one of {choices}, got "
                                   f"{getattr(self, name)!r}")
+        object.__setattr__(self, "replan_warm_start", ReplanWarmStart(self.replan_warm_start))
         for name, least in (("tolerance_growth_nodes", 0), ("terminal_set_nodes", 0),
                             ("samples_per_node", 1)):
             g = getattr(self, name)

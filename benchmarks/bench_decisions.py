@@ -47,7 +47,7 @@ def run(repeats: int = 100, first_seed: int = 80000, model: str | None = None) -
                                 leave=False):
             plans = {}
             for mode in ("numpy", "compiled"):
-                kernels.set_numerics(mode)
+                kernels.choose(mode)
                 plans[mode] = pipeline.plan(transfer.request)
             a, b = plans["numpy"], plans["compiled"]
             d_dv = float(np.max(np.abs(a.dv_rtn_mps - b.dv_rtn_mps)))
@@ -56,7 +56,7 @@ def run(repeats: int = 100, first_seed: int = 80000, model: str | None = None) -
                          "same_warm_start": a.warm_start is b.warm_start,
                          "same_posthoc": _decision(a)[0] == _decision(b)[0],
                          "art_accepted": bool(a.posthoc is not None and a.posthoc.accepted)})
-        kernels.set_numerics("compiled")
+        kernels.choose("compiled")
         other = [r for r in rows if not r["same_decision"] or r["dv_max_abs_mps"] > DV_TOL_MPS]
         out["chance" if chance else "deterministic"] = {
             "model": path.rsplit("/", 1)[-1], "scenarios": len(rows),

@@ -59,10 +59,10 @@ def run(repeats: int = 20, first_seed: int = 60000, model: str | None = None) ->
     rows, same, same_path, cost_diff = [], 0, 0, 0.0
     for k, (transfer, cvx) in enumerate(tqdm(cases, desc="bench numerics", unit="scenario")):
         out, times = alternate(k, ("numpy", "compiled"), lambda mode: provider.propose(
-            transfer.problem, cvx, planning), before=kernels.set_numerics)
+            transfer.problem, cvx, planning), before=kernels.choose)
         scvx = {}
         for mode in ("numpy", "compiled"):
-            kernels.set_numerics(mode)
+            kernels.choose(mode)
             scvx[mode], times[f"scvx_{mode}"] = cpu_ms(lambda: transfer.scvx(
                 pipeline.config, pipeline.subproblem).solve(cvx.dv_rtn_mps))
         same += _same(out["numpy"], out["compiled"])

@@ -1,11 +1,10 @@
 """Compiled numerics (numba) behind the array doors of the numpy modules they are named after;
 the numpy forms stay where they are and are the test oracles (the same decisions).
 
-One process-wide setting chooses the path, once at the process's entry (`choose`; `set_numerics`
-also says at once whether numba can be used): "compiled" (the default where numba
-imports and the kernels load) or "numpy". Every process that plans goes through one door that
-loads the kernels, `prepare` (the node at configure, the worker at its warm-up, anything else
-at its first plan through `compiled`):
+One verb chooses the path, `choose`, once at the process's entry: "compiled" (the default where
+numba imports and the kernels load) or "numpy". One door prepares it, `prepare` (the node at
+configure, the worker at its warm-up, anything else at its first plan through `compiled`),
+which loads the kernels:
 
 - a warm cache: the kernels are loaded from it now (~0.4 s here);
 - a cache entry that does not load (truncated, emptied, garbled): the kernels' cache files are
@@ -105,10 +104,12 @@ def _import_error() -> str:
 
 
 def choose(mode: str) -> str:
-    """Choose the path ("compiled" or "numpy") at a process's entry (the node at configure,
-    the CLI in `main`, the proposal worker at its start), as osqp takes `algebra=`: nothing is
-    imported or loaded here; the kernels load at the first `prepare` or `compiled` (the numpy
-    path where they cannot). Returns `mode`.
+    """Choose the path ("compiled" or "numpy"): the one verb that sets it, at a process's entry
+    (the node at configure, the CLI in `main`, the proposal worker at its start) or for a
+    comparison (a benchmark, a test; `using` for a block). As osqp takes `algebra=`, nothing
+    is imported or loaded here: the kernels load at the first `prepare` or `compiled`, and
+    "compiled" turns into the numpy path there where numba cannot be used (`error` says why).
+    The processes this one starts afterwards choose alike. Returns `mode`.
 
     Raises:
         ValueError: an unknown mode.
@@ -116,7 +117,7 @@ def choose(mode: str) -> str:
     if mode not in NUMERICS:
         raise ValueError(f"numerics must be one of {', '.join(NUMERICS)}, got {mode!r}")
     _state.mode = mode
-    os.environ[NUMERICS_ENV] = mode  # the processes this one starts choose alike
+    os.environ[NUMERICS_ENV] = mode
     return mode
 
 
@@ -127,29 +128,12 @@ def _default_mode() -> str:
     return mode if mode in NUMERICS else "compiled"
 
 
-def set_numerics(mode: str) -> str:
-    """Choose the path ("compiled" or "numpy"); returns the path chosen ("numpy" where numba
-    cannot be used: `error` says why). The kernels load at the first `prepare` or `compiled`.
-
-    Raises:
-        ValueError: an unknown mode.
-    """
-    if mode not in NUMERICS:
-        raise ValueError(f"numerics must be one of {', '.join(NUMERICS)}, got {mode!r}")
-    _state.mode = mode if mode == "numpy" or not _import_error() else "numpy"
-    return _state.mode
-
-
 def compiled() -> bool:
     """Whether the compiled kernels are in use now (the first call goes through `prepare`:
     False while they compile in the background)."""
-    if _state.mode is None:
-        set_numerics(_default_mode())
-    if _state.mode != "compiled":
-        return False
-    if _state.phase is Phase.IDLE:
+    if _state.mode is None or (_state.mode == "compiled" and _state.phase is Phase.IDLE):
         prepare()
-    return _state.phase is Phase.READY
+    return _state.mode == "compiled" and _state.phase is Phase.READY
 
 
 def error() -> str:
@@ -164,7 +148,9 @@ def prepare(mode: str | None = None, *, wait: bool = False) -> str:
     Returns `status()`."""
     with _lock:
         if mode is not None or _state.mode is None:
-            set_numerics(mode or _default_mode())
+            choose(mode or _default_mode())
+        if _state.mode == "compiled" and _import_error():
+            _state.mode = "numpy"  # numba cannot be used: `error` says why
         if _state.mode != "compiled" or _state.phase in (Phase.READY, Phase.NUMPY):
             return status()
         if _state.phase is Phase.BACKGROUND:
@@ -197,7 +183,7 @@ def using(mode: str, *, wait: bool = True) -> Iterator[str]:
         yield prepare(mode, wait=wait)
     finally:
         if before is not None:
-            set_numerics(before)
+            choose(before)
 
 
 def warm_up() -> float | None:

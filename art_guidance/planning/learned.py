@@ -81,7 +81,7 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
             evaluated again).
     """
     request, problem = transfer.request, transfer.problem
-    if request.warm_start == WarmStart.CVX.value:
+    if request.warm_start is WarmStart.CVX:
         return Learned(CVX, "CVX warm start requested")
     if provider is None:
         return Learned(CVX, f"{request.warm_start} requested but no learned model is "
@@ -89,7 +89,7 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
     if not cvx.status.feasible:
         return Learned(CVX, f"CVX ended {cvx.status.name}: no reference for the post hoc "
                        "check, CVX warm start")
-    if request.warm_start == WarmStart.AUTO.value and not cvx_unsafe \
+    if request.warm_start is WarmStart.AUTO and not cvx_unsafe \
             and planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, problem.safety):
         return Learned(CVX, CVX_SAFE_REASON)
     t0 = time.perf_counter()
@@ -118,7 +118,7 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
     if posthoc.accepted:
         return Learned(ART, f"ART accepted by the post hoc check ({posthoc.text()})",
                        posthoc, proposal, dv, warm)
-    if request.warm_start == WarmStart.ART.value:
+    if request.warm_start is WarmStart.ART:
         return Learned(ART, f"ART forced although the post hoc check rejects it "
                        f"({posthoc.text()})", posthoc, proposal, dv, warm)
     return Learned(CVX, f"ART rejected by the post hoc check ({posthoc.text()}): CVX "

@@ -43,7 +43,7 @@ from art_guidance.planning.endgame import InForceCheck, check_in_force
 from art_guidance.planning.producers import Producers
 from art_guidance.planning.runs import carried_run, fresh_runs, plan_result
 from art_guidance.planning.transfer import Transfer, Transfers
-from art_guidance.planning.request import PlanRequest, WarmStart
+from art_guidance.planning.request import PlanRequest, TerminalTarget, WarmStart
 from art_guidance.planning.result import PlanResult, Timings, WarmStartProvider
 from art_guidance.planning.warm_up import seed_request, warm_up
 from art_guidance.safety import PassiveSafety
@@ -53,7 +53,7 @@ class GuidancePipeline:
     """Plans with CVX -> (optional learned warm start + post hoc) -> SCVx*.
 
     The pipeline changes no process state: the per-step numerics are chosen once at the
-    process's entry (`kernels.set_numerics` / `kernels.prepare`: the node at configure, the
+    process's entry (`kernels.choose`, then `kernels.prepare`: the node at configure, the
     CLI in `main`, the proposal worker at its start); `config.planning.numerics` records the
     choice.
 
@@ -200,7 +200,7 @@ class GuidancePipeline:
     def _no_window_target(self, request: PlanRequest, n_nodes: int) -> str:
         """Why a windowed request has no target and is planned whole ("" = it has one): with
         `terminal_target` carry, nothing to carry."""
-        if request.terminal_target != "carry" or not request.window_nodes:
+        if request.terminal_target is not TerminalTarget.CARRY or not request.window_nodes:
             return ""
         why = refusal(request.carry, request.no_carry, "carry", request.chance_constrained,
                       self._config_sha256, n_nodes)
@@ -236,9 +236,9 @@ class GuidancePipeline:
         if window.wants_learned(request, cvx):
             learned = self.producers.learned(dataclasses.replace(
                 transfer, request=window.learned_request(request)), cvx, deadline)[0]
-        if request.terminal_target == "scvx" and cvx.status.feasible:
+        if request.terminal_target is TerminalTarget.SCVX and cvx.status.feasible:
             full_request = dataclasses.replace(request, window_nodes=0,
-                                               warm_start=WarmStart.CVX.value)
+                                               warm_start=WarmStart.CVX)
             full = self._plan(self.transfer(full_request), deadline, pool, t_cvx)
         ref = window.reference(request, cvx, learned, full)
         t_art = time.perf_counter()
@@ -295,7 +295,7 @@ class GuidancePipeline:
         t0 = time.perf_counter()
         warm_up(wait=wait)
         self.plan(seed_request(self.scenario, warm_start=(
-            WarmStart.CVX if self.provider is None else WarmStart.ART).value))
+            WarmStart.CVX if self.provider is None else WarmStart.ART)))
         return 1e3 * (time.perf_counter() - t0)
 
     def close(self) -> None:

@@ -76,7 +76,7 @@ class Producers:
         planning = self.config.planning
         return bool(planning.propose_concurrently and planning.also_solve_from_cvx
                     and model_key(self.provider)
-                    and transfer.request.warm_start == WarmStart.AUTO.value
+                    and transfer.request.warm_start is WarmStart.AUTO
                     and cvx.status.feasible
                     and not (planning.skip_art_when_cvx_safe
                              and cvx_is_safe(cvx, transfer.safety)))

@@ -17,8 +17,9 @@ from art_guidance.optim import TerminalSet
 from art_guidance.planning.carry import CarriedPlan
 
 
-class WarmStart(str, enum.Enum):
-    """Where the SCP warm start comes from.
+class WarmStart(enum.StrEnum):
+    """Where the SCP warm start comes from (a request's `warm_start`; a string that equals
+    its value, in texts and JSON alike).
 
     AUTO: the learned proposal (ART) if a model is loaded and it passes the post hoc check,
     else CVX. CVX: the convex TPBVP solution. ART: the learned proposal even if the check fails.
@@ -52,11 +53,26 @@ class WarmStartSource(enum.Enum):
         return self.value.upper()
 
 
+class TerminalTarget(enum.StrEnum):
+    """Where a replan window shorter than the remainder ends (`planning.window`; a request's
+    `terminal_target`, a string that equals its value).
+
+    ART: the learned proposal's state there (CVX's where it is rejected or missing). CVX: the
+    convex plan's. CARRY: the plan in force's. Benchmark references (`bench mpc`), not node
+    parameters: SCVX, the full-horizon SCVx* plan's state (the oracle: costs the full replan
+    it saves), and ART_ANY, ART's whatever the check says.
+    """
+
+    ART = "art"
+    CVX = "cvx"
+    CARRY = "carry"
+    SCVX = "scvx"
+    ART_ANY = "art_any"
+
+
 N_ORBITS_RANGE = (0.01, 20.0)  # a plan's horizon [orbits], inclusive
-TERMINAL_TARGETS = ("art", "cvx", "carry")  # where a replan window ends (`planning.window`)
-# benchmark references of a window's end (`bench mpc`), not node parameters: the full-horizon
-# SCVx* plan's state (the oracle: costs the full replan it saves) and ART's whatever the check
-REFERENCE_TARGETS = ("scvx", "art_any")
+TERMINAL_TARGETS = tuple(t.value for t in TerminalTarget)[:3]  # a node parameter's choices
+REFERENCE_TARGETS = tuple(t.value for t in TerminalTarget)[3:]  # the benchmarks' references
 
 
 def window_nodes_valid(window_nodes: object, most: int) -> bool:
@@ -151,13 +167,13 @@ class PlanRequest:
         roe0_m: (6,) initial a-scaled ROE [m].
         target_rtn: (6,) terminal RTN state after the last burn [m, m/s].
         chance_constrained: False plans deterministic passive safety (covariance zero).
-        warm_start: "auto" (ART if available and accepted, else CVX), "cvx" or "art".
+        warm_start: `WarmStart` (a string of its values is taken: "auto", "cvx" or "art").
         n_nodes, n_orbits: horizon; None uses the scenario's.
         koz_switch_node: node index where the approach ellipsoid switches to the keep-out zone;
             None uses the scenario's (a replan over the remaining horizon shifts it).
         window_nodes: H > 0 optimises only nodes 0..H when the horizon is longer, to
             `terminal_target`'s state at node H (`planning.window`); 0 the whole horizon.
-        terminal_target: "art" or "cvx" (`planning.window`).
+        terminal_target: `TerminalTarget` (a string of its values is taken).
         context: the steps flown before node 0, given to the learned proposal (None: none).
         carry: the plan in force's burns at the request's nodes (`planning.carry`; None: none).
         no_carry: why the guidance carried none ("" = no plan in force).
@@ -170,12 +186,12 @@ class PlanRequest:
     roe0_m: np.ndarray
     target_rtn: np.ndarray
     chance_constrained: bool = True
-    warm_start: str = "auto"
+    warm_start: WarmStart = WarmStart.AUTO
     n_nodes: int | None = None
     n_orbits: float | None = None
     koz_switch_node: int | None = None
     window_nodes: int = 0
-    terminal_target: str = "art"
+    terminal_target: TerminalTarget = TerminalTarget.ART
     context: RolloutContext | None = None
     carry: CarriedPlan | None = None
     no_carry: str = ""
@@ -194,6 +210,7 @@ class PlanRequest:
                                  "target_rtn")
         if self.warm_start not in WARM_STARTS:
             raise InputError("warm_start", f"must be one of {WARM_STARTS}", self.warm_start)
+        object.__setattr__(self, "warm_start", WarmStart(self.warm_start))
         if self.n_nodes is not None and not 3 <= int(self.n_nodes) <= 1000:
             raise InputError("n_nodes", "must be in [3, 1000]", self.n_nodes)
         lo, hi = N_ORBITS_RANGE
@@ -210,6 +227,7 @@ class PlanRequest:
         if self.terminal_target not in TERMINAL_TARGETS + REFERENCE_TARGETS:
             raise InputError("terminal_target", f"must be one of {TERMINAL_TARGETS} (or a "
                              f"benchmark's reference {REFERENCE_TARGETS})", self.terminal_target)
+        object.__setattr__(self, "terminal_target", TerminalTarget(self.terminal_target))
         if self.carry is not None and not isinstance(self.carry, CarriedPlan):
             raise InputError("carry", "must be a CarriedPlan or None", type(self.carry).__name__)
         if self.terminal_set is not None and not isinstance(self.terminal_set, TerminalSet):
@@ -222,10 +240,10 @@ class PlanRequest:
         out = {"chief_oe": self.chief_oe.tolist(), "roe0_m": self.roe0_m.tolist(),
                "target_rtn": self.target_rtn.tolist(),
                "chance_constrained": bool(self.chance_constrained),
-               "warm_start": self.warm_start, "n_nodes": self.n_nodes,
+               "warm_start": self.warm_start.value, "n_nodes": self.n_nodes,
                "n_orbits": self.n_orbits, "koz_switch_node": self.koz_switch_node,
                "window_nodes": int(self.window_nodes),
-               "terminal_target": self.terminal_target,
+               "terminal_target": self.terminal_target.value,
                "context": None if self.context is None else self.context.to_json(),
                "carry": None if self.carry is None else self.carry.to_json(),
                "no_carry": self.no_carry}

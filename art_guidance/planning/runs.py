@@ -94,7 +94,7 @@ def fresh_runs(transfer: Transfer, cvx: ConvexSolution, scvx: Scvx, deadline: De
         res = solve(source, first)
         iterations = res.iterations
         request = transfer.request
-        auto = request.warm_start == WarmStart.AUTO.value and not (
+        auto = request.warm_start is WarmStart.AUTO and not (
             deadline is not None and deadline.passed())
         # the first plan of a target (nothing to carry): the plan later replans carry
         from_art = planning.also_solve_from_art or (planning.first_plan_from_both

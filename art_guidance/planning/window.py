@@ -39,8 +39,8 @@ from art_guidance.config import ScenarioConfig
 from art_guidance.optim import ConvexSolution, Trajectory
 from art_guidance.planning.learned import Learned
 from art_guidance.planning.request import (  # noqa: F401  (targets re-exported)
-    N_ORBITS_RANGE, REFERENCE_TARGETS, TERMINAL_TARGETS, PlanRequest, WarmStart,
-    WarmStartSource,
+    N_ORBITS_RANGE, REFERENCE_TARGETS, TERMINAL_TARGETS, PlanRequest, TerminalTarget,
+    WarmStart, WarmStartSource,
 )
 from art_guidance.planning.result import PlanResult, PlanWindow, Timings
 from art_guidance.planning.transfer import Transfer
@@ -102,13 +102,14 @@ def context_steps(request: PlanRequest) -> int:
 
 def wants_learned(request: PlanRequest, cvx: ConvexSolution) -> bool:
     """Whether the reference of a windowed request asks the learned step."""
-    return request.terminal_target in ("art", "art_any") and cvx.status.feasible
+    return request.terminal_target in (TerminalTarget.ART, TerminalTarget.ART_ANY) \
+        and cvx.status.feasible
 
 
 def learned_request(request: PlanRequest) -> PlanRequest:
     """The request the learned step is asked with (`art_any`: ART whatever the check says)."""
-    if request.terminal_target == "art_any":
-        return dataclasses.replace(request, warm_start=WarmStart.ART.value)
+    if request.terminal_target is TerminalTarget.ART_ANY:
+        return dataclasses.replace(request, warm_start=WarmStart.ART)
     return request
 
 
@@ -119,15 +120,15 @@ def reference(request: PlanRequest, cvx: ConvexSolution, learned: Learned | None
     (`full`)."""
     target = request.terminal_target
     cvx_ref = Trajectory(cvx.dv_rtn_mps, cvx.roe_m)
-    if target == "carry":  # usable: `window_size` was given its refusal
+    if target is TerminalTarget.CARRY:  # usable: `window_size` was given its refusal
         carry = request.carry
         return Reference(Trajectory(carry.dv_rtn_mps, carry.roe_m), "carry",
                          f"the plan in force {carry.plan_id}")
-    if target == "cvx":
+    if target is TerminalTarget.CVX:
         return Reference(cvx_ref, "cvx", "terminal_target cvx")
     if not cvx.status.feasible:
         return Reference(cvx_ref, "cvx", f"CVX ended {cvx.status.name}")
-    if target == "scvx":  # the oracle: the full-horizon plan
+    if target is TerminalTarget.SCVX:  # the oracle: the full-horizon plan
         if full.scp.feasible:
             return Reference(Trajectory(full.dv_rtn_mps, full.roe_m), "scvx",
                              "the full-horizon SCVx* plan")
@@ -157,7 +158,7 @@ def window_request(request: PlanRequest, n_nodes: int, scenario: ScenarioConfig,
         switch = scenario.ae_to_koz_node
     return dataclasses.replace(
         request, n_nodes=h + 1, n_orbits=window_orbits(request, n_nodes, scenario.n_orbits),
-        koz_switch_node=int(switch), warm_start=WarmStart.CVX.value, window_nodes=0,
+        koz_switch_node=int(switch), warm_start=WarmStart.CVX, window_nodes=0,
         carry=request.carry.first(h + 1) if tracking else None,
         no_carry="" if tracking else "a window to a fresh target")
 

@@ -102,7 +102,7 @@ class ParamSpec:
             raise ConfigError(f"{name} must be a string, got {got}")
         if self.choices is not None and value not in self.choices:
             raise ConfigError(f"{name} must be {self.constraints}, got {got}")
-        return value
+        return str(value)  # a plain string (a configuration's enum member is one too)
 
     def type_refusal(self, name: str, value: Any) -> ConfigError:
         """The refusal of a value of another type than this parameter's (rclpy refuses it at

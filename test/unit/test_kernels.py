@@ -46,14 +46,15 @@ SCVX_COST_TOL_MPS = 1e-3  # |compiled - numpy| SCVx* cost [m/s] (measured 1.4e-4
 def compiled_after():
     """Every test leaves the process on the default path."""
     yield
-    kernels.set_numerics("compiled")
+    kernels.choose("compiled")
 
 
 def _both(fn):
     """fn() on the numpy path, then compiled."""
-    kernels.set_numerics("numpy")
+    kernels.choose("numpy")
     a = fn()
-    assert kernels.set_numerics("compiled") == "compiled", kernels.error()
+    kernels.choose("compiled")
+    assert not kernels.error(), kernels.error()
     kernels.warm_up()  # loaded (or compiled) now: never the numpy path compared with itself
     assert kernels.compiled(), kernels.status()
     return a, fn()
@@ -142,7 +143,7 @@ def test_the_propagation_is_bit_for_bit_its_oracle():
         a, b = _both(lambda: horizon.propagate_nonlinear(x0, u))
         np.testing.assert_array_equal(a, b)
     for mode in kernels.NUMERICS:  # bad input: the same refusal on either path
-        kernels.set_numerics(mode)
+        kernels.choose(mode)
         with pytest.raises(InputError, match="roe0_m"):
             horizon.propagate_nonlinear(np.full(6, np.nan), np.zeros((horizon.n_nodes, 3)))
 
@@ -181,7 +182,7 @@ def test_the_kernels_search_with_the_oracles_constants():
 
 def test_the_setting_is_validated_and_numba_missing_takes_the_numpy_path(tmp_path):
     with pytest.raises(ValueError, match="numerics must be one of"):
-        kernels.set_numerics("jax")
+        kernels.choose("jax")
     with pytest.raises(ConfigError, match="numerics"):
         PlanningConfig(numerics="fast")
     site = tmp_path / "site"
