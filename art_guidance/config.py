@@ -215,12 +215,7 @@ class ScpConfig:
     @classmethod
     def from_yaml(cls, path: str | Path | None = None) -> "ScpConfig":
         """Load `scp.yaml` (default: the packaged one)."""
-        data = _load_yaml(path or default_config_dir() / "scp.yaml")
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(data) - names
-        if unknown:
-            raise ConfigError(f"unknown scp parameters: {sorted(unknown)}")
-        return cls(**data)
+        return _from_mapping(cls, _load_yaml(path or default_config_dir() / "scp.yaml"), "scp")
 
 
 def _load_yaml(path: str | Path) -> dict:
@@ -264,8 +259,8 @@ POSTHOC_SUBJECTS = ("warm_start", "rollout")
 
 
 class ReplanWarmStart(enum.StrEnum):
-    """A replan with a plan in force starts from it (CARRY, `planning.carry`) or solves afresh
-    (FRESH): planning.yaml's `replan_warm_start`, a string that equals its value."""
+    """`replan_warm_start`: a replan with a plan in force starts from it (CARRY,
+    `planning.carry`) or solves afresh (FRESH); a string that equals its value."""
 
     CARRY = "carry"
     FRESH = "fresh"
@@ -351,15 +346,8 @@ class PlanningConfig:
 
 # Planning fields that the dataset generator does not use (the post hoc check and the
 # in-flight choices between warm starts); `samples_per_node` shapes SCVx* and does matter.
-FLIGHT_ONLY_PLANNING = ("posthoc", "art_deadline_share", "also_solve_from_cvx",
-                        "also_solve_from_art", "first_plan_from_both", "posthoc_subject",
-                        "art_min_gain_mps",
-                        "skip_art_when_cvx_safe", "propose_concurrently", "numerics",
-                        "replan_warm_start", "carry_guard_mps", "endgame",
-                        "terminal_tolerance_m", "terminal_tolerance_mps",
-                        "terminal_tolerance_sigma", "tolerance_growth_nodes",
-                        "aim_within_tolerance", "endgame_cost_cap_mps", "endgame_cost_per_m",
-                        "terminal_set_nodes", "terminal_set_share")
+FLIGHT_ONLY_PLANNING = tuple(f.name for f in dataclasses.fields(PlanningConfig)
+                             if f.name != "samples_per_node")
 
 
 # What the pipeline did before these planning fields existed: fly the cheaper plan whatever

@@ -28,8 +28,10 @@ import numpy as np
 from art_guidance.art.provider import DEFAULT_MODELS, ArtWarmStart, default_model_path
 from art_guidance.config import GuidanceConfig
 from art_guidance.planning import GuidancePipeline
-from art_guidance.planning.learned import learned_warm_start
+from art_guidance.planning.learned import CvxSafety, learned_warm_start
 from common import StepTimer, alternate, unsafe_cases, warm_up
+
+UNSAFE = CvxSafety.answered(False)  # the cases' CVX plans are not passively safe
 
 
 def _mode(mode: str, repeats: int, first_seed: int) -> dict:
@@ -44,7 +46,7 @@ def _mode(mode: str, repeats: int, first_seed: int) -> dict:
     warm_up_ms = warm_up(pipeline)  # the kernels
     cases = unsafe_cases(pipeline, mode == "chance", first_seed, repeats)
     warm_up_ms += warm_up(None, lambda: [  # each runtime's first inference (sessions, caches)
-        learned_warm_start(p, cases[0][0], cases[0][1], config.planning, cvx_unsafe=True)
+        learned_warm_start(p, cases[0][0], cases[0][1], config.planning, cvx_safe=UNSAFE)
         for p in models.values()])
     cpu = {rt: [] for rt in models}
     net = {rt: [] for rt in models}
@@ -52,7 +54,7 @@ def _mode(mode: str, repeats: int, first_seed: int) -> dict:
     worst = 0.0
     for i, (transfer, cvx) in enumerate(cases):
         out, ms = alternate(i, ("torch", "onnx"), lambda rt: learned_warm_start(
-            models[rt], transfer, cvx, config.planning, cvx_unsafe=True),
+            models[rt], transfer, cvx, config.planning, cvx_safe=UNSAFE),
             before=lambda rt: setattr(timers[rt], "s", 0.0))  # the transformer's time
         for rt in models:
             cpu[rt].append(ms[rt])

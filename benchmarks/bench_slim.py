@@ -32,8 +32,10 @@ import numpy as np
 from art_guidance.art.provider import TEACHERS, ArtWarmStart, models_dir
 from art_guidance.config import GuidanceConfig
 from art_guidance.planning import GuidancePipeline
-from art_guidance.planning.learned import learned_warm_start
+from art_guidance.planning.learned import CvxSafety, learned_warm_start
 from common import StepTimer, alternate, cpu_ms, unsafe_cases, warm_up
+
+UNSAFE = CvxSafety.answered(False)  # the cases' CVX plans are not passively safe
 
 SLIM_MODEL = Path(__file__).resolve().parent / "results" / "slim" / "art_slim_chance_rtn.pt"
 
@@ -60,7 +62,7 @@ def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None,
     warm_up_ms = warm_up(pipeline)  # the kernels
     cases = unsafe_cases(pipeline, mode == "chance", int(first_seed), max(int(repeats), 1))
     warm_up_ms += warm_up(None, lambda: [  # each model's first inference
-        learned_warm_start(p, cases[0][0], cases[0][1], config.planning, cvx_unsafe=True)
+        learned_warm_start(p, cases[0][0], cases[0][1], config.planning, cvx_safe=UNSAFE)
         for p in models.values()])
     cpu = {n: [] for n in models}
     net = {n: [] for n in models}
@@ -68,7 +70,7 @@ def run(repeats: int = 30, first_seed: int = 40000, model: str | None = None,
     scvx_ms = []
     for i, (transfer, cvx) in enumerate(cases):
         out, ms = alternate(i, ("teacher", "student"), lambda name: learned_warm_start(
-            models[name], transfer, cvx, config.planning, cvx_unsafe=True),
+            models[name], transfer, cvx, config.planning, cvx_safe=UNSAFE),
             before=lambda name: setattr(timers[name], "s", 0.0))  # the transformer's time
         for name in models:
             cpu[name].append(ms[name])

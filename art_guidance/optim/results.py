@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -41,6 +41,22 @@ class Trajectory(NamedTuple):
 
 
 @dataclass(frozen=True)
+class Multipliers:
+    """SCVx*'s augmented-Lagrangian state where a run stopped: a re-solve from that run
+    (`Scvx.solve` given its `ScpResult`) starts from it.
+
+    Attributes:
+        mu: (N,) multipliers of the passive-safety constraints.
+        w: the penalty weight.
+        trust_radius: the trust region's radius.
+    """
+
+    mu: np.ndarray
+    w: float
+    trust_radius: float
+
+
+@dataclass(frozen=True)
 class ConvexSolution:
     """One convex solve.
 
@@ -61,6 +77,13 @@ class ConvexSolution:
     solve_time_ms: float
     solver: str
     solver_status: str
+
+    @property
+    def warm_start(self) -> np.ndarray:
+        """SCVx*'s warm start from CVX (controls, `Scvx.solve` puts them on the terminal
+        condition): CVX's burns, or no burns where CVX has none (not finite: it failed)."""
+        dv = self.dv_rtn_mps
+        return dv if np.all(np.isfinite(dv)) else np.zeros(dv.shape)
 
 
 @dataclass(frozen=True)
@@ -92,7 +115,8 @@ class ScpResult:
         max_violation: largest nonlinear constraint violation of the returned iterate
             (normalised passive-safety units, and metres for the terminal state).
         history: per-iteration records.
-        multipliers: final SCVx* multipliers and weight, usable to warm start a re-solve.
+        multipliers: SCVx*'s multipliers, weight and trust radius at the end (a re-solve
+            from this result starts from them; None: not a run of SCVx*).
         solve_time_ms: wall time [ms].
     """
 
@@ -103,7 +127,7 @@ class ScpResult:
     iterations: int
     max_violation: float
     history: tuple[ScpIteration, ...] = ()
-    multipliers: dict = field(default_factory=dict)
+    multipliers: Multipliers | None = None
     solve_time_ms: float = 0.0
 
     @property

@@ -45,7 +45,9 @@ from art_guidance.dynamics import DeputyLinearization, Horizon
 from art_guidance.deadline import Deadline
 from art_guidance.optim.cvx import control_cost, terminal_maps
 from art_guidance.optim.problem import SubproblemOptions, SubproblemPool
-from art_guidance.optim.results import ScpIteration, ScpResult, ScpStatus, Trajectory
+from art_guidance.optim.results import (
+    Multipliers, ScpIteration, ScpResult, ScpStatus, Trajectory,
+)
 from art_guidance.optim.terminal_set import TerminalSet
 from art_guidance.safety import PassiveSafety
 
@@ -151,6 +153,11 @@ def onto_terminal_set(horizon: Horizon, roe0_m: np.ndarray, roe_f_m: np.ndarray,
     return fix(horizon, roe0_m, terminal_set.aim(horizon.psi[-1], roe_f_m, z_f), dv, lin)
 
 
+# One warm start of SCVx* (`Scvx.solve`): controls to put on the terminal condition, a
+# trajectory already on it, or an earlier run (its controls and its multipliers).
+ScpWarmStart = np.ndarray | Trajectory | ScpResult
+
+
 @dataclass
 class ScvxState:
     """The loop state of one SCVx* run: the reference iterate and its linearisations, the
@@ -252,22 +259,22 @@ class Scvx:
         return it.cost + float(mu @ gp) + 0.5 * w * float(gp @ gp)
 
     # ------------------------------------------------------------------ the run
-    def solve(self, dv_warm_rtn_mps: np.ndarray, multipliers: dict | None = None,
-              deadline: Deadline | None = None,
-              projected: Trajectory | None = None) -> ScpResult:
-        """Run SCVx* from a warm-start control sequence (N, 3) [m/s].
+    def solve(self, warm: ScpWarmStart, deadline: Deadline | None = None) -> ScpResult:
+        """Run SCVx* from one warm start.
 
         Args:
-            dv_warm_rtn_mps: warm-start controls; states are recomputed from them.
-            multipliers: optional {"mu", "w", "trust_radius"} from an earlier solve.
+            warm: where the run starts (`ScpWarmStart`):
+                - controls, (N, 3) [m/s]: put on the terminal condition here (their states
+                  recomputed);
+                - a `Trajectory`: controls already on it, with their states (the terminal warm
+                  start the post hoc check made, the carried plan corrected): taken as it is;
+                - an earlier `ScpResult`: its controls, put on the terminal condition, and its
+                  multipliers, weight and trust radius.
             deadline: when to stop (None: never); on expiry the best feasible iterate is
                 returned with status TIMEOUT.
-            projected: the warm start's `terminal_warm_start` when the caller has it already
-                (the post hoc check made it), used as the first reference instead of computing
-                it again; None: computed here.
         """
         t_start = time.perf_counter()
-        st = self._start(dv_warm_rtn_mps, multipliers, projected)
+        st = self._start(warm)
         for it_no in range(1, self.cfg.max_iterations + 1):
             if deadline is not None and deadline.passed():
                 st.status = ScpStatus.TIMEOUT
@@ -276,27 +283,27 @@ class Scvx:
                 break
         return self._result(st, t_start)
 
-    def _start(self, dv_warm_rtn_mps: np.ndarray, multipliers: dict | None,
-               projected: Trajectory | None) -> ScvxState:
+    def _start(self, warm: ScpWarmStart) -> ScvxState:
         """The first reference (the warm start on the terminal condition), its
         linearisations, the multipliers; the subproblem set to this problem."""
         p, cfg = self.problem, self.cfg
         n = p.horizon.n_nodes
-        if projected is None:
-            projected = onto_terminal_set(p.horizon, p.roe0_m, p.roe_f_m, self.terminal_set,
-                                          np.asarray(dv_warm_rtn_mps, float).reshape(n, 3),
-                                          project_first=True)
-        ref = self._iterate(*projected)
-        m = multipliers or {}
+        m = None
+        if isinstance(warm, ScpResult):
+            m, warm = warm.multipliers, warm.dv_rtn_mps
+        if not isinstance(warm, Trajectory):
+            warm = onto_terminal_set(p.horizon, p.roe0_m, p.roe_f_m, self.terminal_set,
+                                     np.asarray(warm, float).reshape(n, 3), project_first=True)
+        ref = self._iterate(*warm)
         lin_dyn = p.horizon.linearize_nonlinear(ref.roe_m, ref.dv_rtn_mps)
         # a pooled one held another problem
         self.sub.set_boundary(p.roe0_m, p.roe_f_m, self.terminal_set)
         self.sub.set_dynamics(lin_dyn)
+        if m is None:
+            m = Multipliers(np.zeros(n), cfg.w0, cfg.trust_radius0)
         return ScvxState(ref, ref if ref.violation <= cfg.eps_feas else None,
-                         np.asarray(m.get("mu", np.zeros(n)), float).copy(),
-                         float(m.get("w", cfg.w0)),
-                         float(m.get("trust_radius", cfg.trust_radius0)), math.inf, lin_dyn,
-                         self._linearize(ref), [])
+                         np.asarray(m.mu, float).copy(), float(m.w), float(m.trust_radius),
+                         math.inf, lin_dyn, self._linearize(ref), [])
 
     def _step(self, st: ScvxState, it_no: int) -> bool:
         """One iteration: solve the subproblem about the reference, judge the step by the
@@ -353,5 +360,5 @@ class Scvx:
             out = st.best
         return ScpResult(status, out.roe_m, out.dv_rtn_mps, out.cost, len(st.history),
                          out.violation, tuple(st.history),
-                         {"mu": st.mu.tolist(), "w": st.w, "trust_radius": st.radius},
+                         Multipliers(st.mu.copy(), st.w, st.radius),
                          1e3 * (time.perf_counter() - t_start))

@@ -29,7 +29,7 @@ from art_guidance.checks import as_finite_array
 from art_guidance.config import PlanningConfig, PosthocThresholds
 from art_guidance.deadline import Deadline
 from art_guidance.errors import InputError
-from art_guidance.optim import ConvexSolution, Trajectory, TransferProblem
+from art_guidance.optim import ConvexSolution, ScpWarmStart, Trajectory, TransferProblem
 from art_guidance.optim.scp import TERMINAL_TOL_M
 from art_guidance.planning.transfer import Transfer
 from art_guidance.planning.request import WarmStart, WarmStartSource
@@ -64,10 +64,17 @@ class Learned:
     dv: np.ndarray | None = None
     warm_start: Trajectory | None = None
 
+    @property
+    def scvx_start(self) -> ScpWarmStart | None:
+        """SCVx*'s warm start from ART (`Scvx.solve`): the terminal warm start where it was
+        made, else the proposed controls (None: no valid proposal)."""
+        return self.dv if self.warm_start is None else self.warm_start
+
 
 def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
                        cvx: ConvexSolution, planning: PlanningConfig,
-                       deadline: Deadline | None = None, cvx_unsafe: bool = False) -> Learned:
+                       deadline: Deadline | None = None,
+                       cvx_safe: CvxSafety | None = None) -> Learned:
     """Ask `provider` for a learned warm start of `transfer` and check it post hoc under
     `planning` (its region, its `posthoc_subject`, `skip_art_when_cvx_safe`).
 
@@ -77,8 +84,8 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
         cvx: the plan's CVX solution (the post hoc reference, R_des = -J_CVX).
         planning: the planning options the candidates are ranked and checked by.
         deadline: the plan's deadline, or None.
-        cvx_unsafe: the caller found the CVX plan not passively safe already (it is not
-            evaluated again).
+        cvx_safe: whether the CVX plan is passively safe, the plan's one answer (None: asked
+            here where needed).
     """
     request, problem = transfer.request, transfer.problem
     if request.warm_start is WarmStart.CVX:
@@ -89,8 +96,8 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
     if not cvx.status.feasible:
         return Learned(CVX, f"CVX ended {cvx.status.name}: no reference for the post hoc "
                        "check, CVX warm start")
-    if request.warm_start is WarmStart.AUTO and not cvx_unsafe \
-            and planning.skip_art_when_cvx_safe and cvx_is_safe(cvx, problem.safety):
+    if request.warm_start is WarmStart.AUTO and planning.skip_art_when_cvx_safe \
+            and (cvx_safe or CvxSafety(cvx, problem.safety))():
         return Learned(CVX, CVX_SAFE_REASON)
     t0 = time.perf_counter()
     if deadline is not None and deadline.passed():
@@ -151,6 +158,38 @@ def timed_learned_warm_start(*args: object, **kwargs: object) -> tuple[Learned, 
     t = time.perf_counter()
     learned = learned_warm_start(*args, **kwargs)
     return learned, 1e3 * (time.perf_counter() - t)
+
+
+class CvxSafety:
+    """Whether one plan's CVX solution is passively safe (`cvx_is_safe`), asked once per plan:
+    the carried run, the choice of where to propose and the learned step read this one
+    answer, evaluated at the first question (a plan that asks none pays nothing).
+
+    Args:
+        cvx: the plan's CVX solution.
+        safety: its passive-safety model.
+        known: the answer where the caller has it already (None: not asked yet).
+    """
+
+    def __init__(self, cvx: ConvexSolution | None, safety: PassiveSafety | None,
+                 known: bool | None = None) -> None:
+        self._cvx, self._safety, self._known = cvx, safety, known
+
+    @classmethod
+    def answered(cls, safe: bool) -> "CvxSafety":
+        """An answer the caller has already (a worker's job, a benchmark's unsafe cases)."""
+        return cls(None, None, bool(safe))
+
+    def __call__(self) -> bool:
+        """The answer (evaluated at the first call)."""
+        if self._known is None:
+            self._known = cvx_is_safe(self._cvx, self._safety)
+        return self._known
+
+    @property
+    def found_unsafe(self) -> bool:
+        """It was asked, and CVX is not passively safe (what a worker's job is told)."""
+        return self._known is False
 
 
 def cvx_is_safe(cvx: ConvexSolution, safety: PassiveSafety) -> bool:

@@ -40,6 +40,7 @@ from art_guidance.planning import window
 from art_guidance.planning.carry import refusal
 from art_guidance.planning.choice import choose
 from art_guidance.planning.endgame import InForceCheck, check_in_force
+from art_guidance.planning.learned import CvxSafety
 from art_guidance.planning.producers import Producers
 from art_guidance.planning.runs import carried_run, fresh_runs, plan_result
 from art_guidance.planning.transfer import Transfer, Transfers
@@ -216,10 +217,13 @@ class GuidancePipeline:
         cvx = transfer.problem.cvx()
         t_cvx = time.perf_counter()
         scvx = transfer.scvx(self.config, self.subproblem, pool)
-        step = carried_run(transfer, cvx, scvx, deadline, planning, self._config_sha256)
+        cvx_safe = CvxSafety(cvx, transfer.safety)  # asked once, where a step needs it
+        step = carried_run(transfer, cvx, cvx_safe, scvx, deadline, planning,
+                           self._config_sha256)
         fresh = None
         if step.fresh_why is not None:
-            fresh = fresh_runs(transfer, cvx, scvx, deadline, planning, self.producers)
+            fresh = fresh_runs(transfer, cvx, cvx_safe, scvx, deadline, planning,
+                               self.producers)
         run = choose(step, fresh, planning.art_min_gain_mps)
         return plan_result(transfer, cvx, run, fresh, (t0, t_setup, t_cvx, time.perf_counter()))
 

@@ -9,14 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from art_guidance.config import GuidanceConfig
 from art_guidance.deadline import Deadline
 from art_guidance.optim import ConvexSolution, ScpResult, Scvx
 from art_guidance.optim.problem import SubproblemOptions
 from art_guidance.planning.learned import (
-    Learned, cvx_is_safe, error_text, timed_learned_warm_start,
+    CvxSafety, Learned, error_text, timed_learned_warm_start,
 )
 from art_guidance.planning.worker.process import (
     NO_DEADLINE_TIMEOUT_S, ProposalProcess, WorkerScvx, model_key,
@@ -62,13 +60,13 @@ class Producers:
         self._worker: ProposalProcess | None = None
 
     def learned(self, transfer: Transfer, cvx: ConvexSolution, deadline: Deadline | None,
-                cvx_unsafe: bool = False) -> tuple[Learned, float]:
-        """The learned step in this process (`planning.learned.learned_warm_start`) and its
-        wall time [ms]."""
+                cvx_safe: CvxSafety | None = None) -> tuple[Learned, float]:
+        """The learned step in this process (`planning.learned.learned_warm_start`; `cvx_safe`:
+        the plan's answer whether CVX is passively safe) and its wall time [ms]."""
         return timed_learned_warm_start(self.provider, transfer, cvx, self.config.planning,
-                                        deadline, cvx_unsafe)
+                                        deadline, cvx_safe)
 
-    def concurrent(self, transfer: Transfer, cvx: ConvexSolution) -> bool:
+    def concurrent(self, transfer: Transfer, cvx: ConvexSolution, cvx_safe: CvxSafety) -> bool:
         """Whether the plan's proposal goes to the worker: `propose_concurrently`, warm start
         auto and `also_solve_from_cvx` (SCVx* from CVX is solved whatever the check decides),
         a model loaded from a file, and a CVX plan that is feasible but not passively safe
@@ -78,11 +76,10 @@ class Producers:
                     and model_key(self.provider)
                     and transfer.request.warm_start is WarmStart.AUTO
                     and cvx.status.feasible
-                    and not (planning.skip_art_when_cvx_safe
-                             and cvx_is_safe(cvx, transfer.safety)))
+                    and not (planning.skip_art_when_cvx_safe and cvx_safe()))
 
-    def propose(self, transfer: Transfer, cvx: ConvexSolution, cvx_dv: np.ndarray,
-                scvx: Scvx, deadline: Deadline | None) -> Proposed:
+    def propose(self, transfer: Transfer, cvx: ConvexSolution, cvx_safe: CvxSafety, scvx: Scvx,
+                deadline: Deadline | None) -> Proposed:
         """The plan's learned step. Where it goes to the worker (`concurrent`), this thread
         solves SCVx* from CVX meanwhile, and right after the proposal the worker also solves
         SCVx* from it (the run the plan needs where the check accepts it, or where SCVx* from
@@ -90,15 +87,15 @@ class Producers:
         needs it and cancels it otherwise. The plan is the one the sequence gives. A worker
         that fails or answers late is stopped and the proposal is made here instead
         (`worker_error` says why)."""
-        if not self.concurrent(transfer, cvx):
-            return Proposed(None, *self.learned(transfer, cvx, deadline))
+        if not self.concurrent(transfer, cvx, cvx_safe):
+            return Proposed(None, *self.learned(transfer, cvx, deadline, cvx_safe))
         planning, early = self.config.planning, None
         worker = self.worker()
-        job_id = worker.submit(self._job(transfer, cvx, deadline),
+        job_id = worker.submit(self._job(transfer, cvx, cvx_safe, deadline),
                                solve_art=self.solve_art_in_worker)
         if job_id is not None:
             try:
-                early = scvx.solve(cvx_dv, deadline=None if deadline is None
+                early = scvx.solve(cvx.warm_start, deadline=None if deadline is None
                                    else deadline.share(planning.art_deadline_share))
             except BaseException as exc:  # the worker is freed on every path
                 worker.abandon(f"SCVx* from CVX failed meanwhile ({error_text(exc)})")
@@ -113,17 +110,14 @@ class Producers:
                 return Proposed(early, answer.learned, answer.wall_ms,
                                 WorkerScvx(worker, job_id) if self.solve_art_in_worker
                                 else None)
-        # CVX was found not passively safe above: the in-line proposal does not ask again
-        return Proposed(early, *self.learned(transfer, cvx, deadline,
-                                             planning.skip_art_when_cvx_safe))
+        return Proposed(early, *self.learned(transfer, cvx, deadline, cvx_safe))
 
-    def _job(self, transfer: Transfer, cvx: ConvexSolution,
+    def _job(self, transfer: Transfer, cvx: ConvexSolution, cvx_safe: CvxSafety,
              deadline: Deadline | None) -> PlanJob:
         return PlanJob(0, self.config.to_json(), self.config.sha256(),
                        model_key(self.provider), transfer.request, cvx,
                        None if deadline is None else deadline.left_s(),
-                       self.config.planning.skip_art_when_cvx_safe,
-                       self.subproblem)
+                       cvx_safe.found_unsafe, self.subproblem)
 
     def worker(self) -> ProposalProcess:
         """The worker process (created, not started, on first need)."""

@@ -7,8 +7,6 @@ import contextlib
 import dataclasses
 import time
 
-import numpy as np
-
 from art_guidance.config import PlanningConfig
 from art_guidance.deadline import Deadline
 from art_guidance.optim import ConvexSolution, ScpResult, ScpStatus, Scvx
@@ -16,7 +14,7 @@ from art_guidance.planning.carry import CarryReport, guard_reason, refusal
 from art_guidance.planning.choice import (
     CarryStep, Choice, Fresh, keep_first_plan, second_run,
 )
-from art_guidance.planning.learned import cvx_is_safe
+from art_guidance.planning.learned import CvxSafety
 from art_guidance.planning.producers import Producers
 from art_guidance.planning.transfer import Transfer
 from art_guidance.planning.request import WarmStart, WarmStartSource
@@ -25,7 +23,7 @@ from art_guidance.planning.result import PlanResult, ScpAttempt, Timings
 ART, CVX = WarmStartSource.ART, WarmStartSource.CVX
 
 
-def carried_run(transfer: Transfer, cvx: ConvexSolution, scvx: Scvx,
+def carried_run(transfer: Transfer, cvx: ConvexSolution, cvx_safe: CvxSafety, scvx: Scvx,
                 deadline: Deadline | None, planning: PlanningConfig,
                 config_sha256: str) -> CarryStep:
     """SCVx* from the plan in force, where the request carries one that this plan can start
@@ -33,14 +31,14 @@ def carried_run(transfer: Transfer, cvx: ConvexSolution, scvx: Scvx,
     request = transfer.request
     why = refusal(request.carry, request.no_carry, planning.replan_warm_start,
                   request.chance_constrained, config_sha256, transfer.horizon.n_nodes)
-    if not why and cvx.status.feasible and cvx_is_safe(cvx, transfer.safety):
+    if not why and cvx.status.feasible and cvx_safe():
         why = "CVX is passively safe: SCVx* from it is the plan, nothing to carry"
     if why:
         return CarryStep(CarryReport(planning.replan_warm_start, False, why,
                                      config_sha256=config_sha256), fresh_why="")
     carry = request.carry
     warm = transfer.problem.terminal_warm_start(carry.dv_rtn_mps)
-    res = scvx.solve(warm.dv_rtn_mps, projected=warm, deadline=None if deadline is None
+    res = scvx.solve(warm, deadline=None if deadline is None
                      else deadline.share(planning.art_deadline_share))
     excess = carry.excess_mps + res.cost_mps - carry.remaining_mps
     text = (f"carried {carry.plan_id}: SCVx* from its burns ended {res.status.name} after "
@@ -55,8 +53,9 @@ def carried_run(transfer: Transfer, cvx: ConvexSolution, scvx: Scvx,
     return CarryStep(report, res)
 
 
-def fresh_runs(transfer: Transfer, cvx: ConvexSolution, scvx: Scvx, deadline: Deadline | None,
-               planning: PlanningConfig, producers: Producers) -> Fresh:
+def fresh_runs(transfer: Transfer, cvx: ConvexSolution, cvx_safe: CvxSafety, scvx: Scvx,
+               deadline: Deadline | None, planning: PlanningConfig,
+               producers: Producers) -> Fresh:
     """SCVx* from CVX and, per the request's warm start, from the learned proposal (a plan with
     no plan in force to carry, the carried run's rescue and its guard).
 
@@ -66,16 +65,13 @@ def fresh_runs(transfer: Transfer, cvx: ConvexSolution, scvx: Scvx, deadline: De
     the other where `also_solve_from_cvx` / `also_solve_from_art` say so (`choice.second_run`).
     """
     t_start = time.perf_counter()
-    cvx_dv = cvx.dv_rtn_mps if np.all(np.isfinite(cvx.dv_rtn_mps)) \
-        else np.zeros((transfer.horizon.n_nodes, 3))
-    made = producers.propose(transfer, cvx, cvx_dv, scvx, deadline)
+    made = producers.propose(transfer, cvx, cvx_safe, scvx, deadline)
     learned, art_run = made.learned, made.art_run
     # the worker's run from ART, if any, is cancelled on every path that does not take it
     with art_run or contextlib.nullcontext():
         t_art = time.perf_counter()
         source, reason, discarded = learned.source, learned.reason, None
-        warm = {CVX: cvx_dv, ART: learned.dv}
-        projected = {CVX: None, ART: learned.warm_start}  # ART's terminal warm start
+        warm = {CVX: cvx.warm_start, ART: learned.scvx_start}
 
         def solve(src: WarmStartSource, until: Deadline | None) -> ScpResult:
             """SCVx* from a warm start (the runs the worker made meanwhile, if any)."""
@@ -85,7 +81,7 @@ def fresh_runs(transfer: Transfer, cvx: ConvexSolution, scvx: Scvx, deadline: De
                 worker_made = art_run.result(deadline)
                 if worker_made is not None:
                     return worker_made
-            return scvx.solve(warm[src], deadline=until, projected=projected[src])
+            return scvx.solve(warm[src], deadline=until)
 
         other = source.other
         first = deadline

@@ -38,7 +38,7 @@ def runtimes_agree(torch_provider, onnx_provider, requests: list[PlanRequest],
     how many were compared."""
     from art_guidance.config import GuidanceConfig
     from art_guidance.planning import GuidancePipeline
-    from art_guidance.planning.learned import learned_warm_start
+    from art_guidance.planning.learned import CvxSafety, learned_warm_start
 
     config = GuidanceConfig.load()
     pipeline = GuidancePipeline(config)
@@ -48,8 +48,9 @@ def runtimes_agree(torch_provider, onnx_provider, requests: list[PlanRequest],
         cvx = transfer.problem.cvx()
         if not cvx.status.feasible:
             continue
-        a = learned_warm_start(torch_provider, transfer, cvx, config.planning, cvx_unsafe=True)
-        b = learned_warm_start(onnx_provider, transfer, cvx, config.planning, cvx_unsafe=True)
+        asked = CvxSafety.answered(False)  # both asked, whatever CVX's safety
+        a = learned_warm_start(torch_provider, transfer, cvx, config.planning, cvx_safe=asked)
+        b = learned_warm_start(onnx_provider, transfer, cvx, config.planning, cvx_safe=asked)
         assert a.source is b.source and a.posthoc.accepted == b.posthoc.accepted
         assert np.array_equal(a.proposal.constraint_to_go, b.proposal.constraint_to_go)
         assert np.abs(a.proposal.dv_rtn_mps - b.proposal.dv_rtn_mps).max() <= dv_tol_mps

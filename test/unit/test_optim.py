@@ -111,7 +111,7 @@ def test_converged_plan_as_warm_start_converges_in_two(setup, seed):
     scvx = problem.scvx(samples_per_node=3)
     first = scvx.solve(cvx.dv_rtn_mps)
     assert first.status is ScpStatus.CONVERGED
-    again = scvx.solve(first.dv_rtn_mps, multipliers=first.multipliers)
+    again = scvx.solve(first)  # its controls and its multipliers
     assert again.status is ScpStatus.CONVERGED
     assert again.iterations <= 2
     assert again.cost_mps == pytest.approx(first.cost_mps, abs=1e-3)

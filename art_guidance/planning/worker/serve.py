@@ -96,7 +96,7 @@ def _run(job: WarmUpJob | PlanJob, state: _State) -> Proposal:
     """One job: a warm-up loads the model; a plan job makes the learned step."""
     from art_guidance.art.provider import ArtWarmStart
     from art_guidance.config import GuidanceConfig
-    from art_guidance.planning.learned import timed_learned_warm_start
+    from art_guidance.planning.learned import CvxSafety, timed_learned_warm_start
     from art_guidance.planning.transfer import Transfers
     from art_guidance.planning.warm_up import seed_request, warm_up
 
@@ -121,9 +121,9 @@ def _run(job: WarmUpJob | PlanJob, state: _State) -> Proposal:
     deadline = None if left_s is None else Deadline.after(left_s)
     transfer = loaded.transfers.get(job.request)
     state.plan = (transfer, deadline)  # for SCVx* from the proposal (`_solve_art`)
-    learned, wall_ms = timed_learned_warm_start(loaded.provider, transfer, job.cvx,
-                                                loaded.config.planning, deadline,
-                                                job.cvx_unsafe)
+    learned, wall_ms = timed_learned_warm_start(
+        loaded.provider, transfer, job.cvx, loaded.config.planning, deadline,
+        CvxSafety.answered(False) if job.cvx_unsafe else CvxSafety(job.cvx, transfer.safety))
     return Proposal(job.job_id, learned, wall_ms, deadline is not None and deadline.hit)
 
 
@@ -149,5 +149,5 @@ def _solve_art(job: PlanJob, state: _State, answer: Any, slot: CancelSlot | None
     if state.pool is None:
         state.pool = SubproblemPool()  # the worker's own, as a pipeline's
     scvx = transfer.scvx(config, job.subproblem, state.pool)
-    result = scvx.solve(learned.dv, deadline=until, projected=learned.warm_start)
+    result = scvx.solve(learned.scvx_start, deadline=until)
     return None if cancelled() else result
