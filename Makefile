@@ -7,6 +7,9 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip --disable-pip-version-check -q
+# no .pyc written at install (torch, ray and scipy alone hold thousands of modules, about 40 s
+# on 2 cores): Python compiles a module at its first import, the few that run
+PIP_INSTALL := $(PIP) install --no-compile
 CONSTRAINTS := .ci/constraints.txt
 BUILD := build
 MSG_SRC := $(wildcard msg_schemas/msg/*.msg) msg_schemas/CMakeLists.txt msg_schemas/package.xml
@@ -29,7 +32,8 @@ $(VENV)/.stamp-venv:
 
 $(VENV)/.stamp-ros: $(VENV)/.stamp-venv .ci/requirements-ros.txt .ci/fix_ros_cmake_paths.py \
 		$(CONSTRAINTS)
-	$(PIP) install -c $(CONSTRAINTS) -r .ci/requirements-ros.txt 2>&1 | sed "/^WARNING: Location/d"
+	$(PIP_INSTALL) -c $(CONSTRAINTS) -r .ci/requirements-ros.txt 2>&1 \
+		| sed "/^WARNING: Location/d"
 	$(PY) -c "import rclpy, rosidl_adapter" >/dev/null
 	$(PY) .ci/fix_ros_cmake_paths.py
 	touch $@
@@ -46,17 +50,25 @@ $(VENV)/.stamp-msgs: $(VENV)/.stamp-ros $(MSG_SRC)
 	$(PY) -c "from art_guidance_msgs.msg import ManeuverPlan"
 	touch $@
 
-$(VENV)/.stamp-pkg: $(VENV)/.stamp-msgs setup.py setup.cfg Makefile $(CONSTRAINTS)
-	$(PIP) install -c $(CONSTRAINTS) -e ".[train,test,distributed]" 2>&1 \
+# the package and its Python dependencies need the ROS wheels, not the messages: the two build
+# side by side (`setup`)
+$(VENV)/.stamp-pkg: $(VENV)/.stamp-ros setup.py setup.cfg Makefile $(CONSTRAINTS)
+	$(PIP_INSTALL) -c $(CONSTRAINTS) -e ".[train,test,distributed]" 2>&1 \
 		| sed "/^WARNING: Location/d"
 	$(PY) -c "import art_guidance, torch, onnx, onnxruntime, numba, clarabel, osqp, cvxpy, rosbags, \
 		mcap_ros2" >/dev/null
 	touch $@
 
-setup: $(VENV)/.stamp-pkg
+setup:
+	@$(MAKE) --no-print-directory -j2 $(VENV)/.stamp-msgs $(VENV)/.stamp-pkg
 
+# the numba kernels compile into their cache (a cold cache: ~20 s of one core) while flake8
+# runs; the tests then load them (test/conftest.py warms them up again, which finds them there)
 test: setup
-	$(PY) -m flake8 art_guidance test benchmarks launch .ci setup.py
+	mkdir -p $(BUILD)
+	$(PY) -m art_guidance.kernels > $(BUILD)/kernels.log 2>&1 & kernels=$$!; \
+	$(PY) -m flake8 art_guidance test benchmarks launch .ci setup.py || { wait $$kernels; exit 1; }; \
+	wait $$kernels || cat $(BUILD)/kernels.log
 	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 test-fast: setup
