@@ -13,7 +13,7 @@ and learned step / SCVx* from CVX, and how often the two models' proposals are a
 post hoc check.
 
 What the student is worth as a warm start (the plans flown from it) is measured by the
-warm-start analysis (`art-guidance evaluate` + `benchmarks/default_models.py`), not here.
+warm-start analysis (`art-guidance evaluate` + `benchmarks/analyses/default_models.py`), not here.
 
 Before the first timed step the process is warmed up (`common.warm_up`: the kernels loaded,
 each model run once on the first scenario); its wall time is `warm_up_ms`, apart from the

@@ -56,13 +56,13 @@ from art_guidance.planning.learned import judged_trajectory
 from art_guidance.planning.result import WarmStartProposal
 from art_guidance.safety import PassiveSafety
 
-# The shipped default per passive-safety mode (the mode of the model's training data), chosen
-# by what the node flies on >= 2,000 fresh scenarios per mode (benchmarks/default_models.py:
-# never worse than CVX alone by > 1 mm/s, a mean flown saving within the paired 95 % interval
-# of the best's, then the cheapest proposal; docs/results.md "Shipped defaults"), not by the
-# rollout metrics. models.json says the same under "defaults", with the reasons. The defaults
-# are the one-token students of the RTN (chance-constrained) and ROE (deterministic) teachers;
-# the teachers stay shipped beside them (TEACHERS), loadable by path.
+# The shipped default per passive-safety mode (the mode of the model's training data), chosen by
+# what the node flies on >= 2,000 fresh scenarios per mode (benchmarks/analyses/default_models.py:
+# never worse than CVX alone by > 1 mm/s, a mean flown saving within the paired 95 % interval of
+# the best's, then the cheapest proposal; docs/results.md "Shipped defaults"), not by the rollout
+# metrics. models.json says the same under "defaults", with the reasons. The defaults are the
+# one-token students of the RTN (chance-constrained) and ROE (deterministic) teachers; the teachers
+# stay shipped beside them (TEACHERS), loadable by path.
 DEFAULT_MODEL = "art_slim1e40_chance_rtn.pt"
 DEFAULT_MODELS = {"chance": DEFAULT_MODEL, "deterministic": "art_slim1e40_det_roe.pt"}
 TEACHERS = {"chance": "art_small_chance_rtn.pt", "deterministic": "art_small_det_roe.pt"}

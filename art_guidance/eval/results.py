@@ -55,7 +55,8 @@ def model_summaries(head: dict, cols: dict[str, np.ndarray]) -> list[dict]:
 
 def flown_pairs(head: dict, cols: dict[str, np.ndarray]) -> list[dict]:
     """Every two models of one mode, paired on the scenarios both ran: the per-scenario
-    difference of what they fly (what `benchmarks/default_models.py` takes its interval from).
+    difference of what they fly (what `benchmarks/analyses/default_models.py` takes its
+    interval from).
 
     For models a and b (a listed first) over the scenarios (dataset, sample) where each one's
     flown plan (`warm_start auto`) and SCVx* from CVX are feasible, the flown saving of a over

@@ -1,5 +1,6 @@
-"""The rule that picks each mode's default (`benchmarks/default_models.py`), on constructed
-rows and on the committed evaluations: it picks what `provider.DEFAULT_MODELS` ships."""
+"""The rule that picks each mode's default (`benchmarks/analyses/default_models.py`), on
+constructed rows and on the committed evaluations: it picks what `provider.DEFAULT_MODELS`
+ships."""
 from __future__ import annotations
 
 import json
@@ -7,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from helpers.benchmarks import load_benchmark
+from helpers.benchmarks import load_analysis
 
 from art_guidance.art.provider import DEFAULT_MODELS, shipped_defaults
 
@@ -17,7 +18,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 
 @pytest.fixture(scope="module")
 def rule():
-    return load_benchmark("default_models")
+    return load_analysis("default_models")
 
 
 def _row(model: str, saving: float, worse: int = 0, ms: float = 200.0) -> dict:

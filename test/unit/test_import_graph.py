@@ -160,7 +160,8 @@ BENCHMARKS = PACKAGE.parent / "benchmarks"
 def benchmark_graph() -> dict[str, set[str]]:
     """benchmarks/' modules (each on the path under its file's name) -> those of them it
     imports, deferred imports included."""
-    files = {p.stem: p for p in sorted(BENCHMARKS.glob("*.py"))}
+    files = {p.stem: p for p in sorted(BENCHMARKS.glob("*.py"))
+             + sorted((BENCHMARKS / "analyses").glob("*.py"))}
     return {name: imported_by_source(name, path.read_text(), set(files), filename=str(path))
             for name, path in files.items()}
 
@@ -168,6 +169,7 @@ def benchmark_graph() -> dict[str, set[str]]:
 def test_the_benchmarks_import_each_other_without_a_circle():
     graph = benchmark_graph()
     assert "common" in graph["bench_closed_loop"]  # the graph sees them
+    assert "sweep_candidates" in graph["decision_rule"]  # and the analyses
     found = circles(graph)
     assert found == [], f"{len(found)} import circle(s) in benchmarks/: " + "; ".join(
         " <-> ".join(circle) for circle in found)
@@ -179,7 +181,7 @@ def test_no_benchmark_loads_another_module_by_a_string():
     by its name."""
     import re
 
-    loads = {p.name for p in BENCHMARKS.glob("*.py")
+    loads = {p.name for p in (*BENCHMARKS.glob("*.py"), *BENCHMARKS.glob("analyses/*.py"))
              if re.search(r"import_module\(|spec_from_file_location\(", p.read_text())
              and p.name != "common.py"}
     assert loads == set()

@@ -38,8 +38,8 @@ SHIPPED = sorted(shipped_models())
 
 
 # Each mode's default, chosen by what is flown on >= 1,000 fresh scenarios per mode
-# (benchmarks/default_models.py; docs/results.md, "Shipped defaults"): the one-token students
-# of the RTN (chance-constrained) and ROE (deterministic) teachers.
+# (benchmarks/analyses/default_models.py; docs/results.md, "Shipped defaults"): the one-token
+# students of the RTN (chance-constrained) and ROE (deterministic) teachers.
 DEFAULT_REPRESENTATIONS = {"chance": "rtn", "deterministic": "roe"}
 DEFAULT_TOKENS_PER_STEP = {"chance": 1, "deterministic": 1}  # the one-token students
 

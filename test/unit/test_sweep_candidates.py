@@ -1,4 +1,4 @@
-"""benchmarks/sweep_candidates.py: its selection rules on constructed candidates, and the
+"""benchmarks/analyses/sweep_candidates.py: its selection rules on constructed candidates, and the
 table of docs/art_training.md is the committed result's rendering."""
 from __future__ import annotations
 
@@ -7,17 +7,17 @@ import json
 import numpy as np
 import pytest
 
-from helpers.benchmarks import load_benchmark
+from helpers.benchmarks import load_analysis
 
 
 @pytest.fixture(scope="module")
 def mod():
-    return load_benchmark("sweep_candidates")
+    return load_analysis("sweep_candidates")
 
 
 def test_documented_table_is_current(mod):
     assert mod.in_doc() == mod.table(json.loads(mod.RESULT.read_text())), \
-        "run python benchmarks/sweep_candidates.py --table and paste it into the doc"
+        "run python benchmarks/analyses/sweep_candidates.py --table and paste it into the doc"
 
 
 def test_rules_on_constructed_candidates(mod):

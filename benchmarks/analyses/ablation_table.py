@@ -1,8 +1,8 @@
 """The ART ablation table of docs/art_training.md, rendered from `evaluate --suite rollouts`
 outputs (benchmarks/results/art_ablation/*.json).
 
-    python benchmarks/ablation_table.py            # print the table (markdown)
-    python benchmarks/ablation_table.py --check    # exit 1 if docs/art_training.md differs
+    python benchmarks/analyses/ablation_table.py          # print the table (markdown)
+    python benchmarks/analyses/ablation_table.py --check  # exit 1 if docs/art_training.md differs
 
 Each row is one model on the held-out scenarios of its JSON: the rollout metrics (median and
 q90 of 100 E_R, the share with C(t_1) = 0, the share inside the post hoc region) beside the
@@ -16,7 +16,7 @@ import json
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results" / "art_ablation"
 DOC = ROOT / "docs" / "art_training.md"
 BEGIN, END = "<!-- ablation-table:begin -->", "<!-- ablation-table:end -->"

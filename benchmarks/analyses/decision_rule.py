@@ -6,10 +6,10 @@ than `art_min_gain_mps` cheaper). The check's region thus decides whether the se
 made. This script asks how well that decision is made, and whether a small logistic rule fitted
 on what the node knows before solving does better.
 
-Data: the per-scenario rows of `benchmarks/sweep_candidates.py` (SCVx* from every candidate of
-the sweep and from CVX; `.npz` next to its summary), of two disjoint seed sets: the rule is
-fitted on one and judged on the other. The proposal is the provider's pick (`best_candidate`,
-the check of the warm start). Per scenario where SCVx* from CVX converged:
+Data: the per-scenario rows of `benchmarks/analyses/sweep_candidates.py` (SCVx* from every
+candidate of the sweep and from CVX; `.npz` next to its summary), of two disjoint seed sets:
+the rule is fitted on one and judged on the other. The proposal is the provider's pick
+(`best_candidate`, the check of the warm start). Per scenario where SCVx* from CVX converged:
 
 - the gain of the second solve: J(SCVx* from CVX) - J(SCVx* from ART) where SCVx* from ART
   converged and is cheaper by more than `art_min_gain_mps`, else 0 [mm/s];
@@ -24,7 +24,7 @@ confident: the worst difference (ART alone - CVX) among the scenarios it would d
 Scenarios where SCVx* from CVX does not converge are left out: there the retry from ART is made
 whatever the rule says.
 
-    python benchmarks/decision_rule.py --fit A.npz --validate B.npz --out OUT.json
+    python benchmarks/analyses/decision_rule.py --fit A.npz --validate B.npz --out OUT.json
 """
 from __future__ import annotations
 

@@ -12,9 +12,9 @@ the rule also decides whether ART is used (the post hoc check), how many scenari
 how many of those end more than 10 mm/s dearer or cheaper than from CVX (a rejected one flies
 PS-CVX: difference 0).
 
-    python benchmarks/sweep_candidates.py --data DATA --model MODEL --n 400 --out OUT.json
-    python benchmarks/sweep_candidates.py --seeds 50000:400 --model MODEL --out OUT.json
-    python benchmarks/sweep_candidates.py --table    # docs/art_training.md's table of RESULT
+    python benchmarks/analyses/sweep_candidates.py --data DATA --model MODEL --n 400 --out OUT.json
+    python benchmarks/analyses/sweep_candidates.py --seeds 50000:400 --model MODEL --out OUT.json
+    python benchmarks/analyses/sweep_candidates.py --table  # docs/art_training.md's table
 
 `--seeds FIRST:COUNT` draws the scenarios with `scenarios.sample_scenario` (seeds no dataset of
 a shipped model used) instead of reading a dataset. The summary's "subsets" apply the
@@ -46,7 +46,7 @@ from art_guidance.eval.inputs import heldout, load_model, model_info
 from art_guidance.optim import TransferProblem
 
 SCALES = np.array(DEFAULT_REWARD_SCALES)
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 RESULT = ROOT / "benchmarks" / "results" / "learned_warm_start" / "sweep_candidates_roe.json"
 DOC = ROOT / "docs" / "art_training.md"
 BEGIN, END = "<!-- sweep-candidates:begin -->", "<!-- sweep-candidates:end -->"

@@ -40,7 +40,7 @@ share the machine's load only on a quiet machine: between models of the same arc
 (which cost the same) they differ by load alone. `bench slim` measures two models' proposals
 paired, alternated scenario by scenario.
 
-    python benchmarks/default_models.py \
+    python benchmarks/analyses/default_models.py \
         --eval deterministic=benchmarks/results/default_models/summary.json \
         --eval chance=benchmarks/results/slim/eval_slim1e40_s11s12_summary.json \
         --paired benchmarks/results/default_models/paired.json \
