@@ -7,9 +7,10 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip --disable-pip-version-check -q
-# no .pyc written at install (torch, ray and scipy alone hold thousands of modules, about 40 s
-# on 2 cores): Python compiles a module at its first import, the few that run
-PIP_INSTALL := $(PIP) install --no-compile
+# pip writes the modules' .pyc at install: keep it (--no-compile saves ~40 s here, but where
+# PYTHONDONTWRITEBYTECODE is set, as on this project's machines, every process would then
+# compile torch, numpy and rclpy again at each import: the suite ran slower)
+PIP_INSTALL := $(PIP) install
 CONSTRAINTS := .ci/constraints.txt
 BUILD := build
 MSG_SRC := $(wildcard msg_schemas/msg/*.msg) msg_schemas/CMakeLists.txt msg_schemas/package.xml
@@ -62,11 +63,15 @@ $(VENV)/.stamp-pkg: $(VENV)/.stamp-ros setup.py setup.cfg Makefile $(CONSTRAINTS
 setup:
 	@$(MAKE) --no-print-directory -j2 $(VENV)/.stamp-msgs $(VENV)/.stamp-pkg
 
-# the numba kernels compile into their cache (a cold cache: ~20 s of one core) while flake8
-# runs; the tests then load them (test/conftest.py warms them up again, which finds them there)
+# Before the tests: the numba kernels compile into their cache (a cold cache: ~20 s of one core)
+# while this project's modules are compiled to .pyc (where PYTHONDONTWRITEBYTECODE is set, as on
+# this project's machines, no process writes them, and each of the suite's few hundred processes
+# would compile the package again at import: ~0.25 s each) and flake8 runs. The tests then load
+# the kernels (test/conftest.py warms them up again, which finds them in the cache).
 test: setup
 	mkdir -p $(BUILD)
 	$(PY) -m art_guidance.kernels > $(BUILD)/kernels.log 2>&1 & kernels=$$!; \
+	$(PY) -m compileall -q -j 0 art_guidance test benchmarks > /dev/null || true; \
 	$(PY) -m flake8 art_guidance test benchmarks launch .ci setup.py || { wait $$kernels; exit 1; }; \
 	wait $$kernels || cat $(BUILD)/kernels.log
 	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q $(XDIST) $(PYTEST_ARGS)
