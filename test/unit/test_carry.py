@@ -186,3 +186,39 @@ def test_a_windowed_replan_tracks_the_plan_in_force(flight):
     assert whole.window.target_source == "waypoint"
     assert "no plan in force to track (a new target)" in whole.window.reason
     assert whole.window.end_node == len(whole.epochs_s) - 1
+
+
+def test_whether_cvx_is_passively_safe_is_asked_once_a_plan(flight, monkeypatch):
+    """The carried run, the proposal's routing and the learned step read one answer
+    (`planning.learned.CvxSafety`): the passive-safety evaluation of CVX's plan runs once a
+    plan, for a carried replan whose guard sends it to the fresh solve too (warm start auto, a
+    learned model: each step would ask) as for a first plan; the plans are as before."""
+    from art_guidance.art.provider import ArtWarmStart
+    from art_guidance.planning import learned
+
+    pipeline, _, _, _, _, request = flight
+    config = pipeline.config.replace(planning=dataclasses.replace(
+        pipeline.config.planning, carry_guard_mps=0.0))
+    auto = GuidancePipeline(config, provider=ArtWarmStart.load())
+    grown = dataclasses.replace(request.carry, excess_mps=10.0,  # the guard fires
+                                config_sha256=config.sha256())
+    asked, calls = learned.cvx_is_safe, []
+
+    def counted(cvx, safety):
+        calls.append(1)
+        return asked(cvx, safety)
+
+    for name, req in (("carried", dataclasses.replace(request, carry=grown)),
+                      ("first", dataclasses.replace(request, carry=None,
+                                                    no_carry="a new target"))):
+        req = dataclasses.replace(req, warm_start="auto")
+        plan = auto.plan(req)
+        monkeypatch.setattr(learned, "cvx_is_safe", counted)
+        calls.clear()
+        again = auto.plan(req)
+        monkeypatch.setattr(learned, "cvx_is_safe", asked)
+        assert len(calls) == 1, (name, len(calls), again.warm_start_reason)
+        assert np.array_equal(again.dv_rtn_mps, plan.dv_rtn_mps)
+        assert again.warm_start_reason == plan.warm_start_reason
+        if name == "carried":
+            assert plan.carry.guard and plan.proposal is not None, plan.warm_start_reason
