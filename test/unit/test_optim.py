@@ -1,6 +1,8 @@
 """Convex TPBVP and SCVx*: against a cvxpy reference, nonlinear constraints, warm starts."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -115,6 +117,23 @@ def test_converged_plan_as_warm_start_converges_in_two(setup, seed):
     assert again.status is ScpStatus.CONVERGED
     assert again.iterations <= 2
     assert again.cost_mps == pytest.approx(first.cost_mps, abs=1e-3)
+
+
+def test_one_warm_start_argument_takes_controls_or_their_terminal_warm_start(setup):
+    """`Scvx.solve(warm)`: controls are put on the terminal condition first; their terminal
+    warm start (a `Trajectory`) is taken as it is, the same run bit for bit; a failed CVX's
+    warm start is no burns (`ConvexSolution.warm_start`)."""
+    scenario, horizon, safety = setup
+    problem = TransferProblem(safety["cc"], *_boundary(scenario, horizon, 0))
+    cvx = problem.cvx()
+    scvx = problem.scvx(samples_per_node=3)
+    from_controls = scvx.solve(cvx.warm_start)
+    from_trajectory = scvx.solve(problem.terminal_warm_start(cvx.warm_start))
+    assert np.array_equal(from_controls.dv_rtn_mps, from_trajectory.dv_rtn_mps)
+    assert from_controls.iterations == from_trajectory.iterations
+    assert from_controls.multipliers.mu.shape == (horizon.n_nodes,)
+    failed = dataclasses.replace(cvx, dv_rtn_mps=np.full_like(cvx.dv_rtn_mps, np.nan))
+    assert np.array_equal(failed.warm_start, np.zeros_like(cvx.dv_rtn_mps))
 
 
 def test_deadline_returns_timeout(setup):
