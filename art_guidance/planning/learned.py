@@ -97,7 +97,7 @@ def learned_warm_start(provider: WarmStartProvider | None, transfer: Transfer,
         return Learned(CVX, f"CVX ended {cvx.status.name}: no reference for the post hoc "
                        "check, CVX warm start")
     if request.warm_start is WarmStart.AUTO and planning.skip_art_when_cvx_safe \
-            and (cvx_safe or CvxSafety(cvx, problem.safety))():
+            and (CvxSafety(cvx, problem.safety) if cvx_safe is None else cvx_safe)():
         return Learned(CVX, CVX_SAFE_REASON)
     t0 = time.perf_counter()
     if deadline is not None and deadline.passed():
@@ -187,9 +187,9 @@ class CvxSafety:
         return self._known
 
     @property
-    def found_unsafe(self) -> bool:
-        """It was asked, and CVX is not passively safe (what a worker's job is told)."""
-        return self._known is False
+    def known(self) -> bool | None:
+        """The answer where it was asked already (None: not yet; what a worker's job carries)."""
+        return self._known
 
 
 def cvx_is_safe(cvx: ConvexSolution, safety: PassiveSafety) -> bool:

@@ -117,7 +117,7 @@ class Producers:
         return PlanJob(0, self.config.to_json(), self.config.sha256(),
                        model_key(self.provider), transfer.request, cvx,
                        None if deadline is None else deadline.left_s(),
-                       cvx_safe.found_unsafe, self.subproblem)
+                       cvx_safe.known, self.subproblem)
 
     def worker(self) -> ProposalProcess:
         """The worker process (created, not started, on first need)."""

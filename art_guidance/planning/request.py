@@ -71,8 +71,10 @@ class TerminalTarget(enum.StrEnum):
 
 
 N_ORBITS_RANGE = (0.01, 20.0)  # a plan's horizon [orbits], inclusive
-TERMINAL_TARGETS = tuple(t.value for t in TerminalTarget)[:3]  # a node parameter's choices
-REFERENCE_TARGETS = tuple(t.value for t in TerminalTarget)[3:]  # the benchmarks' references
+# a node parameter's choices, and the benchmarks' references
+TERMINAL_TARGETS = tuple(t.value for t in (TerminalTarget.ART, TerminalTarget.CVX,
+                                           TerminalTarget.CARRY))
+REFERENCE_TARGETS = tuple(t.value for t in (TerminalTarget.SCVX, TerminalTarget.ART_ANY))
 
 
 def window_nodes_valid(window_nodes: object, most: int) -> bool:

@@ -181,8 +181,8 @@ def test_a_deadline_the_worker_finds_passed_is_said_in_its_answer(pipeline, ship
     cvx = pipeline.transfer(request).problem.cvx()
     answers = _serve_here([
         WarmUpJob(*base, key),
-        PlanJob(5, *base, key, request, cvx, 0.0, True, SubproblemOptions()),
-        PlanJob(6, *base, key, request, cvx, 600.0, True, SubproblemOptions()),
+        PlanJob(5, *base, key, request, cvx, 0.0, False, SubproblemOptions()),
+        PlanJob(6, *base, key, request, cvx, 600.0, False, SubproblemOptions()),
     ])
     assert [type(a) for a in answers] == [Proposal] * 3, answers
     assert answers[1].deadline_hit and "passed before ART" in answers[1].learned.reason
@@ -206,7 +206,7 @@ def test_a_failing_job_is_answered_with_its_error(tmp_path, pipeline, shipped):
     answers = _serve_here([
         WarmUpJob(*base, missing),
         WarmUpJob(*base, key),
-        PlanJob(7, *base, key, request, cvx, None, True, "no_such_options", solve_art=True),
+        PlanJob(7, *base, key, request, cvx, None, False, "no_such_options", solve_art=True),
     ])
     assert len(answers) == 4, answers
     assert isinstance(answers[0], Failure) and "missing.onnx" in answers[0].text
@@ -226,7 +226,7 @@ def test_a_worker_that_stalls_or_dies_holding_a_job(pipeline, shipped):
     The worker is held with SIGSTOP, so the job cannot be answered before it is stopped."""
     _, key = shipped
     config = pipeline.config
-    job = PlanJob(0, config.to_json(), config.sha256(), key, None, None, None, False,
+    job = PlanJob(0, config.to_json(), config.sha256(), key, None, None, None, None,
                   SubproblemOptions())
     worker = ProposalProcess()
     try:

@@ -35,7 +35,7 @@ def test_a_failed_worker_is_started_again_with_backoff(tmp_path, monkeypatch):
         assert worker.start(config.to_json(), config.sha256(), model) is False
         assert "missing.pt" in worker.error and not worker.alive
         assert "1 failed start(s)" in worker.state and "started again in 5 s" in worker.state
-        job = PlanJob(0, config.to_json(), config.sha256(), model, None, None, None, False,
+        job = PlanJob(0, config.to_json(), config.sha256(), model, None, None, None, None,
                       SubproblemOptions())
         assert worker.submit(job) is None and not worker.alive  # declined, nothing spawned
         assert "missing.pt" in worker.error  # the reason stays
@@ -151,7 +151,7 @@ def test_close_is_bounded_while_a_job_is_out(concurrent, monkeypatch):
     request = heldout_requests(1, DEFAULT_MODELS["chance"])[0]
     cvx = concurrent.transfer(request).problem.cvx()
     assert worker.submit(PlanJob(0, config.to_json(), config.sha256(),
-                                 model_key(concurrent.provider), request, cvx, None, False,
+                                 model_key(concurrent.provider), request, cvx, None, None,
                                  SubproblemOptions()))
     t0 = time.perf_counter()
     worker.close()  # this thread holds the job: close waits 0.5 s, then kills

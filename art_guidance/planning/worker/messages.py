@@ -61,7 +61,8 @@ class PlanJob:
         request: the plan's `PlanRequest`.
         cvx: its convex solution (`ConvexSolution`).
         time_left_s: what is left of the plan's deadline [s] (None: no deadline).
-        cvx_unsafe: the planner found CVX not passively safe (the step does not ask again).
+        cvx_safe: whether CVX is passively safe, where the planner asked already (the step
+            does not ask again; None: not asked, `planning.learned.CvxSafety`).
         subproblem: SCVx*'s subproblem options (the planner's).
         solve_art: solve SCVx* from a valid proposal after answering (`ScvxAnswer`).
     """
@@ -73,7 +74,7 @@ class PlanJob:
     request: PlanRequest
     cvx: ConvexSolution
     time_left_s: float | None
-    cvx_unsafe: bool
+    cvx_safe: bool | None
     subproblem: SubproblemOptions
     solve_art: bool = False
 

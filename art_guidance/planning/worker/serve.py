@@ -123,7 +123,7 @@ def _run(job: WarmUpJob | PlanJob, state: _State) -> Proposal:
     state.plan = (transfer, deadline)  # for SCVx* from the proposal (`_solve_art`)
     learned, wall_ms = timed_learned_warm_start(
         loaded.provider, transfer, job.cvx, loaded.config.planning, deadline,
-        CvxSafety.answered(False) if job.cvx_unsafe else CvxSafety(job.cvx, transfer.safety))
+        CvxSafety(job.cvx, transfer.safety, job.cvx_safe))
     return Proposal(job.job_id, learned, wall_ms, deadline is not None and deadline.hit)
 
 
