@@ -7,10 +7,14 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip --disable-pip-version-check -q
-# pip writes the modules' .pyc at install: keep it (--no-compile saves ~40 s here, but where
-# PYTHONDONTWRITEBYTECODE is set, as on this project's machines, every process would then
-# compile torch, numpy and rclpy again at each import: the suite ran slower)
-PIP_INSTALL := $(PIP) install
+# pip writes no .pyc at install (--no-compile: it would compile all ~15,000 modules of the
+# dependencies, one at a time, ~40 s here); the steps that run the project (test, demo, bench,
+# coverage) write them instead, for the ~2,300 modules a process really imports, at their first
+# import (~6 s, once). They run with PYTHONDONTWRITEBYTECODE unset: where it is set, as on this
+# project's machines, no process would write a .pyc and each of the suite's few hundred
+# processes would compile torch, numpy and rclpy again at every import.
+PIP_INSTALL := $(PIP) install --no-compile
+RUN := env -u PYTHONDONTWRITEBYTECODE
 CONSTRAINTS := .ci/constraints.txt
 BUILD := build
 MSG_SRC := $(wildcard msg_schemas/msg/*.msg) msg_schemas/CMakeLists.txt msg_schemas/package.xml
@@ -35,7 +39,7 @@ $(VENV)/.stamp-ros: $(VENV)/.stamp-venv .ci/requirements-ros.txt .ci/fix_ros_cma
 		$(CONSTRAINTS)
 	$(PIP_INSTALL) -c $(CONSTRAINTS) -r .ci/requirements-ros.txt 2>&1 \
 		| sed "/^WARNING: Location/d"
-	$(PY) -c "import rclpy, rosidl_adapter" >/dev/null
+	$(RUN) $(PY) -c "import rclpy, rosidl_adapter" >/dev/null
 	$(PY) .ci/fix_ros_cmake_paths.py
 	touch $@
 
@@ -56,28 +60,25 @@ $(VENV)/.stamp-msgs: $(VENV)/.stamp-ros $(MSG_SRC)
 $(VENV)/.stamp-pkg: $(VENV)/.stamp-ros setup.py setup.cfg Makefile $(CONSTRAINTS)
 	$(PIP_INSTALL) -c $(CONSTRAINTS) -e ".[train,test,distributed]" 2>&1 \
 		| sed "/^WARNING: Location/d"
-	$(PY) -c "import art_guidance, torch, onnx, onnxruntime, numba, clarabel, osqp, cvxpy, rosbags, \
-		mcap_ros2" >/dev/null
+	$(RUN) $(PY) -c "import art_guidance, torch, onnx, onnxruntime, numba, clarabel, osqp, cvxpy, \
+		rosbags, mcap_ros2" >/dev/null
 	touch $@
 
 setup:
 	@$(MAKE) --no-print-directory -j2 $(VENV)/.stamp-msgs $(VENV)/.stamp-pkg
 
 # Before the tests: the numba kernels compile into their cache (a cold cache: ~20 s of one core)
-# while this project's modules are compiled to .pyc (where PYTHONDONTWRITEBYTECODE is set, as on
-# this project's machines, no process writes them, and each of the suite's few hundred processes
-# would compile the package again at import: ~0.25 s each) and flake8 runs. The tests then load
-# the kernels (test/conftest.py warms them up again, which finds them in the cache).
+# while flake8 runs. The tests then load the kernels (test/conftest.py warms them up again,
+# which finds them in the cache).
 test: setup
 	mkdir -p $(BUILD)
-	$(PY) -m art_guidance.kernels > $(BUILD)/kernels.log 2>&1 & kernels=$$!; \
-	$(PY) -m compileall -q -j 0 art_guidance test benchmarks > /dev/null || true; \
-	$(PY) -m flake8 art_guidance test benchmarks launch .ci setup.py || { wait $$kernels; exit 1; }; \
+	$(RUN) $(PY) -m art_guidance.kernels > $(BUILD)/kernels.log 2>&1 & kernels=$$!; \
+	$(RUN) $(PY) -m flake8 art_guidance test benchmarks launch .ci setup.py || { wait $$kernels; exit 1; }; \
 	wait $$kernels || cat $(BUILD)/kernels.log
-	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q $(XDIST) $(PYTEST_ARGS)
+	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(RUN) $(PY) -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 test-fast: setup
-	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q -m "not slow" $(XDIST) $(PYTEST_ARGS)
+	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(RUN) $(PY) -m pytest -q -m "not slow" $(XDIST) $(PYTEST_ARGS)
 
 # The suite as `make test` runs it (pytest-xdist), under coverage: lines and branches of the whole
 # package, in the pytest processes and in every Python process the tests start (setup.cfg
@@ -87,7 +88,7 @@ test-fast: setup
 COVERAGE_DIR := $(BUILD)/coverage
 coverage: setup
 	rm -rf $(COVERAGE_DIR) && mkdir -p $(COVERAGE_DIR)
-	status=0; OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m pytest -q $(XDIST) --cov \
+	status=0; OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(RUN) $(PY) -m pytest -q $(XDIST) --cov \
 		--cov-report= $(PYTEST_ARGS) || status=$$?; \
 	$(PY) -m coverage json -q; \
 	$(PY) .ci/coverage_table.py $(COVERAGE_DIR)/coverage.json docs/reliability.md; \
@@ -97,10 +98,10 @@ lint: setup
 	$(PY) -m flake8 art_guidance test benchmarks launch .ci setup.py
 
 demo: setup
-	$(VENV)/bin/art-guidance demo
+	$(RUN) $(VENV)/bin/art-guidance demo
 
 bench: setup
-	$(VENV)/bin/art-guidance bench all
+	$(RUN) $(VENV)/bin/art-guidance bench all
 
 # Re-resolve every dependency from the registries (newest allowed versions) and rewrite the pins.
 lock:

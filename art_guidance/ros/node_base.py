@@ -35,7 +35,7 @@ from art_guidance.ros.parameters import (
 from art_guidance.ros.node_status import (
     fix_counts, load_model, model_values, numerics_values, prepare_numerics,
 )
-from art_guidance.ros.solve_recording import SolveRecording
+from art_guidance.ros.solve_recording import SolveRecording, bag_folder
 
 STATS_PERIOD_S = 1.0  # "art_guidance/stats" is published this often while planning [s]
 PARAMETERS = node_parameter_defaults()  # config/guidance_node.yaml: the one table
@@ -121,6 +121,7 @@ class GuidanceNodeBase:
                               f"{sorted(self.scenario.waypoints_rtn)}")
         settings = p.replan_settings(ae_to_koz_node=self.scenario.ae_to_koz_node,
                                      horizon_nodes=self.scenario.n_nodes)  # checked first
+        bag = bag_folder(p, again=self._recorded_before)  # so is the recording's folder
         self.provider, self.model_status = load_model(self.params, self.get_logger())
         self.pipeline = GuidancePipeline(config, provider=self.provider,
                                          deadline_s=p.solve_deadline_s)
@@ -140,7 +141,7 @@ class GuidanceNodeBase:
         self.budget = ReplanBudget()
         self.recording = SolveRecording(self.resolve_topic_name, p, self.pipeline,
                                         self.provider, self.model_status, self.get_logger(),
-                                        again=self._recorded_before)
+                                        bag, again=self._recorded_before)
         self._recorded_before = self.recording.recorder is not None
 
     def _model_values(self) -> dict:

@@ -25,6 +25,27 @@ from art_guidance.ros.node_outputs import VIZ_TYPE_NAMES, VIZ_TYPES
 from art_guidance.ros.parameters import NodeParameters
 
 
+def bag_folder(params: NodeParameters, again: bool = False) -> Path | None:
+    """The folder the node's bag goes to (None when `record` is off), checked: the node asks
+    before it loads a model or starts a worker, so a folder or size cap that cannot be used is
+    refused at once.
+
+    Args:
+        again: this node run recorded before (a lifecycle configure after a cleanup): a bag
+            folder that already holds a recording is not refused, the new bag goes beside it
+            (`<record_dir>_2`, `_3`, ...: the first that holds none; a bag is never
+            overwritten). On a node's first configure such a folder is refused.
+
+    Raises:
+        GuidanceError: a record directory or size cap that cannot be used.
+    """
+    if not params.record:
+        return None
+    check_cap(params.record_max_total_bytes, params.record_max_bytes)
+    directory = Path(params.record_dir or str(default_log_dir()))
+    return check_record_dir(free_bag_dir(directory) if again else directory)
+
+
 class SolveRecording:
     """What the node records, and the recorder (None when `record` is off).
 
@@ -35,18 +56,14 @@ class SolveRecording:
         provider: the learned warm start, or None.
         model_status: the model in words (recorded).
         log: the node's logger.
-        again: this node run recorded before (a lifecycle configure after a cleanup): a bag
-            folder that already holds a recording is not refused, the new bag goes beside it
-            (`<record_dir>_2`, `_3`, ...: the first that holds none; a bag is never
-            overwritten). On a node's first configure such a folder is refused.
-
-    Raises:
-        GuidanceError: a record directory or size cap that cannot be used.
+        directory: the bag's folder (`bag_folder`; None: `record` is off).
+        again: this node run recorded before (said in the log where the bag went beside the
+            earlier one).
     """
 
     def __init__(self, resolve: Callable[[str], str], params: NodeParameters,
                  pipeline: GuidancePipeline, provider: Any, model_status: str,
-                 log: Any, again: bool = False) -> None:
+                 log: Any, directory: Path | None, again: bool = False) -> None:
         # message type -> resolved topic; the solve record is recorded only, under the node's
         # own namespace
         self.topics = {NAV_TYPE: resolve(topics.NAV), REQUEST_TYPE: resolve(topics.REPLAN_REQUEST),
@@ -57,11 +74,8 @@ class SolveRecording:
         self.model_load_ms = provider.load_ms if provider is not None else 0.0
         self._recorded_request: Any = None  # the last request written (worker thread only)
         self.recorder: McapRecorder | None = None
-        if not params.record:
+        if directory is None:
             return
-        check_cap(params.record_max_total_bytes, params.record_max_bytes)
-        directory = Path(params.record_dir or str(default_log_dir()))
-        directory = check_record_dir(free_bag_dir(directory) if again else directory)
         meta = {"config": pipeline.config_json(), "versions": versions(),
                 "model_checksum": provider.sha256 if provider else "none",
                 "art_runtime": provider.runtime if provider else "none",

@@ -22,7 +22,10 @@ from art_guidance.record.replay import EXIT_LOST, EXIT_OK, read_log, replay
 from art_guidance.ros.adapters import plan_to_msg, solve_record_msg
 
 AnyReader = pytest.importorskip("rosbags.highlevel").AnyReader
-N_SOLVES = 45
+N_SOLVES = 15
+# rotating at this size, a bag of N_SOLVES solves spans three files of five solves (one chunk a
+# solve): the replays in these tests re-solve every solve read, so the bags are no longer
+FILE_BYTES = 85_000
 STAMP0 = 1_800_000_000_000_000_000
 
 
@@ -97,10 +100,10 @@ def _info(bag: Path) -> dict:
 
 def test_flipped_bytes_in_a_rotated_bag_are_named_skipped_counted_and_repaired(
         tmp_path, results, capsys):
-    """200 flipped bytes in the middle of a finished 45-solve bag of three files: the solves
+    """200 flipped bytes in the middle of a finished 15-solve bag of three files: the solves
     before and after the damage are read (the damaged chunk is named by the summary's chunk
     index), one solve is lost, replay exits 3; reindex rebuilds the file, rosbags opens it."""
-    bag = _bag(tmp_path, results, max_bytes=250_000)
+    bag = _bag(tmp_path, results, max_bytes=FILE_BYTES)
     files = sorted(bag.glob("*.mcap"), key=lambda p: p.name)
     assert len(files) == 3 and all(has_summary(f) for f in files)
     middle = files[1]
@@ -112,7 +115,7 @@ def test_flipped_bytes_in_a_rotated_bag_are_named_skipped_counted_and_repaired(
     ids = _plan_ids(log)
     assert len(ids) == N_SOLVES - 1 and ids[0] == 0 and ids[-1] == N_SOLVES - 1
     lost_id = sorted(set(range(N_SOLVES)) - set(ids))[0]
-    assert 16 <= lost_id < 32  # in the middle file; solves after it in that file are read
+    assert 5 <= lost_id < 10  # in the middle file; solves after it in that file are read
     assert [(d.file, d.chunk, d.offset, d.messages) for d in log.damaged] == [
         (middle.name, ordinal, start, 3)]
     assert log.truncated == []
@@ -182,8 +185,8 @@ def test_a_lost_first_chunk_borrows_the_channels_of_another_file(tmp_path, resul
     """The first chunk of an unsummarised file holds its schemas and channels: when it is
     damaged, the rest of the file is decoded with another file's (the recorder writes the same
     ones to every file), and the loss is counted under the right topics."""
-    bag = _bag(tmp_path, results, finish=False, max_bytes=250_000)
-    twin = _bag(tmp_path, results, max_bytes=250_000, name="twin")
+    bag = _bag(tmp_path, results, finish=False, max_bytes=FILE_BYTES)
+    twin = _bag(tmp_path, results, max_bytes=FILE_BYTES, name="twin")
     last = sorted(bag.glob("*.mcap"), key=lambda p: p.name)[-1]
     assert not has_summary(last)
     first = min(c.chunk_start_offset for c in _summary(twin / last.name).chunk_indexes)
@@ -200,8 +203,8 @@ def test_a_lost_first_chunk_borrows_the_channels_of_another_file(tmp_path, resul
 
 def test_truncated_at_half_reports_the_loss_against_metadata(tmp_path, results, capsys):
     """A file cut at half: the complete chunks before the cut are read and the cut is a torn
-    end, not damage; metadata.yaml counted 45 solves, so 23 are reported lost and replay and
-    reindex exit 3."""
+    end, not damage; metadata.yaml counted 15 solves, so those after the cut are reported lost,
+    and replay and reindex exit 3."""
     bag = _bag(tmp_path, results, finish=False)
     path = bag / "guidance_0.mcap"
     path.write_bytes(path.read_bytes()[:path.stat().st_size // 2])

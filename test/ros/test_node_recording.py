@@ -26,6 +26,9 @@ from art_guidance.record.replay import read_log, replay, request_stamp_ns  # noq
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 NOMINAL_RTN = np.array(ScenarioConfig().rtn0_nominal)
+# the tests about the recorder alone plan CVX only: no model, no proposal worker to start (the
+# learned path is recorded and replayed in test_node_art.py; the kill -9 here keeps the defaults)
+CVX_ONLY = "model_path:=none"
 
 
 @contextmanager
@@ -108,7 +111,8 @@ def test_kill9_keeps_every_published_plan_and_replays(ros_env, python_exe, tmp_p
 
 
 def test_sigterm_finishes_the_bag(ros_env, python_exe, tmp_path):
-    with _node_with_client(ros_env, python_exe, tmp_path / "bag", "recording_client2") as (
+    with _node_with_client(ros_env, python_exe, tmp_path / "bag", "recording_client2",
+                           params=(CVX_ONLY,)) as (
             proc, client):
         ids = _plan_ids(client, 2, np.random.default_rng(6))
         proc.send_signal(signal.SIGTERM)
@@ -121,7 +125,8 @@ def test_sigterm_finishes_the_bag(ros_env, python_exe, tmp_path):
 def test_namespaced_node_records_resolved_topics_and_each_request_once(
         ros_env, python_exe, tmp_path):
     bag, rng = tmp_path / "bag", np.random.default_rng(8)
-    with _node_with_client(ros_env, python_exe, bag, "recording_client4", "/chaser") as (
+    with _node_with_client(ros_env, python_exe, bag, "recording_client4", "/chaser",
+                           (CVX_ONLY,)) as (
             proc, client):
         before = _plan_ids(client, 1, rng)  # no request yet
         request = ReplanRequest(waypoint="plus_vbar", chance_constrained=True)
@@ -211,7 +216,8 @@ def test_a_window_too_short_for_the_planner_leaves_a_plan_in_force(
 def test_an_unusable_record_dir_is_refused_at_start_up(ros_env, python_exe, tmp_path, where):
     """A record_dir under a regular file, or where no file can be created (/proc stands in for
     a read-only folder: the tests may run as root, whom chmod does not stop), stops the node at
-    start-up with a message naming the path and why."""
+    start-up with a message naming the path and why, before the node loads its model or starts
+    its proposal worker."""
     (tmp_path / "file").write_text("in the way")
     record_dir = (tmp_path / "file" / "bag" if where == "under_a_file"
                   else "/proc/art_guidance_cannot_write_here")
@@ -221,6 +227,7 @@ def test_an_unusable_record_dir_is_refused_at_start_up(ros_env, python_exe, tmp_
     assert out.returncode == 2, out.stdout + out.stderr
     why = "is a file, not a folder" if where == "under_a_file" else "files cannot be created"
     assert f"record_dir {record_dir} cannot be used" in out.stderr and why in out.stderr
+    assert "worker process" not in out.stdout + out.stderr
 
 
 def test_a_record_dir_lost_mid_run_does_not_stop_guidance(ros_env, python_exe, tmp_path):
@@ -228,7 +235,8 @@ def test_a_record_dir_lost_mid_run_does_not_stop_guidance(ros_env, python_exe, t
     is reported on /diagnostics, and the folder as it was (moved away) stays consistent: no
     stub file, metadata.yaml describes exactly the solves recorded before."""
     bag, moved = tmp_path / "bag", tmp_path / "moved"
-    with _node_with_client(ros_env, python_exe, bag, "recording_client3") as (proc, client):
+    with _node_with_client(ros_env, python_exe, bag, "recording_client3",
+                           params=(CVX_ONLY,)) as (proc, client):
         before = _plan_ids(client, 2, np.random.default_rng(7))
         bag.rename(moved)
         bag.write_text("in the way")

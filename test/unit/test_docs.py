@@ -102,8 +102,9 @@ def test_parameter_table_is_rendered_from_the_specs():
 def test_every_example_runs_without_a_usage_error(tmp_path, ros_env):
     """Every distinct example command, run for real in an empty directory (its own ROS 2
     domain): it may fail on missing data (exit 2 with a JSON error) or still be running after
-    a few seconds (a server, a long job: then it is killed), but argparse must never reject
-    it (its "usage:" line and exit 2). Ray examples are parsed only (a Ray instance outlives a
+    two seconds (a server, a long job: then it is killed), but argparse must never reject
+    it (its "usage:" line and exit 2; argparse answers before a command's work begins, so a
+    longer run checks nothing more). Ray examples are parsed only (a Ray instance outlives a
     killed driver). The commands are forked from one process that has imported the package
     and its dependencies once (helpers/cli_runs.py), six at a time: most are killed at their
     timeout, which is wall-clock time, so running more at once spends less of it."""
@@ -117,7 +118,7 @@ def test_every_example_runs_without_a_usage_error(tmp_path, ros_env):
         cwd.mkdir()
         jobs.append((command, cwd))
 
-    outcomes = [(c, *outcome) for c, outcome in zip(commands, run_briefly(jobs, env, 4.0, 6))]
+    outcomes = [(c, *outcome) for c, outcome in zip(commands, run_briefly(jobs, env, 2.0, 6))]
     bad = [f"{c}: {err.strip()[-300:]}" for c, code, err in outcomes
            if code == 2 and "usage:" in err]
     assert bad == []
