@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from art_guidance.errors import ConfigError, GuidanceError
 from art_guidance.optim import ScpStatus
 from art_guidance.planning import GuidancePipeline, NavState, PlanRequest
 from art_guidance.guidance.replan import (
-    Action, Decision, ReplanPolicy, ReplanSettings, ReplanWindow, unusable_text,
+    Action, Decision, ReplanPolicy, ReplanSettings, ReplanWindow, check_window, unusable_text,
 )
 
 T0_NS = 1_700_000_000_000_000_000
@@ -130,3 +131,9 @@ def test_unusable_result_never_replaces_the_plan_in_force(plan):
     text = unusable_text(bad, p.active_id)
     assert text.startswith("INFEASIBLE: replan not usable") and "plan-2 stays in force" in text
     assert "no plan is in force" in unusable_text(bad, "")
+
+
+def test_an_unknown_terminal_target_is_a_config_error():
+    with pytest.raises(ConfigError, match=re.escape(
+            "terminal_target must be one of ('art', 'cvx', 'carry'), got 'nowhere'")):
+        check_window(0, "nowhere", 100)

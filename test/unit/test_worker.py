@@ -1,10 +1,15 @@
-"""The proposal worker process: a worker that cannot start is reported and started again with
-exponential backoff (the plans meanwhile propose in line); a plan that fails while its proposal
-is out frees the worker; `close` is bounded whatever a job does."""
+"""The proposal worker (`planning.worker`): a worker that cannot start is reported and started
+again with exponential backoff (the plans meanwhile propose in line); a plan that fails while
+its proposal is out frees the worker; `close` is bounded whatever a job does; a job that fails,
+that the worker finds past its deadline, or that it dies or stalls holding is answered in
+words, never with an exception out of the planner."""
 from __future__ import annotations
 
 import dataclasses
+import multiprocessing
+import os
 import re
+import signal
 import time
 
 import pytest
@@ -15,8 +20,11 @@ from art_guidance.optim import Scvx
 from art_guidance.optim.problem import SubproblemOptions
 from art_guidance.planning import GuidancePipeline
 from art_guidance.planning.worker import process as proposal_process
-from art_guidance.planning.worker.process import ProposalProcess, restart_delay_s
-from art_guidance.planning.worker.messages import PlanJob
+from art_guidance.planning.worker.process import ProposalProcess, model_key, restart_delay_s
+from art_guidance.planning.worker.serve import serve
+from art_guidance.planning.worker.messages import (
+    Failure, PlanJob, Proposal, ScvxAnswer, WarmUpJob,
+)
 from helpers.shipped import heldout_requests
 
 
@@ -189,3 +197,120 @@ def test_a_cancel_stops_its_own_job_only():
     assert first.passed() and not second.passed()
     slot.cancel(2)
     assert second.passed()
+
+
+@pytest.fixture(scope="module")
+def pipeline() -> GuidancePipeline:
+    """The CVX-only pipeline of the default configuration."""
+    return GuidancePipeline(GuidanceConfig.load())
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    """The shipped chance-constrained model (as the node loads it) and its worker key."""
+    provider = ArtWarmStart.load(default_model_path("chance"))
+    return provider, model_key(provider)
+
+
+def _serve_here(jobs: list) -> list:
+    """Run the worker's loop in this process over a real pipe: `jobs` are queued, then the
+    end of input; returns the answers in order. SIGINT, which the loop ignores, is restored."""
+    parent, child = multiprocessing.Pipe()
+    for job in jobs + [None]:
+        parent.send(job)
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        serve(child)
+    finally:
+        signal.signal(signal.SIGINT, before)
+    answers = []
+    while parent.poll(0.0):
+        answers.append(parent.recv())
+    return answers
+
+
+def test_a_deadline_the_worker_finds_passed_is_said_in_its_answer(pipeline, shipped):
+    """The worker's learned step finds the plan's deadline passed (no time left): its answer
+    says so in data (`Proposal.deadline_hit`), not only in the reason's words, and the planner
+    marks its own deadline from it; a job with time left says no hit."""
+    from art_guidance.deadline import Deadline
+
+    _, key = shipped
+    config = pipeline.config
+    base = (config.to_json(), config.sha256())
+    request = heldout_requests(1, DEFAULT_MODELS["chance"])[0]
+    cvx = pipeline.transfer(request).problem.cvx()
+    answers = _serve_here([
+        WarmUpJob(*base, key),
+        PlanJob(5, *base, key, request, cvx, 0.0, False, SubproblemOptions()),
+        PlanJob(6, *base, key, request, cvx, 600.0, False, SubproblemOptions()),
+    ])
+    assert [type(a) for a in answers] == [Proposal] * 3, answers
+    assert answers[1].deadline_hit and "passed before ART" in answers[1].learned.reason
+    assert not answers[2].deadline_hit
+    planner = Deadline.after(600.0)
+    assert not planner.hit
+    planner.mark_hit()
+    assert planner.hit
+
+
+def test_a_failing_job_is_answered_with_its_error(tmp_path, pipeline, shipped):
+    """The worker's loop answers a job it cannot do (its model file missing; a plan job whose
+    SCVx* options are not options) with the error in words and goes on with the next job: the
+    planner then proposes, or solves, in line."""
+    provider, key = shipped
+    config = pipeline.config
+    base = (config.to_json(), config.sha256())
+    missing = (str(tmp_path / "missing.onnx"), *key[1:])
+    request = heldout_requests(1, DEFAULT_MODELS["chance"])[0]
+    cvx = pipeline.transfer(request).problem.cvx()
+    answers = _serve_here([
+        WarmUpJob(*base, missing),
+        WarmUpJob(*base, key),
+        PlanJob(7, *base, key, request, cvx, None, False, "no_such_options", solve_art=True),
+    ])
+    assert len(answers) == 4, answers
+    assert isinstance(answers[0], Failure) and "missing.onnx" in answers[0].text
+    assert answers[1] == Proposal(0)
+    assert isinstance(answers[2], Proposal) and answers[2].job_id == 7
+    assert answers[2].learned.dv is not None, answers[2].learned.reason
+    assert isinstance(answers[3], Failure) and answers[3].job_id == 7
+    assert answers[3].text.startswith("AttributeError: "), answers[3].text
+    assert not any(isinstance(a, ScvxAnswer) for a in answers)
+
+
+def test_a_worker_that_stalls_or_dies_holding_a_job(pipeline, shipped):
+    """A worker that does not answer within the wait is stopped as stalled ("no answer
+    within", a death and a stall, counted); one that dies holding a job is found dead when its
+    answer is collected (a death, counted).
+    Either way the caller gets None and the reason, and the next job starts a new worker.
+    The worker is held with SIGSTOP, so the job cannot be answered before it is stopped."""
+    _, key = shipped
+    config = pipeline.config
+    job = PlanJob(0, config.to_json(), config.sha256(), key, None, None, None, None,
+                  SubproblemOptions())
+    worker = ProposalProcess()
+    try:
+        for ending in ("late", "dead"):
+            assert worker.start(config.to_json(), config.sha256(), key), worker.error
+            pid = worker._proc.pid
+            os.kill(pid, signal.SIGSTOP)
+            assert worker.submit(job) is not None
+            if ending == "late":
+                assert worker.collect(0.5) is None  # a stall: counted with the deaths
+                assert worker.error == ("the worker stalled (no answer within 0.50 s): "
+                                        "stopped, started anew on a later job")
+                assert worker.deaths == 1 and worker.stalls == 1
+            else:
+                os.kill(pid, signal.SIGKILL)  # its end of the pipe closes as it dies
+                assert worker.collect(30.0) is None
+                # EOF, or a reset where the job was still unread in the dead worker's socket
+                assert re.match(r"the worker stopped: (EOFError|ConnectionResetError)",
+                                worker.error), worker.error
+                assert worker.deaths == 2 and worker.stalls == 1
+            assert not worker.alive
+        assert worker.submit(job) is None and worker.alive  # started again
+        assert worker.error == "the worker process is starting"
+    finally:
+        worker.close()
+    assert not worker.alive
