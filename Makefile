@@ -1,21 +1,30 @@
 # Two-command set-up: `make demo` and `make test` each build what they need first.
-# .venv (ROS 2 Jazzy wheels + deps) -> art_guidance_msgs built into it -> this package editable,
-# with the [train] extra (torch, onnx: a flight install, `pip install .`, has neither; README).
+# .venv -> every pinned package (.ci/constraints.txt: ROS 2 Jazzy wheels, the package's
+# dependencies with the [train] extra: torch, onnx; a flight install, `pip install .`, has neither;
+# README) -> art_guidance_msgs built into it, beside this package installed editable.
 SHELL := /bin/bash
 .SHELLFLAGS := -eo pipefail -c
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip --disable-pip-version-check -q
-# pip writes no .pyc at install (--no-compile: it would compile all ~15,000 modules of the
-# dependencies, one at a time, ~40 s here); the steps that run the project (test, demo, bench,
-# coverage) write them instead, for the ~2,300 modules a process really imports, at their first
-# import (~6 s, once). They run with PYTHONDONTWRITEBYTECODE unset: where it is set, as on this
-# project's machines, no process would write a .pyc and each of the suite's few hundred
-# processes would compile torch, numpy and rclpy again at every import.
-PIP_INSTALL := $(PIP) install --no-compile
-RUN := env -u PYTHONDONTWRITEBYTECODE
+# The lock is installed as it is, without resolving (pip's resolver spent ~40 s of the set-up on
+# it here): by uv, which installs in parallel (~13 s for all 230 packages here, against ~55 s for
+# pip), from the sources pip is configured with (.ci/uv_sources.py); by pip where uv cannot be
+# installed. `pip check` then proves the lock closed.
+UV_VERSION := 0.13.9
+UV := $(VENV)/bin/uv
 CONSTRAINTS := .ci/constraints.txt
+INSTALL = if [ -x $(UV) ]; then $(UV) pip install -q --python $(PY) \
+		$$($(PY) .ci/uv_sources.py) $(1); \
+	else $(PIP) install --no-compile $(1) 2>&1 | sed "/^WARNING: Location/d"; fi
+# Nothing writes .pyc at install (pip would compile all ~15,000 modules of the dependencies, one
+# at a time, ~40 s here); the steps that run the project (test, demo, bench, coverage) write
+# them instead, for the ~2,300 modules a process really imports, at their first import (~6 s,
+# once). They run with PYTHONDONTWRITEBYTECODE unset: where it is set, as on this project's
+# machines, no process would write a .pyc and each of the suite's few hundred processes would
+# compile torch, numpy and rclpy again at every import.
+RUN := env -u PYTHONDONTWRITEBYTECODE
 BUILD := build
 MSG_SRC := $(wildcard msg_schemas/msg/*.msg) msg_schemas/CMakeLists.txt msg_schemas/package.xml
 ROS_ENV := VIRTUAL_ENV=$(abspath $(VENV)) AMENT_PREFIX_PATH=$(abspath $(VENV)) \
@@ -33,17 +42,20 @@ all: setup
 
 $(VENV)/.stamp-venv:
 	$(PYTHON) -m venv $(VENV)
+	$(PIP) install --no-compile uv==$(UV_VERSION) 2>&1 | sed "/^WARNING: Location/d" \
+		|| echo "uv could not be installed: pip installs the lock (slower)"
 	touch $@
 
-$(VENV)/.stamp-ros: $(VENV)/.stamp-venv .ci/requirements-ros.txt .ci/fix_ros_cmake_paths.py \
-		$(CONSTRAINTS)
-	$(PIP_INSTALL) -c $(CONSTRAINTS) -r .ci/requirements-ros.txt 2>&1 \
-		| sed "/^WARNING: Location/d"
-	$(RUN) $(PY) -c "import rclpy, rosidl_adapter" >/dev/null
+$(VENV)/.stamp-deps: $(VENV)/.stamp-venv $(CONSTRAINTS) .ci/uv_sources.py \
+		.ci/fix_ros_cmake_paths.py
+	$(call INSTALL,--no-deps -r $(CONSTRAINTS))
+	$(PIP) check
 	$(PY) .ci/fix_ros_cmake_paths.py
+	$(RUN) $(PY) -c "import rclpy, rosidl_adapter, torch, onnx, onnxruntime, numba, clarabel, \
+		osqp, cvxpy, rosbags, mcap_ros2" >/dev/null
 	touch $@
 
-$(VENV)/.stamp-msgs: $(VENV)/.stamp-ros $(MSG_SRC)
+$(VENV)/.stamp-msgs: $(VENV)/.stamp-deps $(MSG_SRC)
 	rm -rf $(BUILD)/msgs && mkdir -p $(BUILD)
 	$(ROS_ENV) cmake -S msg_schemas -B $(BUILD)/msgs -G Ninja -DBUILD_TESTING=OFF \
 		-DCMAKE_INSTALL_PREFIX=$(abspath $(VENV)) -DPython3_EXECUTABLE=$(abspath $(PY)) \
@@ -55,13 +67,11 @@ $(VENV)/.stamp-msgs: $(VENV)/.stamp-ros $(MSG_SRC)
 	$(PY) -c "from art_guidance_msgs.msg import ManeuverPlan"
 	touch $@
 
-# the package and its Python dependencies need the ROS wheels, not the messages: the two build
-# side by side (`setup`)
-$(VENV)/.stamp-pkg: $(VENV)/.stamp-ros setup.py setup.cfg Makefile $(CONSTRAINTS)
-	$(PIP_INSTALL) -c $(CONSTRAINTS) -e ".[train,test,distributed]" 2>&1 \
-		| sed "/^WARNING: Location/d"
-	$(RUN) $(PY) -c "import art_guidance, torch, onnx, onnxruntime, numba, clarabel, osqp, cvxpy, \
-		rosbags, mcap_ros2" >/dev/null
+# this package (its dependencies are the lock's) needs the pinned packages, not the messages:
+# the two build side by side (`setup`)
+$(VENV)/.stamp-pkg: $(VENV)/.stamp-deps setup.py setup.cfg Makefile
+	$(call INSTALL,--no-deps --no-build-isolation -e .)
+	$(RUN) $(PY) -c "import art_guidance" >/dev/null
 	touch $@
 
 setup:
@@ -105,15 +115,13 @@ bench: setup
 
 # Re-resolve every dependency from the registries (newest allowed versions) and rewrite the pins.
 lock:
-	rm -rf $(BUILD)/lock-venv
+	rm -rf $(BUILD)/lock-venv && mkdir -p $(BUILD)
 	$(PYTHON) -m venv $(BUILD)/lock-venv
-	$(BUILD)/lock-venv/bin/python -m pip --disable-pip-version-check -q install \
+	$(BUILD)/lock-venv/bin/python -m pip --disable-pip-version-check -q install --dry-run \
+		--ignore-installed --report $(BUILD)/lock.json \
 		-r .ci/requirements-ros.txt ".[train,test,distributed]" 2>&1 \
 		| sed "/^WARNING: Location/d"
-	head -3 $(CONSTRAINTS) > $(BUILD)/constraints.txt
-	$(BUILD)/lock-venv/bin/python -m pip freeze --exclude art_guidance \
-		| sed 's/^torch==\([0-9.]*\)+cpu$$/torch==\1/' >> $(BUILD)/constraints.txt
-	mv $(BUILD)/constraints.txt $(CONSTRAINTS)
+	$(PYTHON) .ci/lock_pins.py $(BUILD)/lock.json $(CONSTRAINTS)
 	rm -rf $(BUILD)/lock-venv
 	@echo "pins rewritten: git diff $(CONSTRAINTS)"
 
