@@ -1,7 +1,9 @@
 """Shared fixtures: an isolated ROS 2 environment per session (own domain, logs, discovery)."""
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -34,7 +36,9 @@ DOMAIN_ID, SECOND_DOMAIN_ID = _domain_pair()
 
 def _ros_env() -> dict[str, str]:
     # Own domain per process so concurrent runs and workers on one machine do not cross-talk.
-    env = isolated_ros_env(tempfile.mkdtemp(prefix="art_guidance_ros_"), DOMAIN_ID)
+    home = tempfile.mkdtemp(prefix="art_guidance_ros_")
+    atexit.register(shutil.rmtree, home, True)  # the nodes' logs go with the process
+    env = isolated_ros_env(home, DOMAIN_ID)
     env["RMW_IMPLEMENTATION"] = "rmw_fastrtps_cpp"
     return env
 
