@@ -19,14 +19,20 @@ HEADER = """\
 """
 
 
-def main(report_path: str, out_path: str) -> int:
-    report = json.loads(open(report_path).read())
+def pin_lines(report: dict) -> list[str]:
+    """"name==version" of every package in pip's resolution report but this one, sorted by
+    name (a local version label dropped)."""
     pins = {}
     for item in report["install"]:
         name, version = item["metadata"]["name"], item["metadata"]["version"]
         if name.replace("-", "_").lower() != "art_guidance":
             pins[name] = version.split("+")[0]
-    lines = [f"{name}=={pins[name]}" for name in sorted(pins, key=str.lower)]
+    return [f"{name}=={pins[name]}" for name in sorted(pins, key=str.lower)]
+
+
+def main(report_path: str, out_path: str) -> int:
+    with open(report_path) as fh:
+        lines = pin_lines(json.load(fh))
     with open(out_path, "w") as fh:
         fh.write(HEADER + "\n".join(lines) + "\n")
     print(f"{len(lines)} packages pinned in {out_path}")

@@ -10,9 +10,8 @@ import subprocess
 import sys
 
 
-def main() -> int:
-    listed = subprocess.run([sys.executable, "-m", "pip", "config", "list"], capture_output=True,
-                            text=True).stdout
+def uv_args(listed: str) -> list[str]:
+    """The uv arguments for pip's configuration as `pip config list` prints it."""
     # "global.find-links='/opt/wheels'", ":env:.find-links='...'": as pip ranks them, a PIP_*
     # variable over the site file over the user's over the global one
     rank = {":env:": 0, "site": 1, "user": 2, "global": 3}
@@ -33,7 +32,13 @@ def main() -> int:
         args += ["--find-links", where]
     if len(args) > 1:  # pinned versions: take them from whichever source has them
         args += ["--index-strategy", "unsafe-best-match"]
-    print(shlex.join(args))
+    return args
+
+
+def main() -> int:
+    listed = subprocess.run([sys.executable, "-m", "pip", "config", "list"], capture_output=True,
+                            text=True).stdout
+    print(shlex.join(uv_args(listed)))
     return 0
 
 
