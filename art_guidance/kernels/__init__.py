@@ -7,9 +7,11 @@ configure, the worker at its warm-up, anything else at its first plan through `c
 which loads the kernels:
 
 - a warm cache: the kernels are loaded from it now (~0.4 s here);
-- a cache entry that does not load (truncated, emptied, garbled): the kernels' cache files are
-  moved aside into the cache folder's `damaged/` (logged, naming them) and compiled once more;
-  where they cannot be moved, the process compiles in memory. Never a traceback;
+- a cache entry that does not load (truncated, emptied, garbled): that kernel's cache files are
+  moved aside into the cache folder's `damaged/` (logged, naming them) and it is compiled once
+  more, the other kernels loaded as they are (numba keeps each kernel's files apart, and a
+  cached kernel holds the code of those it calls); where they cannot be moved, the process
+  compiles in memory. Never a traceback;
 - a cold cache: with `wait` compiled now (12-15 s here, minutes on a slow flight computer);
   without, the process plans on the numpy path while a background process
   (`python -m art_guidance.kernels`, one per cache folder at a time) compiles into the cache,
@@ -245,7 +247,8 @@ def cache_status() -> str:
         warm, damaged = cache.inspect()
     except Exception as exc:  # a kernel module that does not import
         return f"the kernels do not import ({type(exc).__name__}: {exc})"
-    state = ("damaged: " + ", ".join(p.name for p in damaged) + " do not load") if damaged \
+    files = [p.name for paths in damaged.values() for p in paths]
+    state = ("damaged: " + ", ".join(files) + " do not load") if damaged \
         else "warm: every kernel is there" if warm else "cold: the kernels compile at first use"
     where = cache.folder()
     pid = None if where is None else cache.filler_pid(where)
@@ -255,34 +258,50 @@ def cache_status() -> str:
 
 
 def _load_cached(cache) -> bool:
-    """Load the kernels where the cache holds them all; a damaged entry (seen in its index,
-    or failing to load) moves the kernels' cache files aside. Whether they are loaded."""
+    """Load the kernels where the cache holds them all. A damaged file (an index that does not
+    load; a data file, looked for once loading failed) moves that kernel's cache files aside,
+    the others stay. Whether they are loaded."""
     warm, damaged = cache.inspect()
     if damaged:
-        _move_aside(cache, ", ".join(p.name for p in damaged[:4])
-                    + (f" and {len(damaged) - 4} more" if len(damaged) > 4 else "")
-                    + " did not load")
-        return False
-    if not warm:
+        _move_aside(cache, _did_not_load(damaged), list(damaged))
+        warm, damaged = cache.inspect()
+    if not warm or damaged:
         return False
     try:
         cache.load()
         return True
     except Exception as exc:  # a data file that does not load
-        _move_aside(cache, f"loading failed ({type(exc).__name__}: {str(exc)[:200]})")
+        _move_damaged_data(cache, f"loading failed ({type(exc).__name__}: {str(exc)[:200]})")
         return False
 
 
-def _move_aside(cache, why: str) -> None:
-    """Move the kernels' cache files aside (or compile in memory where they cannot be)."""
-    moved, failed = cache.move_aside()
+def _move_damaged_data(cache, why: str) -> None:
+    """Loading or compiling failed (`why`): move aside the kernels whose data files do not
+    load, or every kernel's files where none is found."""
+    _, damaged = cache.inspect(data=True)
+    _move_aside(cache, f"{why}; {_did_not_load(damaged)}" if damaged else why,
+                list(damaged) or None)
+
+
+def _did_not_load(damaged: dict[str, list[Path]]) -> str:
+    """The damaged files, in words (the first four named)."""
+    files = [p.name for paths in damaged.values() for p in paths]
+    return (", ".join(files[:4]) + (f" and {len(files) - 4} more" if len(files) > 4 else "")
+            + " did not load")
+
+
+def _move_aside(cache, why: str, names: list[str] | None = None) -> None:
+    """Move the cache files of the kernels `names` (None: of all) aside (or compile in memory
+    where they cannot be)."""
+    moved, failed = cache.move_aside(names)
     where = cache.folder()
     if failed:
         cache.in_memory()
         note = (f"damaged kernel cache in {where} ({why}) could not be moved aside ({failed}): "
                 "compiled in memory")
     else:
-        note = (f"damaged kernel cache in {where} ({why}): {len(moved)} files moved to "
+        which = "" if names is None else f" of {', '.join(names)}"
+        note = (f"damaged kernel cache in {where} ({why}): {len(moved)} files{which} moved to "
                 f"{where / cache.DAMAGED_FOLDER}, compiled again")
     _state.note = note
     _LOG.warning(note)
@@ -306,7 +325,8 @@ def _compile(cache) -> None:
     except Exception as exc:  # damage found while compiling, an unwritable folder
         full = unwritable(exc)
         if full is None:
-            _move_aside(cache, f"compiling failed ({type(exc).__name__}: {str(exc)[:200]})")
+            _move_damaged_data(cache, f"compiling failed ({type(exc).__name__}: "
+                               f"{str(exc)[:200]})")
         else:
             _not_filled(cache, f"the kernel cache in {where} cannot be written "
                         f"({errno.errorcode.get(full.errno, full.errno)}: "

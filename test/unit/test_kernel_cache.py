@@ -51,13 +51,15 @@ def template(tmp_path_factory) -> tuple[Path, str]:
     return root, where.name
 
 
-def _cache_copy(template, tmp_path: Path, damage: str | None) -> tuple[Path, Path]:
-    """(NUMBA_CACHE_DIR, its kernel folder): a copy of the warm cache with `damage` done."""
+def _cache_copy(template, tmp_path: Path, damage: str | None,
+                kernel: str = "*") -> tuple[Path, Path]:
+    """(NUMBA_CACHE_DIR, its kernel folder): a copy of the warm cache with `damage` done to
+    the files of `kernel` ("module.name"; "*": of every kernel)."""
     root, sub = template
     cache_dir = tmp_path / "numba"
     shutil.copytree(root, cache_dir)
     where = cache_dir / sub
-    for f in sorted(where.glob("*.nbi" if damage != "data" else "*.nbc")):
+    for f in sorted(where.glob(f"{kernel}-*" + (".nbi" if damage != "data" else ".nbc"))):
         data = f.read_bytes()
         if damage in ("truncated", "data"):
             f.write_bytes(data[:len(data) // 2])
@@ -159,20 +161,47 @@ def _bag(tmp_path: Path) -> Path:
 def test_replay_on_a_truncated_cache_exits_as_without_damage(template, tmp_path):
     """`replay` died in numba's _load_index with exit 1, its code for a solve that does not
     reproduce: now exit 0 as on an intact cache, every solve compared and matching (replay
-    waits for the kernels of the solves recorded on the compiled path: it compiles them
-    itself, or waits for a filler another step started)."""
+    waits for the kernels of the solves recorded on the compiled path: it compiles the one
+    whose index is truncated itself, or waits for a filler another step started)."""
     bag = _bag(tmp_path)
     codes = []
     for damage in (None, "truncated"):
-        cache_dir, where = _cache_copy(template, tmp_path / str(damage), damage)
+        cache_dir, where = _cache_copy(template, tmp_path / str(damage), damage, "drift.minimum")
         out = subprocess.run([sys.executable, "-m", "art_guidance.cli", "replay", str(bag)],
                              env=_env(cache_dir), capture_output=True, text=True, timeout=300)
         assert "Traceback" not in out.stderr, out.stderr
         codes.append(out.returncode)
         if damage:
-            assert "moved to" in out.stderr, out.stderr
+            assert "moved to" in out.stderr and "drift.minimum-" in out.stderr, out.stderr
             stop_kernel_filler(where, wait_s=2.0)  # one another step started, if any
     assert codes == [0, 0], codes
+
+
+def test_only_the_damaged_kernels_are_moved_aside_and_compiled_again(template, tmp_path):
+    """numba keeps each kernel's files apart, and a cached kernel holds the code of those it
+    calls: one kernel's truncated index (drift.minimum) and another's truncated data file
+    (drift.violated, found once loading fails) move those two kernels' files aside, and only
+    theirs; the others stay and load, those two compile again into the cache (the compiled
+    path in use, the cache warm again)."""
+    cache_dir, where = _cache_copy(template, tmp_path, "truncated", "drift.minimum")
+    for f in where.glob("drift.violated-*.nbc"):
+        f.write_bytes(f.read_bytes()[:100])
+    kept = {p.name: p.stat().st_mtime_ns for p in where.glob("*.nb[ic]")
+            if not p.name.startswith(("drift.minimum-", "drift.violated-"))}
+    code = ("from art_guidance import kernels\n"
+            "kernels.prepare('compiled', wait=True)\n"
+            "print('COMPILED', kernels.compiled())\n"
+            "print('STATUS', kernels.cache_status())\n")
+    out = _python(code, cache_dir)
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+    assert "COMPILED True" in out.stdout and "warm: every kernel is there" in out.stdout
+    moved = sorted(p.name for p in (where / cache.DAMAGED_FOLDER).iterdir())
+    assert {n.split("-")[0] for n in moved} == {"drift.minimum", "drift.violated"}, moved
+    assert "files of drift.minimum moved" in out.stderr, out.stderr
+    assert "files of drift.violated moved" in out.stderr, out.stderr
+    assert {p.name: p.stat().st_mtime_ns for p in where.glob("*.nb[ic]")
+            if p.name in kept} == kept  # the others: left as they were
+    assert (where / next(n for n in moved if n.endswith(".nbi"))).is_file()  # compiled again
 
 
 def test_a_full_disk_compiles_in_memory_and_moves_nothing(template, tmp_path):
