@@ -248,7 +248,8 @@ def cache_status() -> str:
     except Exception as exc:  # a kernel module that does not import
         return f"the kernels do not import ({type(exc).__name__}: {exc})"
     files = [p.name for paths in damaged.values() for p in paths]
-    state = ("damaged: " + ", ".join(files) + " do not load") if damaged \
+    state = (f"damaged: {', '.join(files)} " + ("does" if len(files) == 1 else "do")
+             + " not load") if damaged \
         else "warm: every kernel is there" if warm else "cold: the kernels compile at first use"
     where = cache.folder()
     pid = None if where is None else cache.filler_pid(where)
