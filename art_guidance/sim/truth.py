@@ -6,6 +6,7 @@ The acceleration and the vectorised conversions are written out here and do not 
 """
 from __future__ import annotations
 
+import math
 
 import numpy as np
 from scipy.integrate import solve_ivp
@@ -18,6 +19,12 @@ TRUTH_RTOL = 1e-11
 TRUTH_ATOL = 1e-8      # [m], [m/s]; relative states are differences of two 7e6 m vectors
 
 
+_J2_FACTOR = 1.5 * J2 * R_EARTH_M**2
+# up to this many stacked states the scalar form of the derivative is the faster (measured:
+# 1.4 us against 12 for the simulator's two, 4 against 12 for eight, 51 against 14 for 100)
+SCALAR_MAX_STATES = 8
+
+
 def _accel(pos: np.ndarray) -> np.ndarray:
     """Two-body + J2 acceleration [m/s^2] for inertial positions (..., 3) [m].
 
@@ -27,16 +34,41 @@ def _accel(pos: np.ndarray) -> np.ndarray:
     r2 = x * x + y * y + z * z
     r = np.sqrt(r2)
     k = -MU_M3PS2 / (r2 * r)
-    f = 1.5 * J2 * R_EARTH_M**2 / r2
+    f = _J2_FACTOR / r2
     zz = 5.0 * z * z / r2
     return np.stack([k * x * (1.0 + f * (1.0 - zz)),
                      k * y * (1.0 + f * (1.0 - zz)),
                      k * z * (1.0 + f * (3.0 - zz))], axis=-1)
 
 
-def _rhs(_t: float, y: np.ndarray) -> np.ndarray:
+def _rhs_array(_t: float, y: np.ndarray) -> np.ndarray:
+    """The time derivative of stacked (B*6,) inertial states, as arrays (the oracle of
+    `_rhs_scalar`)."""
     s = y.reshape(-1, 6)
     return np.concatenate([s[:, 3:], _accel(s[:, :3])], axis=1).ravel()
+
+
+def _rhs_scalar(_t: float, y: np.ndarray) -> np.ndarray:
+    """`_rhs_array` in Python floats, state by state: the same operations in the same order,
+    so the same bits (IEEE double arithmetic; `math.sqrt` and `np.sqrt` both correctly
+    rounded), without numpy's cost per operation on a few numbers."""
+    v = y.tolist()
+    out: list[float] = []
+    for i in range(0, len(v), 6):
+        x, y_, z = v[i], v[i + 1], v[i + 2]
+        r2 = x * x + y_ * y_ + z * z
+        k = -MU_M3PS2 / (r2 * math.sqrt(r2))
+        f = _J2_FACTOR / r2
+        zz = 5.0 * z * z / r2
+        out += (v[i + 3], v[i + 4], v[i + 5], k * x * (1.0 + f * (1.0 - zz)),
+                k * y_ * (1.0 + f * (1.0 - zz)), k * z * (1.0 + f * (3.0 - zz)))
+    return np.array(out)
+
+
+def _rhs(t: float, y: np.ndarray) -> np.ndarray:
+    """The time derivative of stacked (B*6,) inertial states: the scalar form for a few
+    states (the simulator's chief and deputy), the array form for many."""
+    return _rhs_scalar(t, y) if y.size <= 6 * SCALAR_MAX_STATES else _rhs_array(t, y)
 
 
 def integrate_truth(y0: np.ndarray, dt_s: float, t_eval: np.ndarray | None = None,
