@@ -67,13 +67,29 @@ def _rhs_scalar(_t: float, y: np.ndarray) -> np.ndarray:
 
 def _rhs(t: float, y: np.ndarray) -> np.ndarray:
     """The time derivative of stacked (B*6,) inertial states: the scalar form for a few
-    states (the simulator's chief and deputy), the array form for many."""
-    return _rhs_scalar(t, y) if y.size <= 6 * SCALAR_MAX_STATES else _rhs_array(t, y)
+    states (the simulator's chief and deputy), the array form for many, and for a position at
+    (or within 1e-125 m of) the Earth's centre, where Python's floats raise on the division and
+    numpy's give the infinities the integrator then refuses."""
+    if y.size > 6 * SCALAR_MAX_STATES:
+        return _rhs_array(t, y)
+    try:
+        return _rhs_scalar(t, y)
+    except ZeroDivisionError:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return _rhs_array(t, y)
 
 
 def integrate_truth(y0: np.ndarray, dt_s: float, t_eval: np.ndarray | None = None,
                     dense: bool = False):
-    """Integrate stacked (B*6,) inertial states over [0, dt_s] (dt_s may be negative)."""
+    """Integrate stacked (B*6,) inertial states over [0, dt_s] (dt_s may be negative).
+
+    Raises:
+        InputError: a state whose derivative is not finite (a non-finite state, or a position
+            at the Earth's centre: DOP853 searched for a step for ever there).
+    """
+    if not np.all(np.isfinite(_rhs(0.0, y0))):
+        raise InputError("y0", "its time derivative is not finite (a non-finite state, or a "
+                         "position at the Earth's centre)", y0)
     sol = solve_ivp(_rhs, (0.0, dt_s), y0, method="DOP853", rtol=TRUTH_RTOL, atol=TRUTH_ATOL,
                     t_eval=t_eval, dense_output=dense)
     if not sol.success:  # pragma: no cover - DOP853 on a smooth field does not fail

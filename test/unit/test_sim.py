@@ -84,6 +84,9 @@ def test_propagate_truth_checks_input(scenario):
     bad[0] = np.nan
     with pytest.raises(InputError):
         propagate_truth(chief, bad, 1.0)
+    centre = np.concatenate([np.zeros(3), chief[3:]])  # DOP853 searched for a step for ever
+    with pytest.raises(InputError, match="Earth's centre"):
+        propagate_truth(chief, centre, 1.0)
 
 
 def test_the_scalar_truth_derivative_is_bit_for_bit_its_array_oracle(scenario):
