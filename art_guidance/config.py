@@ -16,6 +16,7 @@ import numpy as np
 import yaml
 
 from art_guidance.errors import ConfigError
+from art_guidance.files import load_yaml
 
 # The passive-safety modes as datasets, models, logs and reports name them (the planner and the
 # ROS interface carry the same choice as the bool `chance_constrained`).
@@ -221,7 +222,7 @@ class ScpConfig:
 def _load_yaml(path: str | Path) -> dict:
     try:
         with open(path, encoding="utf-8") as fh:
-            data = yaml.safe_load(fh)
+            data = load_yaml(fh)
     except (OSError, yaml.YAMLError) as exc:
         raise ConfigError(f"cannot read config {path}: {exc}") from exc
     if not isinstance(data, dict):

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import yaml
 
+from art_guidance.files import load_yaml
 from art_guidance.record.bag_metadata import METADATA_FILE
 from art_guidance.record.recorder import PLAN_TYPE, SOLVE_RECORD_TYPE
 from art_guidance.record.scan import Damage
@@ -25,7 +26,7 @@ def recorded_counts(directory: Path) -> tuple[dict | None, str]:
     the folder's metadata.yaml; None and why when it is absent or unreadable."""
     path = directory / METADATA_FILE
     try:
-        info = yaml.safe_load(path.read_text())["rosbag2_bagfile_information"]
+        info = load_yaml(path.read_text())["rosbag2_bagfile_information"]
         topics = {t["topic_metadata"]["name"]: (t["topic_metadata"]["type"],
                                                 int(t["message_count"]))
                   for t in info.get("topics_with_message_count") or []}

@@ -31,7 +31,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from art_guidance.errors import InputError
-from art_guidance.files import fsync_dir
+from art_guidance.files import fsync_dir, load_yaml
 from art_guidance.record.bag_metadata import (
     METADATA_FILE, FileInfo, TopicInfo, bag_files, write_bag_metadata,
 )
@@ -141,7 +141,7 @@ def _summary_info(path: Path) -> tuple[FileInfo, dict[tuple[str, str], list]]:
 def _custom_data(directory: Path) -> dict[str, str]:
     """The previous metadata.yaml's custom_data (empty when missing or unreadable)."""
     try:
-        doc = yaml.safe_load((directory / METADATA_FILE).read_text())
+        doc = load_yaml((directory / METADATA_FILE).read_text())
         return dict(doc["rosbag2_bagfile_information"].get("custom_data") or {})
     except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError):
         return {}

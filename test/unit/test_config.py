@@ -83,3 +83,31 @@ def test_a_recorded_configuration_from_before_the_flight_rules_keeps_its_behavio
     assert before.planning.art_min_gain_mps == 0.0
     assert before.planning.skip_art_when_cvx_safe is False
     assert GuidanceConfig.from_json(cfg.to_json()) == cfg
+
+
+def test_yaml_loads_as_pyyaml_s_safe_load_with_and_without_libyaml(tmp_path, monkeypatch):
+    """`files.load_yaml` (libyaml's parser where PyYAML has it, ~20x faster) gives the objects
+    of `yaml.safe_load` for every packaged config file and a recorder's bag metadata, and
+    without libyaml falls back to PyYAML's parser; a malformed file is still refused as a
+    ConfigError naming it."""
+    import yaml
+
+    from art_guidance.config import _load_yaml, default_config_dir
+    from art_guidance.files import load_yaml
+    from art_guidance.record.bag_metadata import FileInfo, TopicInfo, write_bag_metadata
+
+    bag = write_bag_metadata(tmp_path, [FileInfo("bag_0.mcap", 1, 2_000_000_001, 3)],
+                             [TopicInfo("/guidance/maneuver_plan", "pkg/msg/T", 3, "RIHS01_0")],
+                             {"config": '{"a": 1e-3, "b": "yes", "c": null}'})
+    texts = [p.read_text() for p in sorted(default_config_dir().glob("*.yaml"))]
+    texts.append(bag.read_text())
+    assert len(texts) >= 6
+    for text in texts:
+        assert repr(load_yaml(text)) == repr(yaml.safe_load(text))
+    monkeypatch.delattr(yaml, "CSafeLoader", raising=False)
+    for text in texts:
+        assert repr(load_yaml(text)) == repr(yaml.safe_load(text))
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("a: [1, 2\nb: 3\n")
+    with pytest.raises(ConfigError, match="cannot read config .*bad.yaml"):
+        _load_yaml(bad)
