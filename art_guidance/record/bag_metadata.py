@@ -22,9 +22,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
-from art_guidance.files import write_atomic
+from art_guidance.files import dump_yaml, write_atomic
 
 METADATA_VERSION = 9
 METADATA_FILE = "metadata.yaml"
@@ -92,7 +90,6 @@ def write_bag_metadata(directory: str | Path, files: list[FileInfo], topics: lis
                        custom_data: dict[str, str] | None = None) -> Path:
     """Write `<directory>/metadata.yaml` atomically; returns its path."""
     path = Path(directory) / METADATA_FILE
-    text = yaml.safe_dump(bag_metadata(files, topics, custom_data), sort_keys=False,
-                          default_flow_style=False)
+    text = dump_yaml(bag_metadata(files, topics, custom_data))
     write_atomic(path, text.encode())
     return path

@@ -111,3 +111,30 @@ def test_yaml_loads_as_pyyaml_s_safe_load_with_and_without_libyaml(tmp_path, mon
     bad.write_text("a: [1, 2\nb: 3\n")
     with pytest.raises(ConfigError, match="cannot read config .*bad.yaml"):
         _load_yaml(bad)
+
+
+def test_bag_metadata_is_emitted_as_pyyaml_s_safe_dump_and_loads_back(tmp_path, monkeypatch):
+    """`files.dump_yaml` (libyaml's emitter where PyYAML has it) writes a recorder's
+    metadata.yaml as `yaml.safe_dump` does, to the byte, and a document with awkward strings
+    (quotes, colons, newlines, non-ASCII, a long error message) loads back to itself, with and
+    without libyaml."""
+    import yaml
+
+    from art_guidance.files import dump_yaml
+    from art_guidance.record.bag_metadata import FileInfo, TopicInfo, bag_metadata
+
+    files = [FileInfo(f"bag_{k}.mcap", 10 + k, 2_000_000_000 + k, 3 + k) for k in range(4)]
+    topics = [TopicInfo(f"/ns/guidance/t{k}", "art_guidance_msgs/msg/ManeuverPlan", k,
+                        "RIHS01_" + "ab" * 32) for k in range(8)]
+    plain = bag_metadata(files, topics, {"art_guidance.writer": "McapRecorder",
+                                         "art_guidance.state": "recording"})
+    assert dump_yaml(plain) == yaml.safe_dump(plain, sort_keys=False, default_flow_style=False)
+    awkward = bag_metadata(files, topics, {
+        "art_guidance.last_error": "OSError: [Errno 28] No space left: '/data/x: y' \"q\"\n"
+        + "é ✓ " * 40, "art_guidance.write_errors": 3, "key: with colon": "- dash",
+        "empty": "", "yes": "no", "number_like": "1e-3"})
+    for libyaml in (True, False):
+        if not libyaml:
+            monkeypatch.delattr(yaml, "CSafeDumper", raising=False)
+        for doc in (plain, awkward):
+            assert yaml.safe_load(dump_yaml(doc)) == doc
