@@ -92,8 +92,8 @@ def inspect(data: bool = False) -> tuple[bool, dict[str, list[Path]]]:
         except Exception:  # a truncated, emptied or garbled index
             damaged[name] = [Path(cache_file._index_path)]
             entries = {}
-        bad = [Path(cache_file._data_path(name)) for name in entries.values()
-               if data and not _loads(cache_file, name)]
+        bad = [Path(cache_file._data_path(entry)) for entry in entries.values()
+               if data and not _loads(cache_file, entry)]
         if bad:
             damaged[name] = bad
         if name in ENTRY_POINTS and not entries:

@@ -69,7 +69,7 @@ def _rhs(t: float, y: np.ndarray) -> np.ndarray:
     """The time derivative of stacked (B*6,) inertial states: the scalar form for a few
     states (the simulator's chief and deputy), the array form for many, and for a position at
     (or within 1e-125 m of) the Earth's centre, where Python's floats raise on the division and
-    numpy's give the infinities the integrator then refuses."""
+    numpy's give the NaNs and infinities that `integrate_truth` refuses."""
     if y.size > 6 * SCALAR_MAX_STATES:
         return _rhs_array(t, y)
     try:
