@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import tempfile
+import time
 from typing import Iterator
 
 import numpy as np
@@ -48,8 +49,6 @@ def _orbit(y0: np.ndarray, period_s: float, name: str):
 
 def _fly(name: str) -> tuple[dict, float]:
     """A closed-loop flight's summary, and the CPU its truth integration took [ms]."""
-    import time
-
     from art_guidance.planning import GuidancePipeline
     from art_guidance.sim.closed_loop import PARAMETERS, SIM_EPOCH0_NS, ClosedLoop
     from art_guidance.sim import faults, mean_elements, simulator

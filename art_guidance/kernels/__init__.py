@@ -247,7 +247,7 @@ def cache_status() -> str:
         warm, damaged = cache.inspect()
     except Exception as exc:  # a kernel module that does not import
         return f"the kernels do not import ({type(exc).__name__}: {exc})"
-    files = [p.name for paths in damaged.values() for p in paths]
+    files = _file_names(damaged)
     state = (f"damaged: {', '.join(files)} " + ("does" if len(files) == 1 else "do")
              + " not load") if damaged \
         else "warm: every kernel is there" if warm else "cold: the kernels compile at first use"
@@ -284,9 +284,14 @@ def _move_damaged_data(cache, why: str) -> None:
                 list(damaged) or None)
 
 
+def _file_names(damaged: dict[str, list[Path]]) -> list[str]:
+    """The names of the damaged files (`cache.inspect`'s files by kernel)."""
+    return [p.name for paths in damaged.values() for p in paths]
+
+
 def _did_not_load(damaged: dict[str, list[Path]]) -> str:
     """The damaged files, in words (the first four named)."""
-    files = [p.name for paths in damaged.values() for p in paths]
+    files = _file_names(damaged)
     return (", ".join(files[:4]) + (f" and {len(files) - 4} more" if len(files) > 4 else "")
             + " did not load")
 
